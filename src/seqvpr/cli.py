@@ -1,0 +1,309 @@
+"""The ``seqvpr`` command: a thin layer that parses options and calls the stage functions of ``seqvpr.pipeline``."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from seqvpr.data.groundtruth import GroundTruth, parse_radius
+from seqvpr.data.sources import ground_truth_spec, load_traversal
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.evaluation.metrics import Evaluation, evaluate
+from seqvpr.evaluation.predictions import read_predictions, write_predictions
+from seqvpr.features.patchnorm import PatchNormConfig
+from seqvpr.io import atomic_write
+from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match, ground_truth, match_traversals
+from seqvpr.sequences.windows import SequenceSpec
+
+
+def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
+    """A tqdm bar on stderr (hidden when stderr is not a terminal); returns its update function."""
+    bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, leave=False, disable=None)
+    return bar.update
+
+
+def parse_frames(text: str | None) -> tuple[int | None, int | None]:
+    """``START:STOP`` (either side may be empty) -> a half-open range of source frame indices."""
+    if not text:
+        return None, None
+    start, sep, stop = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return (int(start) if start else None), (int(stop) if stop else None)
+    except ValueError:
+        raise SeqvprError(f"--frames {text!r}: expected START:STOP, e.g. 17:2000") from None
+
+
+def parse_ks(text: str) -> tuple[int, ...]:
+    """``1,5,10,20`` -> (1, 5, 10, 20)."""
+    try:
+        ks = tuple(sorted({int(x) for x in text.split(",") if x.strip()}))
+    except ValueError:
+        raise SeqvprError(f"--k {text!r}: expected comma-separated positive integers, e.g. 1,5,10,20") from None
+    if not ks or ks[0] < 1:
+        raise SeqvprError(f"--k {text!r}: expected comma-separated positive integers, e.g. 1,5,10,20")
+    return ks
+
+
+def parse_velocities(text: str) -> tuple[float, ...]:
+    """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities."""
+    try:
+        if ":" in text:
+            lo, hi, step = (float(x) for x in text.split(":"))
+            if step <= 0 or hi < lo:
+                raise ValueError
+            return tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise SeqvprError(f"--velocities {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
+
+
+def parse_size(text: str | None) -> int | None:
+    """``512M``, ``2G`` or plain bytes -> bytes; ``none`` -> no budget."""
+    if text is None or text.lower() == "none":
+        return None
+    units = {"k": 1024, "m": 1024**2, "g": 1024**3}
+    try:
+        scale = units.get(text[-1].lower(), 1)
+        return int(float(text[:-1] if text[-1].lower() in units else text) * scale)
+    except (ValueError, IndexError):
+        raise SeqvprError(f"--memory-budget {text!r}: expected bytes such as 512M or 2G") from None
+
+
+def parse_thumbnail(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(x) for x in text.lower().split("x"))
+        return width, height
+    except ValueError:
+        raise SeqvprError(f"--thumbnail {text!r}: expected WIDTHxHEIGHT, e.g. 64x32") from None
+
+
+def load_pair(reference: str, query: str, frames: str | None) -> tuple[Traversal, Traversal]:
+    """Both traversals, sliced to the ``--frames`` range."""
+    start, stop = parse_frames(frames)
+    ref = load_traversal(reference, "reference")
+    qry = load_traversal(query, "query")
+    if start is not None or stop is not None:
+        ref, qry = ref.slice_frames(start, stop), qry.slice_frames(start, stop)
+    return ref, qry
+
+
+def resolve_ground_truth(ref: Traversal, qry: Traversal, radius: str | None, gt_file: str | None, reference: str) -> GroundTruth:
+    """Ground truth from --ground-truth, --radius, or the description file's [ground_truth] table."""
+    spec = ground_truth_spec(reference)
+    if gt_file is None and radius is None and spec is not None:
+        return ground_truth(ref, qry, spec.radius, spec.file)
+    return ground_truth(ref, qry, parse_radius(radius) if radius else None, gt_file)
+
+
+def recall_table(evaluation: Evaluation, label: str) -> str:
+    """A small text table: one row with R@K for each K, AUC and R@100P, and the query counts."""
+    ks = list(evaluation.recall)
+    header = f"{'':<14}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'R@100P':>8}"
+    row = f"{label:<14}" + "".join(f"{evaluation.recall[k]:>8.3f}" for k in ks)
+    row += f"{evaluation.pr.auc:>8.3f}{evaluation.pr.recall_at_100_precision:>8.3f}"
+    counts = (
+        f"queries evaluated: {evaluation.queries_evaluated}; excluded: {evaluation.queries_excluded} "
+        f"(no window: {evaluation.excluded_no_window}, no positive: {evaluation.excluded_no_positive}, "
+        f"policy: {evaluation.no_positive})"
+    )
+    return "\n".join([header, row, counts])
+
+
+def evaluation_json(evaluation: Evaluation, settings: dict) -> dict:
+    return {
+        "recall": {str(k): v for k, v in evaluation.recall.items()},
+        "pr_auc": evaluation.pr.auc,
+        "recall_at_100_precision": evaluation.pr.recall_at_100_precision,
+        "queries_evaluated": evaluation.queries_evaluated,
+        "queries_excluded": evaluation.queries_excluded,
+        "excluded_no_window": evaluation.excluded_no_window,
+        "excluded_no_positive": evaluation.excluded_no_positive,
+        "settings": settings,
+    }
+
+
+def save_predictions(path: Path, result: MatchResult, gt: GroundTruth) -> None:
+    """Predictions CSV in source frame indices, for queries that have a window."""
+    top = result.topk
+    rows = np.flatnonzero(top.has_window)
+    ref_frames = result.reference.frame_index
+    refs = np.where(top.indices[rows] >= 0, ref_frames[np.maximum(top.indices[rows], 0)], -1)
+    names = result.query.frame_names()
+    correct = gt.contains(rows, top.indices[rows, 0])
+    write_predictions(
+        path,
+        result.query.frame_index[rows],
+        [names[i] for i in rows],
+        refs,
+        top.distances[rows],
+        correct,
+        gt.has_positive()[rows],
+    )
+
+
+MATCH_EPILOG = """\b
+Examples:
+  seqvpr match --reference day.mat --query night.mat --seq-len 5 --radius 2f
+  seqvpr match --reference summer/ --query winter/ --frames 17:2000 --radius 1f --seq-len 10
+  seqvpr match --reference dataset.toml --query dataset.toml --json
+  seqvpr match --reference ref.npz --query qry.npz --radius 25m --velocities 0.8:1.2:0.1
+"""
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
+@click.version_option(package_name="seqvpr")
+def cli() -> None:
+    """Sequence-based visual place recognition: match a query traversal against a reference traversal."""
+
+
+@cli.command(epilog=MATCH_EPILOG)
+@click.option("--reference", "-r", required=True, help="Reference traversal: descriptor file, image folder, .db or .toml.")
+@click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
+@click.option("--seq-len", "-L", default=1, show_default=True, type=int, help="Frames per sequence window.")
+@click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
+              help="Window around the frame (centred) or ending at it (causal, for online use).")
+@click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
+              help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
+@click.option("--velocities", default="1", show_default=True,
+              help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
+@click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
+@click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
+@click.option("--descriptor", type=click.Choice(["patchnorm"]), default="patchnorm", show_default=True,
+              help="How images become descriptors (descriptor files are used as they are).")
+@click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT.")
+@click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels.")
+@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
+              help="Queries with no positive: excluded from the denominator, or counted as misses.")
+@click.option("--no-normalize", is_flag=True, help="Do not L2-normalise descriptors before matching.")
+@click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--memory-budget", default="2G", show_default=True,
+              help="Most bytes of distance matrix held at once (e.g. 512M); 'none' for the whole matrix.")
+@click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=click.Path(),
+              help="Folder for predictions.csv and run.json.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
+def match(reference, query, seq_len, align, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
+          patch, ks, no_positive, no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
+    """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
+    width, height = parse_thumbnail(thumbnail)
+    spec = SequenceSpec(seq_len, align, boundary, parse_velocities(velocities))
+    k_values = parse_ks(ks)
+    settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, parse_size(memory_budget))
+    ref, qry = load_pair(reference, query, frames)
+    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
+    config = PatchNormConfig(width, height, patch)
+    ref = describe(ref, descriptor, config, tqdm_progress)
+    qry = describe(qry, descriptor, config, tqdm_progress)
+    result = match_traversals(ref, qry, settings, tqdm_progress)
+    evaluation = evaluate_match(result, gt, k_values, no_positive)
+    run = {
+        "reference": reference, "query": query, "frames": frames, "radius": radius, "ground_truth": gt_file,
+        "ground_truth_rule": gt.description, "descriptor": descriptor if ref.image_paths is not None else "file",
+        "no_positive": no_positive, **settings.as_dict(),
+    }
+    out = Path(out_dir)
+    save_predictions(out / "predictions.csv", result, gt)
+    with atomic_write(out / "run.json") as handle:
+        json.dump(evaluation_json(evaluation, run), handle, indent=2, default=str)
+    if as_json:
+        click.echo(json.dumps(evaluation_json(evaluation, run), default=str))
+        return
+    click.echo(f"reference: {ref!r}\nquery:     {qry!r}\nground truth: {gt.description}")
+    click.echo(recall_table(evaluation, f"L={seq_len}"))
+    click.echo(f"predictions: {out / 'predictions.csv'}")
+
+
+@cli.command(name="eval", epilog="\b\nExample:\n  seqvpr eval seqvpr-out/predictions.csv --reference day.mat --query night.mat --radius 2f")
+@click.argument("predictions", type=click.Path())
+@click.option("--reference", "-r", required=True, help="The reference traversal the predictions index.")
+@click.option("--query", "-q", required=True, help="The query traversal.")
+@click.option("--radius", help="Ground-truth tolerance: 25m or 2f.")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat or VPR-Bench .npy).")
+@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive, as_json) -> None:
+    """Score a predictions CSV (query, references, distances) against ground truth."""
+    k_values = parse_ks(ks)
+    ref, qry = load_pair(reference, query, None)
+    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
+    table = read_predictions(predictions)
+    q_rows = _rows_of(qry.frame_index, table.query, predictions, "query")
+    r_rows = _rows_of(ref.frame_index, table.references, predictions, "reference")
+    indices = np.full((len(qry), table.references.shape[1]), -1, dtype=np.int64)
+    distances = np.full(indices.shape, np.inf)
+    indices[q_rows], distances[q_rows] = r_rows, table.distances
+    has_window = np.zeros(len(qry), dtype=bool)
+    has_window[q_rows] = True
+    evaluation = evaluate(indices, distances, has_window, gt, k_values, no_positive)
+    if as_json:
+        click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))
+    else:
+        click.echo(recall_table(evaluation, Path(predictions).name[:14]))
+
+
+def _rows_of(frame_index: np.ndarray, wanted: np.ndarray, path: str, what: str) -> np.ndarray:
+    """Rows of a traversal holding the given source frame indices (-1 stays -1); unknown indices are an error."""
+    lookup = {int(f): row for row, f in enumerate(frame_index)}
+    flat = wanted.ravel()
+    rows = np.array([lookup.get(int(f), -2) if f >= 0 else -1 for f in flat], dtype=np.int64)
+    if (rows == -2).any():
+        missing = int(flat[np.flatnonzero(rows == -2)[0]])
+        raise SeqvprError(f"{path}: {what} frame {missing} is not in the {what} traversal")
+    return rows.reshape(wanted.shape)
+
+
+@cli.command()
+@click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=click.Path(),
+              help="Folder for the generated traversals and the results.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the generated route.")
+@click.option("--frames", "n_frames", default=1500, show_default=True, type=int, help="Frames per traversal.")
+def demo(out_dir, seed, n_frames) -> None:
+    """Generate a small route (reference and query descriptors with positions) and match it at L = 1, 5, 10."""
+    from seqvpr.data.synthetic import write_demo_route
+
+    out = Path(out_dir)
+    ref_path, qry_path = write_demo_route(out, n_frames=n_frames, seed=seed)
+    click.echo(f"generated {ref_path} and {qry_path} (seed {seed}); matching within 10 m:")
+    ref, qry = load_pair(str(ref_path), str(qry_path), None)
+    gt = ground_truth(ref, qry, parse_radius("10m"))
+    for length in (1, 5, 10):
+        settings = MatchSettings(SequenceSpec(length), k=20)
+        result = match_traversals(ref, qry, settings, tqdm_progress)
+        evaluation = evaluate_match(result, gt, (1, 5, 20))
+        lines = recall_table(evaluation, f"L={length}").split("\n")
+        click.echo("\n".join(lines[:2] if length == 1 else lines[1:2]))
+        save_predictions(out / f"predictions_L{length}.csv", result, gt)
+    click.echo(f"the same from the command line: seqvpr match --reference {ref_path} --query {qry_path} --radius 10m --seq-len 5")
+
+
+def main() -> None:
+    """Entry point: run the CLI; a SeqvprError becomes one line on stderr and exit status 2."""
+    try:
+        cli.main(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as error:
+        error.show()
+        sys.exit(error.exit_code)
+    except SeqvprError as error:
+        click.echo(f"seqvpr: error: {error}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,82 @@
+"""Ground truth read from files: a MATLAB GT struct (GThard/GTsoft) or VPR-Bench ``ground_truth_new.npy``.
+
+Both give positives over the source frame indices of the two traversals; ``GroundTruth.restrict`` maps them to
+the rows of (possibly sliced) traversals.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import scipy.io
+import scipy.sparse as sp
+
+from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.errors import SeqvprError
+
+
+def load_ground_truth_file(path: str | Path, n_query: int | None = None, n_reference: int | None = None) -> GroundTruth:
+    """Read a GT file into a [n_query, n_reference] sparse ground truth over source frame indices."""
+    path = Path(path)
+    if not path.exists():
+        raise SeqvprError(f"{path}: ground-truth file not found")
+    if path.suffix.lower() == ".mat":
+        return _load_gt_mat(path)
+    if path.suffix.lower() == ".npy":
+        return _load_vprbench_npy(path, n_query, n_reference)
+    raise SeqvprError(f"{path}: unknown ground-truth format (expected a GT .mat or VPR-Bench .npy)")
+
+
+def _load_gt_mat(path: Path) -> GroundTruth:
+    """``GT.GThard`` (and optional ``GT.GTsoft``), stored [n_reference, n_query] as in VPR_Tutorial."""
+    try:
+        contents = scipy.io.loadmat(path)
+    except NotImplementedError:
+        raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
+    except (ValueError, TypeError, OSError) as error:
+        raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
+    if "GT" not in contents:
+        raise SeqvprError(f"{path}: no variable 'GT' (expected a struct with GThard and GTsoft)")
+    gt = contents["GT"]
+    names = gt.dtype.names or ()
+    if "GThard" not in names:
+        raise SeqvprError(f"{path}: field GT.GThard is missing")
+    hard = _as_matrix(gt["GThard"][0, 0], path, "GT.GThard")
+    soft = _as_matrix(gt["GTsoft"][0, 0], path, "GT.GTsoft") if "GTsoft" in names else None
+    if soft is not None and soft.shape != hard.shape:
+        raise SeqvprError(f"{path}: GT.GTsoft has shape {soft.shape} but GT.GThard has {hard.shape}")
+    return GroundTruth(hard, soft, description=f"GThard from {path.name}")
+
+
+def _as_matrix(value, path: Path, field: str) -> sp.csr_array:
+    """A [n_reference, n_query] 0/1 matrix transposed to our [n_query, n_reference] layout."""
+    matrix = sp.csr_array(value) if sp.issparse(value) else sp.csr_array(np.asarray(value) != 0)
+    if matrix.ndim != 2:
+        raise SeqvprError(f"{path}: {field} must be a 2-D matrix")
+    return sp.csr_array(matrix.T.astype(bool))
+
+
+def _load_vprbench_npy(path: Path, n_query: int | None, n_reference: int | None) -> GroundTruth:
+    """Object array of rows [query_index, [reference indices]] (VPR-Bench)."""
+    try:
+        rows = np.load(path, allow_pickle=True)
+    except (ValueError, OSError) as error:
+        raise SeqvprError(f"{path}: not a readable .npy file ({error})") from None
+    if rows.ndim != 2 or rows.shape[1] != 2:
+        raise SeqvprError(f"{path}: expected VPR-Bench rows [query_index, [reference indices]], got shape {rows.shape}")
+    pairs = []
+    for line, (query, refs) in enumerate(rows):
+        try:
+            q = int(query)
+            pairs.extend((q, int(r)) for r in np.atleast_1d(refs))
+        except (TypeError, ValueError):
+            raise SeqvprError(f"{path}: row {line} is not [query_index, [reference indices]]") from None
+    q_idx = np.array([p[0] for p in pairs], dtype=np.int64)
+    r_idx = np.array([p[1] for p in pairs], dtype=np.int64)
+    if (q_idx < 0).any() or (r_idx < 0).any():
+        raise SeqvprError(f"{path}: negative frame index")
+    n_q = max(n_query or 0, len(rows), int(q_idx.max(initial=-1)) + 1)
+    n_r = max(n_reference or 0, int(r_idx.max(initial=-1)) + 1)
+    matrix = sp.csr_array((np.ones(len(pairs), dtype=bool), (q_idx, r_idx)), shape=(n_q, n_r))
+    return GroundTruth(matrix, description=f"VPR-Bench ground truth from {path.name}")

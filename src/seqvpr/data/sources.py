@@ -1,0 +1,168 @@
+"""Resolve what a user names on the command line (a file, a folder, a description file) to a Traversal.
+
+- ``.npy`` / ``.npz`` / ``.mat`` (optionally ``FILE:VAR``): descriptor rows, frame-aligned. An ``.npz`` with a
+  ``descriptors`` array is a whole traversal file (optional ``positions`` [N,2], ``timestamps``, ``segments``).
+- ``.db`` or a ``.mat`` holding ``dbStruct``: the reference (database) or query side, by role.
+- a folder of ``@east@north@...@.jpg`` images (or with ``database/`` and ``queries/``): UTM from the names.
+- a folder of images, with ``positions.csv`` inside when present.
+- ``.toml``: a dataset description with ``[reference]``, ``[query]`` and ``[ground_truth]`` tables.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import scipy.io
+
+from seqvpr.data.groundtruth import Radius, parse_radius
+from seqvpr.data.loaders.descriptors import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+Role = Literal["reference", "query"]
+
+
+@dataclass(frozen=True)
+class GroundTruthSpec:
+    """Ground truth named by a description file: a radius, or a file of positives."""
+
+    radius: Radius | None = None
+    file: Path | None = None
+
+
+def load_traversal(source: str | Path, role: Role) -> Traversal:
+    """The traversal a command-line source names, for the given role."""
+    text = str(source)
+    path, _ = split_variable(text)
+    if path.suffix.lower() == ".toml":
+        return _traversal_from_description(path, role)
+    if path.is_dir():
+        return _traversal_from_folder(path, role)
+    if not path.exists():
+        raise SeqvprError(f"{path}: no such file or folder")
+    suffix = path.suffix.lower()
+    if suffix == ".db" or (suffix == ".mat" and _holds_dbstruct(path)):
+        return _dbstruct_side(path, role)
+    if suffix == ".npz" and _is_traversal_npz(path):
+        return load_traversal_npz(path)
+    if suffix in DESCRIPTOR_SUFFIXES:
+        name = f"{path.parent.name}/{path.stem}" if path.parent.name else path.stem
+        return Traversal.from_descriptors(load_descriptor_array(text), name=name, source=text)
+    raise SeqvprError(f"{path}: not a descriptor file (.npy/.npz/.mat), dbStruct (.db), folder or description (.toml)")
+
+
+def ground_truth_spec(source: str | Path) -> GroundTruthSpec | None:
+    """The ``[ground_truth]`` table of a description file, if the source is one and has it."""
+    path, _ = split_variable(str(source))
+    if path.suffix.lower() != ".toml" or not path.exists():
+        return None
+    table = _read_toml(path).get("ground_truth")
+    if table is None:
+        return None
+    radius = parse_radius(str(table["radius"])) if "radius" in table else None
+    file = (path.parent / table["file"]) if "file" in table else None
+    return GroundTruthSpec(radius, file)
+
+
+def _traversal_from_folder(folder: Path, role: Role) -> Traversal:
+    from seqvpr.data.loaders.utm_names import is_utm_named_folder, load_utm_named_folder
+
+    if is_utm_named_folder(folder):
+        return load_utm_named_folder(folder, role=role)
+    from seqvpr.data.loaders.image_folder import load_image_folder
+
+    csv = folder / "positions.csv"
+    return load_image_folder(folder, csv if csv.exists() else None)
+
+
+def _holds_dbstruct(path: Path) -> bool:
+    """A MAT file whose variables include ``dbStruct`` (unreadable files go to the descriptor loader's errors)."""
+    try:
+        return any(name == "dbStruct" for name, _, _ in scipy.io.whosmat(path))
+    except Exception:
+        return False
+
+
+def _dbstruct_side(path: Path, role: Role) -> Traversal:
+    from seqvpr.data.loaders.dbstruct import load_dbstruct
+
+    db = load_dbstruct(path)
+    return db.reference if role == "reference" else db.query
+
+
+def _is_traversal_npz(path: Path) -> bool:
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return "descriptors" in archive.files
+    except Exception:
+        return False
+
+
+def load_traversal_npz(path: Path) -> Traversal:
+    """A traversal file: ``descriptors`` plus optional ``positions``, ``timestamps``, ``segments``."""
+    with np.load(path, allow_pickle=False) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    descriptors = load_descriptor_array(f"{path}:descriptors")
+    return Traversal.from_descriptors(
+        descriptors,
+        name=path.stem,
+        positions=arrays.get("positions"),
+        segment_ids=arrays.get("segments"),
+        timestamps=arrays.get("timestamps"),
+        source=str(path),
+    )
+
+
+def save_traversal_npz(path: Path, traversal: Traversal) -> None:
+    """Write a traversal file readable by ``load_traversal_npz`` (atomically)."""
+    from seqvpr.io import atomic_write
+
+    arrays = {"descriptors": traversal.descriptors, "segments": traversal.segment_ids}
+    if traversal.positions is not None:
+        arrays["positions"] = traversal.positions
+    if traversal.timestamps is not None:
+        arrays["timestamps"] = traversal.timestamps
+    with atomic_write(path, "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+def _read_toml(path: Path) -> dict:
+    if not path.exists():
+        raise SeqvprError(f"{path}: description file not found")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise SeqvprError(f"{path}: not valid TOML ({error})") from None
+
+
+def _traversal_from_description(path: Path, role: Role) -> Traversal:
+    """The ``[reference]`` or ``[query]`` table: ``descriptors``, ``images`` (+ ``positions``) or ``dbstruct``."""
+    table = _read_toml(path).get(role)
+    if table is None:
+        raise SeqvprError(f"{path}: no [{role}] table")
+    base = path.parent
+    if "descriptors" in table:
+        traversal = load_traversal(str(base / table["descriptors"]), role)
+    elif "dbstruct" in table:
+        traversal = _dbstruct_side(base / table["dbstruct"], role)
+    elif "images" in table:
+        from seqvpr.data.loaders.image_folder import load_image_folder
+
+        positions = base / table["positions"] if "positions" in table else None
+        traversal = load_image_folder(base / table["images"], positions)
+    else:
+        raise SeqvprError(f"{path}: [{role}] needs one of descriptors, images or dbstruct")
+    if "name" in table:
+        from dataclasses import replace
+
+        traversal = replace(traversal, name=str(table["name"]))
+    return traversal

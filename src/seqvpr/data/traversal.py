@@ -1,0 +1,181 @@
+"""The unit of data: one traversal of a route, as ordered frames with descriptors, positions and segment ids."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from seqvpr.errors import SeqvprError
+
+
+@dataclass(frozen=True)
+class Traversal:
+    """Ordered frames of one drive along a route.
+
+    ``frame_index`` is each frame's index in its source (row of a descriptor file, position in an image list);
+    it survives slicing, so frame-aligned ground truth and written predictions keep referring to the source.
+    ``positions`` are metres (easting, northing), absent for frame-aligned sets. ``segment_ids`` mark trajectory
+    breaks: a sequence window never spans two runs of different ids.
+    """
+
+    name: str
+    frame_index: np.ndarray
+    segment_ids: np.ndarray
+    descriptors: np.ndarray | None = None
+    image_paths: tuple[Path, ...] | None = None
+    positions: np.ndarray | None = None
+    timestamps: np.ndarray | None = None
+    headings: np.ndarray | None = None
+    source: str = field(default="", compare=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.frame_index)
+        if n == 0:
+            raise SeqvprError(f"{self._label()}: the traversal is empty (no frames)")
+        _check_length(self, "segment_ids", self.segment_ids, n)
+        _check_length(self, "positions", self.positions, n)
+        _check_length(self, "timestamps", self.timestamps, n)
+        _check_length(self, "headings", self.headings, n)
+        _check_length(self, "image_paths", self.image_paths, n)
+        if self.descriptors is not None:
+            _check_descriptors(self, self.descriptors)
+        if self.positions is not None:
+            if self.positions.ndim != 2 or self.positions.shape[1] != 2:
+                raise SeqvprError(f"{self._label()}: positions must be [N, 2] (easting, northing) in metres")
+            if not np.isfinite(self.positions).all():
+                bad = int(np.flatnonzero(~np.isfinite(self.positions).all(axis=1))[0])
+                raise SeqvprError(f"{self._label()}: position of frame {int(self.frame_index[bad])} is not finite")
+        if self.descriptors is None and self.image_paths is None:
+            raise SeqvprError(f"{self._label()}: a traversal needs descriptors or image paths")
+
+    @classmethod
+    def from_descriptors(
+        cls,
+        descriptors: np.ndarray,
+        name: str = "traversal",
+        *,
+        positions: np.ndarray | None = None,
+        segment_ids: np.ndarray | None = None,
+        timestamps: np.ndarray | None = None,
+        source: str = "",
+    ) -> Traversal:
+        """A traversal whose frame ``i`` is row ``i`` of ``descriptors`` (one segment unless ids are given)."""
+        n = len(descriptors)
+        return cls(
+            name=name,
+            frame_index=np.arange(n, dtype=np.int64),
+            segment_ids=np.zeros(n, dtype=np.int64) if segment_ids is None else np.asarray(segment_ids),
+            descriptors=descriptors,
+            positions=None if positions is None else np.asarray(positions, dtype=np.float64),
+            timestamps=None if timestamps is None else np.asarray(timestamps, dtype=np.float64),
+            source=source,
+        )
+
+    def __len__(self) -> int:
+        return len(self.frame_index)
+
+    def __repr__(self) -> str:
+        dim = "none" if self.descriptors is None else str(self.descriptors.shape[1])
+        units = "metres" if self.positions is not None else "frames"
+        return f"<Traversal {self.name!r}: {len(self)} frames, {self.n_segments} segments, dim {dim}, {units}>"
+
+    @property
+    def n_segments(self) -> int:
+        return int(np.count_nonzero(np.diff(self.segment_ids))) + 1
+
+    def frame_names(self) -> list[str]:
+        """A printable name per frame: the image file name, or the frame index."""
+        if self.image_paths is not None:
+            return [p.name for p in self.image_paths]
+        return [str(int(i)) for i in self.frame_index]
+
+    def with_descriptors(self, descriptors: np.ndarray) -> Traversal:
+        """The same frames with new descriptor rows (for instance after a learned transform)."""
+        return replace(self, descriptors=descriptors)
+
+    def select(self, rows: np.ndarray) -> Traversal:
+        """Keep the given rows (indices or boolean mask); removing frames from a run starts a new segment."""
+        rows = np.asarray(rows)
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
+        if len(rows) == 0:
+            raise SeqvprError(f"{self._label()}: the selection leaves no frames")
+        kept_ids = self.segment_ids[rows]
+        new_run = np.ones(len(rows), dtype=bool)
+        new_run[1:] = (np.diff(rows) != 1) | (np.diff(kept_ids) != 0)
+        return replace(
+            self,
+            frame_index=self.frame_index[rows],
+            segment_ids=np.cumsum(new_run) - 1,
+            descriptors=None if self.descriptors is None else self.descriptors[rows],
+            image_paths=None if self.image_paths is None else tuple(self.image_paths[i] for i in rows),
+            positions=None if self.positions is None else self.positions[rows],
+            timestamps=None if self.timestamps is None else self.timestamps[rows],
+            headings=None if self.headings is None else self.headings[rows],
+        )
+
+    def slice_frames(self, start: int | None, stop: int | None) -> Traversal:
+        """Keep frames whose source index lies in ``[start, stop)`` (e.g. to skip placeholder frames)."""
+        lo = -np.inf if start is None else start
+        hi = np.inf if stop is None else stop
+        mask = (self.frame_index >= lo) & (self.frame_index < hi)
+        if not mask.any():
+            raise SeqvprError(f"{self._label()}: no frame has an index in [{start}, {stop})")
+        return self.select(mask)
+
+    def _label(self) -> str:
+        return self.source or self.name
+
+
+def _check_length(traversal: Traversal, field_name: str, values, n: int) -> None:
+    if values is not None and len(values) != n:
+        raise SeqvprError(f"{traversal._label()}: {field_name} has {len(values)} entries for {n} frames")
+
+
+def _check_descriptors(traversal: Traversal, descriptors: np.ndarray) -> None:
+    if descriptors.ndim != 2:
+        raise SeqvprError(f"{traversal._label()}: descriptors must be a 2-D array [frames, dim], got shape {descriptors.shape}")
+    if descriptors.shape[0] != len(traversal.frame_index):
+        raise SeqvprError(
+            f"{traversal._label()}: {descriptors.shape[0]} descriptor rows for {len(traversal.frame_index)} frames"
+        )
+    if descriptors.shape[1] == 0:
+        raise SeqvprError(f"{traversal._label()}: descriptors have dimension 0")
+    if not np.issubdtype(descriptors.dtype, np.floating):
+        raise SeqvprError(f"{traversal._label()}: descriptors must be floating point, got {descriptors.dtype}")
+    finite = np.isfinite(descriptors).all(axis=1)
+    if not finite.all():
+        row = int(np.flatnonzero(~finite)[0])
+        raise SeqvprError(
+            f"{traversal._label()}: descriptor row {int(traversal.frame_index[row])} contains NaN or infinity"
+        )
+
+
+def segments_from_gaps(
+    frame_numbers: np.ndarray | None = None,
+    max_frame_step: int | None = None,
+    timestamps: np.ndarray | None = None,
+    max_time_gap: float | None = None,
+    positions: np.ndarray | None = None,
+    max_distance_gap: float | None = None,
+) -> np.ndarray:
+    """Segment ids that start a new segment wherever consecutive frames jump by more than a threshold.
+
+    Jumps in frame numbers (frames removed), in time (seconds) or in distance (metres) mark trajectory breaks.
+    Give any combination; an unset threshold is not checked.
+    """
+    lengths = [len(a) for a in (frame_numbers, timestamps, positions) if a is not None]
+    if not lengths:
+        raise SeqvprError("segments_from_gaps needs frame numbers, timestamps or positions")
+    n = lengths[0]
+    breaks = np.zeros(max(n - 1, 0), dtype=bool)
+    if frame_numbers is not None and max_frame_step is not None:
+        breaks |= np.diff(np.asarray(frame_numbers)) > max_frame_step
+    if timestamps is not None and max_time_gap is not None:
+        breaks |= np.diff(np.asarray(timestamps, dtype=np.float64)) > max_time_gap
+    if positions is not None and max_distance_gap is not None:
+        steps = np.linalg.norm(np.diff(np.asarray(positions, dtype=np.float64), axis=0), axis=1)
+        breaks |= steps > max_distance_gap
+    return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)

@@ -1,0 +1,136 @@
+"""Stage functions from traversals to scores; the CLI is a thin layer over these.
+
+    reference, query = load_traversal(...), load_traversal(...)
+    reference, query = describe(reference), describe(query)      # images -> descriptors when needed
+    result = match_traversals(reference, query, MatchSettings(SequenceSpec(length=5)))
+    scores = evaluate_match(result, ground_truth(reference, query, parse_radius("2f")))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
+from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
+from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
+from seqvpr.sequences.matching import TopK, sequence_topk
+from seqvpr.sequences.windows import SequenceSpec
+
+ProgressFactory = Callable[[int, str], Callable[[int], None]]
+DESCRIPTORS = ("patchnorm",)
+
+
+@dataclass(frozen=True)
+class MatchSettings:
+    """Everything that decides a match: sequences, K, normalisation, numeric type, device and memory budget."""
+
+    sequence: SequenceSpec = field(default_factory=SequenceSpec)
+    k: int = 20
+    normalize: bool = True
+    dtype: str = "float32"
+    device: str = "cpu"
+    memory_budget: int | None = 2 * 1024**3
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """Top-K reference rows per query row, with the traversals they index."""
+
+    reference: Traversal
+    query: Traversal
+    topk: TopK
+    settings: MatchSettings
+
+
+def describe(
+    traversal: Traversal,
+    descriptor: str = "patchnorm",
+    config: PatchNormConfig = PatchNormConfig(),
+    progress: ProgressFactory | None = None,
+) -> Traversal:
+    """The traversal with descriptors: kept if it has them, else computed from its images."""
+    if traversal.descriptors is not None:
+        return traversal
+    if descriptor not in DESCRIPTORS:
+        raise SeqvprError(f"descriptor {descriptor!r} is not known (choose from: {', '.join(DESCRIPTORS)})")
+    assert traversal.image_paths is not None
+    tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
+    return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
+
+
+def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
+    """Descriptors as a tensor on the settings' device, L2-normalised per frame when asked."""
+    if traversal.descriptors is None:
+        raise SeqvprError(f"{traversal.source or traversal.name}: no descriptors (describe() the images first)")
+    dtype = {"float32": torch.float32, "float64": torch.float64}.get(settings.dtype)
+    if dtype is None:
+        raise SeqvprError(f"dtype must be float32 or float64, got {settings.dtype!r}")
+    try:
+        tensor = torch.as_tensor(np.ascontiguousarray(traversal.descriptors), dtype=dtype).to(settings.device)
+    except (RuntimeError, AssertionError) as error:
+        raise SeqvprError(f"device {settings.device!r} is not usable here ({str(error).splitlines()[0]})") from None
+    if settings.normalize:
+        tensor = torch.nn.functional.normalize(tensor, dim=1)
+    return tensor
+
+
+def match_traversals(
+    reference: Traversal,
+    query: Traversal,
+    settings: MatchSettings = MatchSettings(),
+    progress: ProgressFactory | None = None,
+) -> MatchResult:
+    """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments)."""
+    ref = _as_tensor(reference, settings)
+    qry = _as_tensor(query, settings)
+    if ref.shape[1] != qry.shape[1]:
+        raise SeqvprError(
+            f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
+            f"{query.source or query.name} has {qry.shape[1]}"
+        )
+    tick = progress(len(query), "match") if progress else None
+    topk = sequence_topk(
+        qry,
+        ref,
+        settings.sequence,
+        settings.k,
+        query.segment_ids,
+        reference.segment_ids,
+        memory_budget=settings.memory_budget,
+        progress=tick,
+    )
+    return MatchResult(reference, query, topk, settings)
+
+
+def ground_truth(
+    reference: Traversal, query: Traversal, radius: Radius | None = None, file: str | Path | None = None
+) -> GroundTruth:
+    """Positives between the rows of two traversals, from a radius or from a GT file over source indices."""
+    if file is not None:
+        gt = load_ground_truth_file(file)
+        return gt.restrict(query.frame_index, reference.frame_index)
+    if radius is None:
+        if reference.positions is not None and query.positions is not None:
+            radius = Radius(25.0, "m")
+        else:
+            raise SeqvprError("frame-aligned traversals need a frame radius, e.g. --radius 2f (or a --ground-truth file)")
+    return ground_truth_within_radius(query, reference, radius)
+
+
+def evaluate_match(
+    result: MatchResult, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS, no_positive: NoPositivePolicy = "exclude"
+) -> Evaluation:
+    """Recall@K and PR of a match result."""
+    top = result.topk
+    return evaluate(top.indices, top.distances, top.has_window, gt, ks, no_positive)

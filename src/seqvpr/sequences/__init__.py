@@ -1,0 +1,1 @@
+"""Sequence windows, the matching kernel, and (later) sequence descriptors."""

@@ -1,0 +1,255 @@
+"""The matching kernel: sequence distances between query and reference windows (SeqMatchNet Eq. 3/4).
+
+The sequence distance between the windows of query i and reference j is the mean of the L order-aligned
+Euclidean frame distances, ``S[i, j] = (1/L) sum_k d[qs_i + k, rs_j + k]``, where ``qs``/``rs`` are window
+starts (see ``windows``). Matrices are laid out [n_query, n_reference]. Whole matrices are computed as sums along
+shifted diagonals: on CPU by a fused in-place pass, elsewhere by one strided reduction; never by an
+identity-kernel conv2d. Positions without a window hold +inf. ``sequence_topk`` builds the matrix block by block
+within a memory budget and keeps only the K best references per query.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_steps, window_starts
+
+ProgressFn = Callable[[int], None]
+
+
+def frame_distances(query: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Euclidean distances [n_query, n_reference] via one GEMM; clamped so rounding never gives NaN."""
+    if query.shape[1] != reference.shape[1]:
+        raise SeqvprError(
+            f"descriptor dimensions differ: query has {query.shape[1]}, reference has {reference.shape[1]}"
+        )
+    squared = torch.addmm(
+        (query * query).sum(1, keepdim=True) + (reference * reference).sum(1)[None, :],
+        query,
+        reference.T,
+        alpha=-2.0,
+    )
+    return squared.clamp_(min=1e-12).sqrt_()
+
+
+def window_means(frame_dist: torch.Tensor, spec: SequenceSpec, velocity: float = 1.0, *, inplace: bool = False) -> torch.Tensor:
+    """Placed window means P [n, m]: ``P[r, j] = (1/L) sum_k d[r - a + k, j - c + step_k]`` or +inf if out of range.
+
+    ``a`` is the query offset of ``spec`` and ``c`` the reference step at the current frame, so P holds each
+    position's natural (unshifted) window; boundaries and segments are applied afterwards.
+    """
+    steps = velocity_steps(spec.length, velocity)
+    a = spec.offset
+    c = int(steps[a])
+    if _can_fuse(frame_dist, steps, inplace):
+        array = frame_dist.numpy()
+        from seqvpr.sequences._fused import fused_window_means_
+
+        fused_window_means_(array, spec.length, a)
+        return frame_dist
+    return _strided_window_means(frame_dist, steps, a, c)
+
+
+def _can_fuse(frame_dist: torch.Tensor, steps: np.ndarray, inplace: bool) -> bool:
+    """The fused CPU pass applies to contiguous CPU float matrices, slope 1, when the input may be overwritten."""
+    return (
+        inplace
+        and frame_dist.device.type == "cpu"
+        and frame_dist.dtype in (torch.float32, torch.float64)
+        and frame_dist.is_contiguous()
+        and not frame_dist.requires_grad
+        and bool(np.array_equal(steps, np.arange(len(steps))))
+    )
+
+
+def _strided_window_means(d: torch.Tensor, steps: np.ndarray, a: int, c: int) -> torch.Tensor:
+    """Window means with torch ops on any device: one strided reduction for slope 1, shifted sums otherwise."""
+    n, m = d.shape
+    length = len(steps)
+    span = int(steps[-1]) + 1
+    n1, m1 = n - length + 1, m - span + 1
+    out = torch.full_like(d, float("inf"))
+    if n1 <= 0 or m1 <= 0:
+        return out
+    d = d.contiguous()
+    region = out[a : a + n1, c : c + m1]
+    if np.array_equal(steps, np.arange(length)):
+        s0, s1 = d.stride()
+        diagonals = torch.as_strided(d, (n1, m1, length), (s0, s1, s0 + s1), d.storage_offset())
+        region.copy_(diagonals.mean(-1))
+        return out
+    total = d[0:n1, int(steps[0]) : int(steps[0]) + m1].clone()
+    for k in range(1, length):
+        total = total + d[k : k + n1, int(steps[k]) : int(steps[k]) + m1]
+    region.copy_(total / length)
+    return out
+
+
+def apply_window_starts(
+    placed: torch.Tensor,
+    rows: np.ndarray,
+    query_starts: np.ndarray,
+    reference_starts: np.ndarray,
+    row_offset: int,
+    column_offset: int,
+) -> torch.Tensor:
+    """Sequence distances for the given rows of ``placed`` honouring window starts (boundary mode, segments).
+
+    Row ``rows[i]`` of ``placed`` holds the natural window of query i. A query whose start differs from natural
+    takes the row of the frame whose natural window is its shifted window (or +inf without a window); columns
+    likewise. Source rows and columns are always natural, so the fix-ups never read each other's output.
+    """
+    result = placed[rows[0] : rows[-1] + 1] if _is_range(rows) else placed[torch.as_tensor(rows)]
+    natural_q = query_starts == rows - row_offset
+    _fix_rows(result, placed, np.flatnonzero(~natural_q), query_starts, row_offset)
+    natural_r = reference_starts == np.arange(len(reference_starts)) - column_offset
+    _fix_columns(result, np.flatnonzero(~natural_r), reference_starts, column_offset)
+    return result
+
+
+def _is_range(rows: np.ndarray) -> bool:
+    return len(rows) > 0 and rows[-1] - rows[0] == len(rows) - 1 and bool(np.all(np.diff(rows) == 1))
+
+
+def _fix_rows(result: torch.Tensor, placed: torch.Tensor, bad: np.ndarray, starts: np.ndarray, offset: int) -> None:
+    if len(bad) == 0:
+        return
+    has_window = starts[bad] >= 0
+    shifted, dropped = bad[has_window], bad[~has_window]
+    if len(shifted):
+        source = torch.as_tensor(starts[shifted] + offset, device=placed.device)
+        result[torch.as_tensor(shifted, device=placed.device)] = placed.index_select(0, source)
+    if len(dropped):
+        result[torch.as_tensor(dropped, device=placed.device)] = float("inf")
+
+
+def _fix_columns(result: torch.Tensor, bad: np.ndarray, starts: np.ndarray, offset: int) -> None:
+    if len(bad) == 0:
+        return
+    has_window = starts[bad] >= 0
+    shifted, dropped = bad[has_window], bad[~has_window]
+    device = result.device
+    if len(shifted):
+        source = torch.as_tensor(starts[shifted] + offset, device=device)
+        result[:, torch.as_tensor(shifted, device=device)] = result.index_select(1, source)
+    if len(dropped):
+        result[:, torch.as_tensor(dropped, device=device)] = float("inf")
+
+
+def sequence_distance_matrix(
+    frame_dist: torch.Tensor,
+    spec: SequenceSpec,
+    query_segments: np.ndarray | None = None,
+    reference_segments: np.ndarray | None = None,
+    *,
+    inplace: bool = False,
+) -> torch.Tensor:
+    """Full sequence-distance matrix [n_query, n_reference] (+inf where a window is missing).
+
+    With several velocities the minimum over them is taken (SeqSLAM-style trajectory search). ``inplace`` lets
+    the CPU fast path overwrite ``frame_dist`` (and return it).
+    """
+    n_q, n_r = frame_dist.shape
+    q_starts = window_starts(_segments(query_segments, n_q), spec.length, spec.offset, spec.boundary)
+    return _sequence_rows(frame_dist, np.arange(n_q), q_starts, _segments(reference_segments, n_r), spec, inplace)
+
+
+def _segments(segment_ids: np.ndarray | None, n: int) -> np.ndarray:
+    return np.zeros(n, np.int64) if segment_ids is None else np.asarray(segment_ids)
+
+
+def _sequence_rows(
+    d: torch.Tensor, rows: np.ndarray, q_starts: np.ndarray, r_seg: np.ndarray, spec: SequenceSpec, inplace: bool
+) -> torch.Tensor:
+    """Sequence distances of the queries at ``rows`` of d (starts index rows of d), minimum over velocities."""
+    best: torch.Tensor | None = None
+    for number, velocity in enumerate(spec.velocities):
+        steps = velocity_steps(spec.length, velocity)
+        c = int(steps[spec.offset])
+        r_starts = window_starts(r_seg, int(steps[-1]) + 1, c, spec.boundary)
+        placed = window_means(d, spec, velocity, inplace=inplace and number == len(spec.velocities) - 1)
+        current = apply_window_starts(placed, rows, q_starts, r_starts, spec.offset, c)
+        best = current if best is None else torch.minimum(best, current)
+    assert best is not None
+    return best
+
+
+def max_span(spec: SequenceSpec) -> int:
+    """Reference frames covered by the fastest velocity's window."""
+    return max(int(velocity_steps(spec.length, v)[-1]) + 1 for v in spec.velocities)
+
+
+@dataclass(frozen=True)
+class TopK:
+    """The K best references per query: indices (-1 where fewer exist) and sequence distances (+inf there)."""
+
+    indices: np.ndarray
+    distances: np.ndarray
+    has_window: np.ndarray
+
+
+def sequence_topk(
+    query: torch.Tensor,
+    reference: torch.Tensor,
+    spec: SequenceSpec,
+    k: int,
+    query_segments: np.ndarray | None = None,
+    reference_segments: np.ndarray | None = None,
+    *,
+    memory_budget: int | None = None,
+    progress: ProgressFn | None = None,
+) -> TopK:
+    """Top-K references per query by sequence distance, computed in query blocks with a halo of L - 1 rows.
+
+    With ``memory_budget`` (bytes) no block's distance matrix exceeds the budget, so the full
+    n_query x n_reference matrix is never held. Descriptors are rows of ``query`` and ``reference``.
+    """
+    n_q, n_r = len(query), len(reference)
+    q_seg, r_seg = _segments(query_segments, n_q), _segments(reference_segments, n_r)
+    q_starts = window_starts(q_seg, spec.length, spec.offset, spec.boundary)
+    require_windows(q_starts, spec.length, "query", q_seg)
+    require_windows(window_starts(r_seg, max_span(spec), 0, spec.boundary), max_span(spec), "reference", r_seg)
+    k = min(k, n_r)
+    indices = np.full((n_q, k), -1, dtype=np.int64)
+    distances = np.full((n_q, k), np.inf, dtype=np.float64)
+    block = _block_rows(n_q, n_r, spec.length, query.element_size(), memory_budget)
+    for begin in range(0, n_q, block):
+        end = min(begin + block, n_q)
+        starts = q_starts[begin:end]
+        if (starts >= 0).any():
+            best = _block_sequence_rows(query, reference, spec, starts, r_seg, begin, end)
+            values, picked = torch.topk(best, k, dim=1, largest=False, sorted=True)
+            values = values.double().cpu().numpy()
+            picked = picked.cpu().numpy()
+            picked[~np.isfinite(values)] = -1
+            indices[begin:end], distances[begin:end] = picked, values
+        if progress is not None:
+            progress(end - begin)
+    return TopK(indices, distances, q_starts >= 0)
+
+
+def _block_rows(n_q: int, n_r: int, length: int, itemsize: int, budget: int | None) -> int:
+    """Query rows per block so that a block's matrices (about two copies) fit in ``budget`` bytes."""
+    if budget is None:
+        return n_q
+    rows = budget // (2 * max(n_r, 1) * itemsize) - 2 * (length - 1)
+    if rows < 1:
+        raise SeqvprError(
+            f"memory budget of {budget} bytes is too small for {n_r} reference frames at sequence length {length}"
+        )
+    return int(min(rows, n_q))
+
+
+def _block_sequence_rows(query, reference, spec, starts, r_seg, begin, end) -> torch.Tensor:
+    """Sequence distances of queries [begin, end) from the frame distances of just the rows their windows use."""
+    valid = starts >= 0
+    lo = min(begin, int(starts[valid].min()))
+    hi = max(end, int(starts[valid].max()) + spec.length)
+    d = frame_distances(query[lo:hi], reference)
+    local_starts = np.where(valid, starts - lo, -1)
+    return _sequence_rows(d, np.arange(begin, end) - lo, local_starts, r_seg, spec, inplace=True)

@@ -1,0 +1,97 @@
+"""Sequence windows: which frames form the window of each frame, under segment breaks and a boundary policy.
+
+A window of length L for frame i covers frames ``[start, start + L)``. Its natural start is ``i - offset`` with
+``offset = L // 2`` for centred windows (even L covers ``[i - L/2, i + L/2 - 1]``, as the reference code) and
+``offset = L - 1`` for causal (trailing) windows, the only kind an online robot can use. A window never spans a
+segment break or runs past the traversal. At a boundary, ``drop`` leaves the frame without a window and
+``shift`` moves the window inward inside its segment (the reference code's behaviour).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from seqvpr.errors import SeqvprError
+
+Align = Literal["centered", "causal"]
+Boundary = Literal["drop", "shift"]
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """How frames are grouped into sequences: length, alignment, boundary policy and velocities searched.
+
+    ``velocities`` are reference frames advanced per query frame (SeqSLAM-style slopes); ``(1.0,)`` is plain
+    order-aligned sequence matching.
+    """
+
+    length: int = 1
+    align: Align = "centered"
+    boundary: Boundary = "drop"
+    velocities: tuple[float, ...] = (1.0,)
+
+    def __post_init__(self) -> None:
+        if int(self.length) != self.length or self.length < 1:
+            raise SeqvprError(f"seq_len must be a positive integer, got {self.length}")
+        if self.align not in ("centered", "causal"):
+            raise SeqvprError(f"align must be 'centered' or 'causal', got {self.align!r}")
+        if self.boundary not in ("drop", "shift"):
+            raise SeqvprError(f"boundary must be 'drop' or 'shift', got {self.boundary!r}")
+        if not self.velocities or any(not np.isfinite(v) or v <= 0 for v in self.velocities):
+            raise SeqvprError(f"velocities must be positive numbers, got {self.velocities}")
+
+    @property
+    def offset(self) -> int:
+        """Frames of the window before the current frame."""
+        return window_offset(self.length, self.align)
+
+
+def window_offset(length: int, align: Align) -> int:
+    """Index of the current frame inside its window: L // 2 (centred) or L - 1 (causal)."""
+    return length // 2 if align == "centered" else length - 1
+
+
+def velocity_steps(length: int, velocity: float) -> np.ndarray:
+    """Reference frame offsets from the window start for each query frame of the window (0 first)."""
+    return np.rint(np.arange(length) * velocity).astype(np.int64)
+
+
+def segment_bounds(segment_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the ``[start, end)`` of the run of equal segment ids it belongs to."""
+    n = len(segment_ids)
+    new_run = np.ones(n, dtype=bool)
+    new_run[1:] = np.diff(segment_ids) != 0
+    run_starts = np.flatnonzero(new_run)
+    run_ends = np.append(run_starts[1:], n)
+    run_of_frame = np.cumsum(new_run) - 1
+    return run_starts[run_of_frame], run_ends[run_of_frame]
+
+
+def window_starts(segment_ids: np.ndarray, span: int, offset: int, boundary: Boundary) -> np.ndarray:
+    """Start frame of each frame's window of ``span`` frames, or -1 where the frame has none.
+
+    ``offset`` is the natural ``i - start``. With ``drop`` a window must fit as is; with ``shift`` it is clamped
+    into the segment, and frames of segments shorter than ``span`` get none.
+    """
+    seg_start, seg_end = segment_bounds(np.asarray(segment_ids))
+    natural = np.arange(len(segment_ids), dtype=np.int64) - offset
+    fits_segment = (seg_end - seg_start) >= span
+    if boundary == "drop":
+        ok = (natural >= seg_start) & (natural + span <= seg_end)
+        return np.where(ok, natural, -1)
+    shifted = np.clip(natural, seg_start, np.maximum(seg_end - span, seg_start))
+    return np.where(fits_segment, shifted, -1)
+
+
+def require_windows(starts: np.ndarray, span: int, what: str, segment_ids: np.ndarray) -> None:
+    """Fail with a one-line message when no frame of a traversal has a window (L longer than every segment)."""
+    if (starts >= 0).any():
+        return
+    seg_start, seg_end = segment_bounds(np.asarray(segment_ids))
+    longest = int((seg_end - seg_start).max())
+    raise SeqvprError(
+        f"{what}: sequence length {span} is longer than every segment (longest segment: {longest} frames)"
+    )

@@ -1,0 +1,104 @@
+"""The matching kernel against the plain-loop oracle, over random shapes, lengths, segments and policies."""
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.matching import frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.windows import SequenceSpec
+from tests import oracles
+
+
+@st.composite
+def problems(draw):
+    n_q = draw(st.integers(1, 24))
+    n_r = draw(st.integers(1, 24))
+    dim = draw(st.integers(1, 6))
+    length = draw(st.integers(1, 7))
+    align = draw(st.sampled_from(["centered", "causal"]))
+    boundary = draw(st.sampled_from(["drop", "shift"]))
+    q_seg = np.cumsum([0] + draw(st.lists(st.booleans(), min_size=n_q - 1, max_size=n_q - 1)))
+    r_seg = np.cumsum([0] + draw(st.lists(st.booleans(), min_size=n_r - 1, max_size=n_r - 1)))
+    velocities = draw(st.sampled_from([(1.0,), (1.0, 1.5), (0.8, 1.0, 1.2)]))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n_q, dim))
+    r = rng.normal(size=(n_r, dim))
+    return q, r, SequenceSpec(length, align, boundary, velocities), q_seg, r_seg
+
+
+def oracle_matrix(q, r, spec, q_seg, r_seg):
+    mats = [oracles.sequence_distances(q, r, spec.length, spec.align, spec.boundary, q_seg, r_seg, v) for v in spec.velocities]
+    return np.minimum.reduce(mats)
+
+
+def assert_same(fast, slow, tol):
+    fast = np.asarray(fast, dtype=np.float64)
+    assert (np.isinf(fast) == np.isinf(slow)).all()
+    finite = np.isfinite(slow)
+    np.testing.assert_allclose(fast[finite], slow[finite], rtol=tol, atol=tol)
+
+
+@settings(max_examples=150, deadline=None)
+@given(problems(), st.booleans(), st.sampled_from([torch.float32, torch.float64]))
+def test_matrix_matches_loop(problem, inplace, dtype):
+    q, r, spec, q_seg, r_seg = problem
+    d = frame_distances(torch.tensor(q, dtype=dtype), torch.tensor(r, dtype=dtype))
+    fast = sequence_distance_matrix(d, spec, q_seg, r_seg, inplace=inplace)
+    assert_same(fast.numpy(), oracle_matrix(q, r, spec, q_seg, r_seg), 1e-4 if dtype == torch.float32 else 1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(problems(), st.integers(1, 6), st.integers(1, 5000))
+def test_blocked_topk_matches_full_matrix(problem, k, budget_rows):
+    q, r, spec, q_seg, r_seg = problem
+    slow = oracle_matrix(q, r, spec, q_seg, r_seg)
+    budget = 8 * len(r) * 2 * (budget_rows % 40 + 2 * spec.length)
+    try:
+        top = sequence_topk(torch.tensor(q), torch.tensor(r), spec, k, q_seg, r_seg, memory_budget=budget)
+    except SeqvprError as error:
+        assert "longer than every segment" in str(error)
+        return
+    for i in range(len(q)):
+        row = slow[i]
+        expected = np.sort(row)[: top.indices.shape[1]]
+        got = top.distances[i]
+        assert_same(got, expected, 1e-9)
+        ok = top.indices[i] >= 0
+        np.testing.assert_allclose(row[top.indices[i][ok]], got[ok], rtol=1e-9)
+
+
+def test_fused_and_strided_agree_on_a_large_matrix():
+    rng = np.random.default_rng(0)
+    d = torch.tensor(rng.random((300, 257)), dtype=torch.float32)
+    for length in (1, 2, 5, 20):
+        spec = SequenceSpec(length)
+        strided = sequence_distance_matrix(d.clone(), spec, inplace=False)
+        fused = sequence_distance_matrix(d.clone(), spec, inplace=True)
+        assert_same(fused.numpy(), strided.numpy().astype(np.float64), 1e-5)
+
+
+def test_frame_distances_never_nan_for_identical_unit_vectors():
+    x = torch.nn.functional.normalize(torch.randn(50, 128), dim=1)
+    d = frame_distances(x, x)
+    assert torch.isfinite(d).all()
+    assert d.diagonal().max() < 1e-3
+
+
+def test_frame_distance_gradient_finite_at_zero_distance():
+    x = torch.randn(4, 8, requires_grad=True)
+    frame_distances(x, x.detach()).sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+def test_dimension_mismatch_is_one_line_error():
+    with pytest.raises(SeqvprError, match="dimensions differ"):
+        frame_distances(torch.zeros(3, 4), torch.zeros(3, 5))
+
+
+def test_sequence_longer_than_every_segment():
+    with pytest.raises(SeqvprError, match="longer than every segment"):
+        sequence_topk(torch.zeros(4, 2), torch.zeros(10, 2), SequenceSpec(5), 1)
