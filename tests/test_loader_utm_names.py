@@ -131,3 +131,18 @@ def test_errors_name_the_file_or_folder(tmp_path):
     (empty / "sub").mkdir(parents=True)
     _raises_one_line("empty", load_utm_named_folder, empty)
     _raises_one_line("missing", load_utm_named_folder, tmp_path / "missing")
+
+
+def test_jist_sequence_layout_orders_by_frame_number_and_breaks_on_jumps(tmp_path):
+    from PIL import Image
+
+    from seqvpr.data.loaders.utm_names import load_utm_named_folder
+
+    folder = tmp_path / "seq_a"
+    folder.mkdir()
+    # easting decreases while frame numbers increase: name order would be wrong
+    for east, frame in ((300, 1), (200, 2), (100, 3), (50, 7), (40, 8)):
+        Image.new("RGB", (4, 4)).save(folder / f"@{east}@10@seqA@{frame}@pano@city@0@.jpg")
+    traversal = load_utm_named_folder(tmp_path)
+    assert list(traversal.positions[:, 0]) == [300, 200, 100, 50, 40]
+    assert list(traversal.segment_ids) == [0, 0, 0, 1, 1]

@@ -2,11 +2,14 @@
 
 A name reads ``@UTM_east@UTM_north@zone_number@zone_letter@lat@lon@pano_id@tile@heading@pitch@roll@height@
 timestamp@note@.jpg``; after splitting on ``@`` field 1 is the easting, 2 the northing, 9 the heading and 13 the
-timestamp. Only fields 1 and 2 are required.
+timestamp. Only fields 1 and 2 are required. The sequence layout of JIST/SeqVLAD (MSLS reformatted),
+``@east@north@seq_id@frame_num@pano_id@city@timestamp@.jpg``, is recognised by having fewer than 13 fields and an
+integer field 4: frames are then ordered by that frame number, and a jump in it starts a new segment (JIST only
+builds windows over consecutive frame numbers).
 
-A dataset root holds ``database/`` and ``queries/``; pick one with ``role`` ('reference' or 'query'). Images are
-gathered recursively and every relative directory is a segment of its own (JIST and MSLS put one sequence per
-folder). Inside a directory, frames are ordered by timestamp when every image there has a numeric one, else by
+A dataset root holds ``database/`` and ``queries/``; pick one with ``role`` ('reference' or 'query'); a role given
+for a folder without that subfolder reads the folder itself. Images are gathered recursively and every relative
+directory is a segment of its own (JIST and MSLS put one sequence per folder). Inside a directory, frames are ordered by timestamp when every image there has a numeric one, else by
 natural name order. Headings and timestamps are filled only when every frame has a numeric value.
 """
 
@@ -24,7 +27,7 @@ from seqvpr.data.traversal import Traversal, segments_from_gaps
 from seqvpr.errors import SeqvprError
 
 ROLE_FOLDERS = {"reference": "database", "query": "queries"}
-_EAST, _NORTH, _HEADING, _TIMESTAMP = 1, 2, 9, 13
+_EAST, _NORTH, _FRAME_NUMBER, _HEADING, _TIMESTAMP = 1, 2, 4, 9, 13
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,7 @@ class _Frame:
     northing: float
     heading: float | None
     timestamp: float | None
+    frame_number: int | None = None
 
 
 def load_utm_named_folder(
@@ -142,9 +146,17 @@ def _gather_frames(images_dir: Path) -> list[_Frame]:
                 northing=float(fields[_NORTH]),
                 heading=_optional_field(fields, _HEADING),
                 timestamp=_optional_field(fields, _TIMESTAMP),
+                frame_number=_sequence_frame_number(fields),
             )
         )
     return frames
+
+
+def _sequence_frame_number(fields: list[str]) -> int | None:
+    """Field 4 of the short JIST/SeqVLAD layout when it is an integer, else None."""
+    if len(fields) >= _TIMESTAMP or len(fields) <= _FRAME_NUMBER or not fields[_FRAME_NUMBER].isdigit():
+        return None
+    return int(fields[_FRAME_NUMBER])
 
 
 def _ordered(frames: list[_Frame]) -> list[_Frame]:
@@ -155,7 +167,9 @@ def _ordered(frames: list[_Frame]) -> list[_Frame]:
     ordered: list[_Frame] = []
     for directory in sorted(groups, key=natural_key):
         group = groups[directory]
-        if all(f.timestamp is not None for f in group):
+        if all(f.frame_number is not None for f in group):
+            group.sort(key=lambda f: (f.frame_number, natural_key(f.path.name)))
+        elif all(f.timestamp is not None for f in group):
             group.sort(key=lambda f: (f.timestamp, natural_key(f.path.name)))
         else:
             group.sort(key=lambda f: natural_key(f.path.name))
@@ -170,6 +184,9 @@ def _traversal(frames: list[_Frame], images_dir: Path, label: str, max_distance_
     new_dir = np.zeros(n, dtype=bool)
     new_dir[1:] = [a.relative_dir != b.relative_dir for a, b in zip(frames[:-1], frames[1:])]
     breaks = new_dir.copy()
+    numbers = [f.frame_number for f in frames]
+    if n > 1 and None not in numbers:
+        breaks[1:] |= np.diff(np.asarray(numbers)) != 1
     if max_distance_gap is not None:
         gap_ids = segments_from_gaps(positions=positions, max_distance_gap=max_distance_gap)
         breaks[1:] |= np.diff(gap_ids) != 0

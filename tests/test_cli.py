@@ -1,0 +1,103 @@
+"""The command line as a user meets it: results, JSON, predictions, and one-line errors without partial files."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from seqvpr.cli import main
+
+
+def run(monkeypatch, capsys, *args):
+    """Run ``seqvpr ARGS`` in-process; return (exit status, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["seqvpr", *map(str, args)])
+    code = 0
+    try:
+        main()
+    except SystemExit as exit_:
+        code = exit_.code or 0
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def pair(tmp_path):
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(40, 16))
+    ref, qry = tmp_path / "ref.npy", tmp_path / "qry.npy"
+    np.save(ref, base)
+    np.save(qry, base + 0.8 * rng.normal(size=base.shape))
+    return ref, qry
+
+
+def test_match_json_and_predictions(monkeypatch, capsys, tmp_path, pair):
+    ref, qry = pair
+    out = tmp_path / "out"
+    code, stdout, _ = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "1f", "-L", "3", "--json", "--out", out)
+    assert code == 0
+    result = json.loads(stdout)
+    assert set(result["recall"]) == {"1", "5", "10", "20"}
+    assert result["queries_evaluated"] == 38 and result["queries_excluded"] == 2
+    assert result["settings"]["sequence"]["length"] == 3
+    lines = (out / "predictions.csv").read_text().splitlines()
+    assert lines[0] == "query,query_name,references,distances,correct" and len(lines) == 39
+    code, stdout, _ = run(monkeypatch, capsys, "eval", out / "predictions.csv", "-r", ref, "-q", qry, "--radius", "1f", "--json")
+    assert code == 0 and json.loads(stdout)["recall"] == result["recall"]
+
+
+def test_help_has_examples(monkeypatch, capsys):
+    code, stdout, _ = run(monkeypatch, capsys, "match", "--help")
+    assert code == 0 and "Examples:" in stdout and "--seq-len" in stdout
+
+
+def bad_inputs(tmp_path, pair):
+    ref, qry = pair
+    nan = tmp_path / "nan.npy"
+    values = np.ones((40, 16))
+    values[7, 3] = np.nan
+    np.save(nan, values)
+    wide = tmp_path / "wide.npy"
+    np.save(wide, np.ones((40, 17)))
+    empty = tmp_path / "empty.npy"
+    np.save(empty, np.ones((0, 16)))
+    short = tmp_path / "short.npy"
+    np.save(short, np.ones((3, 16)))
+    images = tmp_path / "imgs"
+    images.mkdir()
+    (images / "positions.csv").write_text("name,easting\n")
+    return {
+        "nan": (["-r", ref, "-q", nan, "--radius", "1f"], "nan.npy"),
+        "dimension": (["-r", ref, "-q", wide, "--radius", "1f"], "dimension"),
+        "empty": (["-r", ref, "-q", empty, "--radius", "1f"], "empty.npy"),
+        "too long": (["-r", ref, "-q", short, "--radius", "1f", "-L", "5"], "longer than every segment"),
+        "missing": (["-r", ref, "-q", tmp_path / "nope.npy", "--radius", "1f"], "nope.npy"),
+        "malformed csv": (["-r", images, "-q", qry, "--radius", "1f"], "positions.csv"),
+        "bad radius": (["-r", ref, "-q", qry, "--radius", "2 parsecs"], "radius"),
+        "no radius": (["-r", ref, "-q", qry], "radius"),
+    }
+
+
+@pytest.mark.parametrize("case", ["nan", "dimension", "empty", "too long", "missing", "malformed csv", "bad radius", "no radius"])
+def test_bad_input_is_one_line_without_output(monkeypatch, capsys, tmp_path, pair, case):
+    args, needle = bad_inputs(tmp_path, pair)[case]
+    out = tmp_path / "out"
+    code, stdout, stderr = run(monkeypatch, capsys, "match", *args, "--out", out)
+    assert code == 2
+    message = stderr.strip()
+    assert "\n" not in message and message.startswith("seqvpr: error:") and needle in message
+    assert "Traceback" not in stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_malformed_predictions_file(monkeypatch, capsys, tmp_path, pair):
+    ref, qry = pair
+    bad = tmp_path / "p.csv"
+    bad.write_text("query,references\n1,2 x\n")
+    code, _, stderr = run(monkeypatch, capsys, "eval", bad, "-r", ref, "-q", qry, "--radius", "1f")
+    assert code == 2 and "p.csv: line 2" in stderr and "\n" not in stderr.strip()
+
+
+def test_demo_runs(monkeypatch, capsys, tmp_path):
+    code, stdout, _ = run(monkeypatch, capsys, "demo", "--out", tmp_path / "demo", "--frames", "300")
+    assert code == 0 and "L=5" in stdout and (tmp_path / "demo" / "predictions_L5.csv").exists()
