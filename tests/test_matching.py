@@ -82,14 +82,17 @@ def test_fused_and_strided_agree_on_a_large_matrix():
 
 
 def test_frame_distances_never_nan_for_identical_unit_vectors():
-    x = torch.nn.functional.normalize(torch.randn(50, 128), dim=1)
+    generator = torch.Generator().manual_seed(0)
+    x = torch.nn.functional.normalize(torch.randn(500, 128, generator=generator), dim=1)
     d = frame_distances(x, x)
     assert torch.isfinite(d).all()
-    assert d.diagonal().max() < 1e-3
+    # 2 - 2<x, x> cancels to float32 rounding (~1e-6), whose square root is ~1e-3
+    assert d.diagonal().max() < 3e-3
+    assert (frame_distances(x.double(), x.double()).diagonal() < 1e-5).all()
 
 
 def test_frame_distance_gradient_finite_at_zero_distance():
-    x = torch.randn(4, 8, requires_grad=True)
+    x = torch.randn(4, 8, generator=torch.Generator().manual_seed(0)).requires_grad_()
     frame_distances(x, x.detach()).sum().backward()
     assert torch.isfinite(x.grad).all()
 

@@ -1,10 +1,13 @@
 """Fused CPU kernel: order-aligned window means of a distance matrix in one in-place pass (numba).
 
 For a matrix d [n, m] and window length L it overwrites d with
-``P[r, j] = (1/L) * sum_k d[r - a + k, j - a + k]`` where the window fits, +inf elsewhere. Along each diagonal a
-running sum (float64) adds the entering element and removes the leaving one, so each element of d is read
-from memory about once whatever L is. Original rows that the pass overwrites before it has finished with them
-are kept in a ring of L + 1 rows; the rows where two parallel chunks meet are copied before the chunks start.
+``P[r, j] = (1/L) * sum_k d[r - a + k, j - a + k]`` where the window fits, +inf elsewhere. One float64 running sum
+per diagonal (``acc``, indexed by diagonal, so each update is in place) adds the element entering the window and
+removes the one leaving it, so each element of d is read from memory about once whatever L is. Each row step is a
+single vectorised loop over the columns that reads the entering row, saves it to a ring of the L + 1 most recent
+original rows (the pass overwrites rows before it has finished with them), updates the sums and writes the output
+row. The loops live in small helpers that take 1-D row views starting at index 0, so numba emits no negative-index
+wraparound and LLVM vectorises them. The rows where two parallel chunks meet are copied before the chunks start.
 """
 
 from __future__ import annotations
@@ -14,47 +17,98 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, boundscheck=False)
+def _enter(acc, src, ring_row):
+    """Add an entering row to diagonals that are not output yet; save it to the ring."""
+    for t in range(acc.shape[0]):
+        x = src[t]
+        ring_row[t] = x
+        acc[t] += x
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _enter_out(acc, src, ring_row, out, inv):
+    """First step of a chunk: add the entering row, save it, write the means (nothing leaves yet)."""
+    for t in range(acc.shape[0]):
+        x = src[t]
+        ring_row[t] = x
+        v = acc[t] + x
+        acc[t] = v
+        out[t] = v * inv
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _slide_out(acc, src, ring_row, old, out, inv):
+    """One step: add the entering row, save it, remove the leaving row, write the means."""
+    for t in range(acc.shape[0]):
+        x = src[t]
+        ring_row[t] = x
+        v = acc[t] + x - old[t]
+        acc[t] = v
+        out[t] = v * inv
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _slide_same(acc, row, ring_row, old, inv):
+    """As ``_slide_out`` when the output row is the entering row (a = L - 1): each element read, then overwritten."""
+    for t in range(acc.shape[0]):
+        x = row[t]
+        ring_row[t] = x
+        v = acc[t] + x - old[t]
+        acc[t] = v
+        row[t] = v * inv
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
 def _chunk(d, length, a, s_begin, s_end, head, tail):
-    """Rows s_begin..s_end-1 of window sums (written to rows s + a); head/tail are pre-copied original rows."""
+    """Rows s_begin..s_end-1 of window sums (written to rows s + a); head/tail are pre-copied original rows.
+
+    ``acc[base - (r - s_begin) + c]`` is the running sum of the diagonal through (r, c); at step s it holds, for
+    the window starting at (s, t), the sum of rows s..s+L-1 (columns of diagonals not yet output start at 0).
+    """
     m = d.shape[1]
     m1 = m - length + 1
     slots = length + 1
     ring = np.empty((slots, m), dtype=d.dtype)
-    acc = np.empty(m1, dtype=np.float64)
-    nxt = np.empty(m1, dtype=np.float64)
+    base = (s_end - s_begin) + length - 1
+    acc = np.zeros(base + m, dtype=np.float64)
     inv = 1.0 / length
 
-    for k in range(length):
-        ring[(s_begin + k) % slots, :] = head[k, :]
-    for t in range(m1):
-        total = 0.0
-        for k in range(length):
-            total += ring[(s_begin + k) % slots, t + k]
-        acc[t] = total
+    for k in range(length - 1):
+        j = base - k
+        _enter(acc[j : j + m], head[k], ring[(s_begin + k) % slots])
 
     for s in range(s_begin, s_end):
-        if s > s_begin:
-            r = s + length - 1
-            slot = r % slots
-            if r >= s_end:
-                ring[slot, :] = tail[r - s_end, :]
-            else:
-                ring[slot, :] = d[r, :]
+        r = s + length - 1
+        if s == s_begin:
+            src = head[length - 1]
+        elif r >= s_end:
+            src = tail[r - s_end]
+        else:
+            src = d[r]
+        saved = ring[r % slots]
+        j0 = base - (s - s_begin)
+        out = d[s + a]
+        # columns 0..L-2 of the entering row lie on diagonals whose first window is still to come
+        _enter(acc[j0 - (length - 1) : j0], src[: length - 1], saved[: length - 1])
+        if s == s_begin:
+            _enter_out(acc[j0 : j0 + m1], src[length - 1 :], saved[length - 1 :], out[a : a + m1], inv)
+        else:
+            # column t = 0 starts a new diagonal: nothing leaves it
+            x = src[length - 1]
+            saved[length - 1] = x
+            v = acc[j0] + x
+            acc[j0] = v
+            out[a] = v * inv
             old = ring[(s - 1) % slots]
-            new = ring[slot]
-            total = 0.0
-            for k in range(length):
-                total += ring[(s + k) % slots, k]
-            nxt[0] = total
-            for t in range(1, m1):
-                nxt[t] = acc[t - 1] - old[t - 1] + new[t + length - 1]
-            acc, nxt = nxt, acc
-        row = s + a
-        d[row, :a] = np.inf
-        for t in range(m1):
-            d[row, t + a] = acc[t] * inv
-        d[row, a + m1 :] = np.inf
+            if a == length - 1 and r < s_end:
+                _slide_same(acc[j0 + 1 : j0 + m1], out[length:], saved[length:], old[: m1 - 1], inv)
+            else:
+                _slide_out(
+                    acc[j0 + 1 : j0 + m1], src[length:], saved[length:], old[: m1 - 1], out[a + 1 : a + m1], inv
+                )
+        out[:a] = np.inf
+        out[a + m1 :] = np.inf
 
 
 @njit(cache=True, parallel=True)
