@@ -101,3 +101,23 @@ def test_malformed_predictions_file(monkeypatch, capsys, tmp_path, pair):
 def test_demo_runs(monkeypatch, capsys, tmp_path):
     code, stdout, _ = run(monkeypatch, capsys, "demo", "--out", tmp_path / "demo", "--frames", "300")
     assert code == 0 and "L=5" in stdout and (tmp_path / "demo" / "predictions_L5.csv").exists()
+
+
+def test_description_file_with_ground_truth_table(monkeypatch, capsys, tmp_path, pair):
+    ref, qry = pair
+    description = tmp_path / "dataset.toml"
+    description.write_text(
+        f'[reference]\ndescriptors = "{ref.name}"\nname = "day"\n'
+        f'[query]\ndescriptors = "{qry.name}"\n[ground_truth]\nradius = "1f"\n'
+    )
+    code, stdout, _ = run(monkeypatch, capsys, "match", "-r", description, "-q", description, "-L", "3", "--json", "--out", tmp_path / "o")
+    direct = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "1f", "-L", "3", "--json", "--out", tmp_path / "p")[1]
+    assert code == 0 and json.loads(stdout)["recall"] == json.loads(direct)["recall"]
+
+
+def test_traversal_npz_keeps_positions_for_metric_radius(monkeypatch, capsys, tmp_path):
+    from seqvpr.data.synthetic import write_demo_route
+
+    ref, qry = write_demo_route(tmp_path, n_frames=200, seed=3)
+    code, stdout, _ = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "10m", "-L", "5", "--json", "--out", tmp_path / "o")
+    assert code == 0 and json.loads(stdout)["settings"]["ground_truth_rule"] == "within 10 m"

@@ -9,7 +9,7 @@ import pytest
 import scipy.io
 
 from seqvpr.data.loaders.dbstruct import load_dbstruct, time_gap_segments
-from seqvpr.errors import SeqvprError
+from tests.helpers import raises_one_line
 
 
 def _cell(names: list[str]) -> np.ndarray:
@@ -48,14 +48,6 @@ def _save(path: Path, fields: dict, variable: str = "dbStruct") -> Path:
         scipy.io.savemat(handle, {variable: fields})
     return path
 
-
-def _raises_one_line(match: str, fn, *args, **kwargs) -> str:
-    with pytest.raises(SeqvprError) as info:
-        fn(*args, **kwargs)
-    message = str(info.value)
-    assert "\n" not in message
-    assert match in message
-    return message
 
 
 def test_savemat_round_trips_named_fields(tmp_path):
@@ -152,23 +144,23 @@ def test_timestamps_split_segments_at_large_gaps(tmp_path):
 )
 def test_field_errors_are_one_line_and_name_file_and_field(tmp_path, overrides, match):
     path = _save(tmp_path / "broken_struct.db", _struct(**overrides))
-    message = _raises_one_line(match, load_dbstruct, path)
+    message = raises_one_line(match, load_dbstruct, path)
     assert "broken_struct.db" in message
 
 
 def test_file_level_errors(tmp_path):
-    _raises_one_line("absent.db", load_dbstruct, tmp_path / "absent.db")
+    raises_one_line("absent.db", load_dbstruct, tmp_path / "absent.db")
     text = tmp_path / "notes.db"
     text.write_text("this is not a MATLAB file at all\n" * 10)
-    _raises_one_line("notes.db: not a", load_dbstruct, text)
+    raises_one_line("notes.db: not a", load_dbstruct, text)
     empty = tmp_path / "empty.mat"
     empty.write_bytes(b"")
-    _raises_one_line("empty.mat: not a", load_dbstruct, empty)
+    raises_one_line("empty.mat: not a", load_dbstruct, empty)
     other = _save(tmp_path / "other.mat", _struct(), variable="something")
-    _raises_one_line("other.mat: no variable 'dbStruct' (variables: something)", load_dbstruct, other)
+    raises_one_line("other.mat: no variable 'dbStruct' (variables: something)", load_dbstruct, other)
     array = tmp_path / "array.mat"
     scipy.io.savemat(array, {"dbStruct": np.zeros((2, 2))})
-    _raises_one_line("array.mat: variable 'dbStruct' is not a single struct", load_dbstruct, array)
+    raises_one_line("array.mat: variable 'dbStruct' is not a single struct", load_dbstruct, array)
 
 
 def test_matlab_v73_hdf5_is_refused_with_advice(tmp_path):
@@ -176,8 +168,8 @@ def test_matlab_v73_hdf5_is_refused_with_advice(tmp_path):
     header = header.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02IM"
     path = tmp_path / "v73.db"
     path.write_bytes(header + b"\x00" * 384 + b"\x89HDF\r\n\x1a\n" + b"\x00" * 64)
-    message = _raises_one_line("v73.db: MATLAB v7.3 (HDF5)", load_dbstruct, path)
+    message = raises_one_line("v73.db: MATLAB v7.3 (HDF5)", load_dbstruct, path)
     assert "-v7" in message
     no_magic = tmp_path / "v73_header_only.mat"
     no_magic.write_bytes(header + b"\x00" * 64)
-    _raises_one_line("v73_header_only.mat: MATLAB v7.3", load_dbstruct, no_magic)
+    raises_one_line("v73_header_only.mat: MATLAB v7.3", load_dbstruct, no_magic)

@@ -10,7 +10,7 @@ import utm
 from PIL import Image
 
 from seqvpr.data.loaders.image_folder import load_image_folder, natural_key
-from seqvpr.errors import SeqvprError
+from tests.helpers import raises_one_line
 
 
 def _image(path: Path) -> None:
@@ -30,15 +30,6 @@ def _csv(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
 
-
-def _raises_one_line(match: str, fn, *args, **kwargs) -> str:
-    """Call fn, expect a SeqvprError whose message is one line containing ``match``; return the message."""
-    with pytest.raises(SeqvprError) as info:
-        fn(*args, **kwargs)
-    message = str(info.value)
-    assert "\n" not in message
-    assert match in message
-    return message
 
 
 def test_natural_key_orders_digit_runs_by_value():
@@ -62,11 +53,11 @@ def test_folder_without_csv_is_natural_order_frame_aligned(tmp_path):
 
 
 def test_folder_errors_name_the_folder(tmp_path):
-    _raises_one_line("nowhere", load_image_folder, tmp_path / "nowhere")
+    raises_one_line("nowhere", load_image_folder, tmp_path / "nowhere")
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "readme.txt").write_text("no images")
-    _raises_one_line("empty", load_image_folder, empty)
+    raises_one_line("empty", load_image_folder, empty)
 
 
 def test_csv_easting_northing_in_row_order_with_optional_columns(tmp_path):
@@ -163,16 +154,16 @@ def test_segments_from_time_and_distance_gaps(tmp_path):
 def test_csv_errors_are_one_line_and_name_the_csv(tmp_path, text, match):
     folder = _images(tmp_path / "imgs", ["a.png", "b.png"])
     csv_path = _csv(tmp_path / "broken_positions.csv", text)
-    message = _raises_one_line(match, load_image_folder, folder, csv_path)
+    message = raises_one_line(match, load_image_folder, folder, csv_path)
     assert "broken_positions.csv" in message
 
 
 def test_missing_csv_is_named(tmp_path):
     folder = _images(tmp_path / "imgs", ["a.png"])
-    _raises_one_line("absent.csv", load_image_folder, folder, tmp_path / "absent.csv")
+    raises_one_line("absent.csv", load_image_folder, folder, tmp_path / "absent.csv")
 
 
 def test_max_time_gap_without_timestamps_is_an_error(tmp_path):
     folder = _images(tmp_path / "imgs", ["a.png"])
     csv_path = _csv(tmp_path / "p.csv", "name,easting,northing\na.png,1,2\n")
-    _raises_one_line("timestamp column", load_image_folder, folder, csv_path, max_time_gap=1.0)
+    raises_one_line("timestamp column", load_image_folder, folder, csv_path, max_time_gap=1.0)

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from seqvpr.data.loaders.utm_names import is_utm_named_folder, load_utm_named_folder
-from seqvpr.errors import SeqvprError
+from tests.helpers import raises_one_line
 
 
 def utm_name(east: float, north: float, heading: str = "", timestamp: str = "", note: str = "") -> str:
@@ -23,14 +23,6 @@ def _image(path: Path) -> Path:
     Image.new("RGB", (4, 3)).save(path, format="JPEG")
     return path
 
-
-def _raises_one_line(match: str, fn, *args, **kwargs) -> str:
-    with pytest.raises(SeqvprError) as info:
-        fn(*args, **kwargs)
-    message = str(info.value)
-    assert "\n" not in message
-    assert match in message
-    return message
 
 
 def test_flat_folder_positions_headings_timestamps_ordered_by_time(tmp_path):
@@ -70,8 +62,8 @@ def test_dataset_root_needs_a_role_and_selects_database_or_queries(tmp_path):
     assert ref.source == str(root / "database")
     assert len(query) == 1 and query.name == "q"
     np.testing.assert_allclose(query.positions, [[3, 3]])
-    _raises_one_line("role='reference' or 'query'", load_utm_named_folder, root)
-    _raises_one_line("'db'", load_utm_named_folder, root, role="db")
+    raises_one_line("role='reference' or 'query'", load_utm_named_folder, root)
+    raises_one_line("'db'", load_utm_named_folder, root, role="db")
     assert is_utm_named_folder(root)
     assert is_utm_named_folder(root / "queries")
 
@@ -123,14 +115,14 @@ def test_errors_name_the_file_or_folder(tmp_path):
     bad = tmp_path / "bad"
     _image(bad / utm_name(1, 2))
     _image(bad / "@east@2@.jpg")
-    _raises_one_line("@east@2@.jpg", load_utm_named_folder, bad)
+    raises_one_line("@east@2@.jpg", load_utm_named_folder, bad)
     plain = tmp_path / "plain"
     _image(plain / "frame_0001.jpg")
-    _raises_one_line("frame_0001.jpg", load_utm_named_folder, plain)
+    raises_one_line("frame_0001.jpg", load_utm_named_folder, plain)
     empty = tmp_path / "empty"
     (empty / "sub").mkdir(parents=True)
-    _raises_one_line("empty", load_utm_named_folder, empty)
-    _raises_one_line("missing", load_utm_named_folder, tmp_path / "missing")
+    raises_one_line("empty", load_utm_named_folder, empty)
+    raises_one_line("missing", load_utm_named_folder, tmp_path / "missing")
 
 
 def test_jist_sequence_layout_orders_by_frame_number_and_breaks_on_jumps(tmp_path):
