@@ -105,40 +105,30 @@ def apply_window_starts(
     likewise. Source rows and columns are always natural, so the fix-ups never read each other's output.
     """
     result = placed[rows[0] : rows[-1] + 1] if _is_range(rows) else placed[torch.as_tensor(rows)]
-    natural_q = query_starts == rows - row_offset
-    _fix_rows(result, placed, np.flatnonzero(~natural_q), query_starts, row_offset)
-    natural_r = reference_starts == np.arange(len(reference_starts)) - column_offset
-    _fix_columns(result, np.flatnonzero(~natural_r), reference_starts, column_offset)
+    _fix_windows(result, placed, 0, rows, query_starts, row_offset)
+    _fix_windows(result, result, 1, np.arange(len(reference_starts)), reference_starts, column_offset)
     return result
 
 
 def _is_range(rows: np.ndarray) -> bool:
-    return len(rows) > 0 and rows[-1] - rows[0] == len(rows) - 1 and bool(np.all(np.diff(rows) == 1))
+    return len(rows) > 0 and bool(np.all(np.diff(rows) == 1))
 
 
-def _fix_rows(result: torch.Tensor, placed: torch.Tensor, bad: np.ndarray, starts: np.ndarray, offset: int) -> None:
-    if len(bad) == 0:
-        return
-    has_window = starts[bad] >= 0
-    shifted, dropped = bad[has_window], bad[~has_window]
-    if len(shifted):
-        source = torch.as_tensor(starts[shifted] + offset, device=placed.device)
-        result[torch.as_tensor(shifted, device=placed.device)] = placed.index_select(0, source)
-    if len(dropped):
-        result[torch.as_tensor(dropped, device=placed.device)] = float("inf")
-
-
-def _fix_columns(result: torch.Tensor, bad: np.ndarray, starts: np.ndarray, offset: int) -> None:
+def _fix_windows(
+    result: torch.Tensor, source: torch.Tensor, dim: int, positions: np.ndarray, starts: np.ndarray, offset: int
+) -> None:
+    """Along ``dim``, replace each non-natural entry by the natural one of its window start, or +inf if none."""
+    bad = np.flatnonzero(starts != positions - offset)
     if len(bad) == 0:
         return
     has_window = starts[bad] >= 0
     shifted, dropped = bad[has_window], bad[~has_window]
     device = result.device
     if len(shifted):
-        source = torch.as_tensor(starts[shifted] + offset, device=device)
-        result[:, torch.as_tensor(shifted, device=device)] = result.index_select(1, source)
+        picked = source.index_select(dim, torch.as_tensor(starts[shifted] + offset, device=device))
+        result.index_copy_(dim, torch.as_tensor(shifted, device=device), picked)
     if len(dropped):
-        result[:, torch.as_tensor(dropped, device=device)] = float("inf")
+        result.index_fill_(dim, torch.as_tensor(dropped, device=device), float("inf"))
 
 
 def sequence_distance_matrix(
