@@ -64,3 +64,73 @@ def recall_at_k(predictions, positives, ks):
                 hits += 1
         result[k] = hits / len(evaluated) if evaluated else float("nan")
     return result
+
+
+def window_distance(query_window, reference_window, frames=None):
+    """Mean over the (selected) frames of the Euclidean distance between order-aligned frames of two windows."""
+    qw = np.asarray(query_window, dtype=np.float64)
+    rw = np.asarray(reference_window, dtype=np.float64)
+    picked = list(range(len(qw)))[frames] if frames is not None else list(range(len(qw)))
+    total = 0.0
+    for k in picked:
+        diff = qw[k] - rw[k]
+        total += math.sqrt(float(diff @ diff))
+    return total / len(picked)
+
+
+def triplet_loss(query_windows, positive_windows, negative_windows, owner, margin, frames=None):
+    """sum over triplets t of max(d(q_b, p_b) - d(q_b, n_t) + margin, 0) / T with b = owner[t]."""
+    total = 0.0
+    for t in range(len(negative_windows)):
+        b = int(owner[t])
+        d_p = window_distance(query_windows[b], positive_windows[b], frames)
+        d_n = window_distance(query_windows[b], negative_windows[t], frames)
+        total += max(d_p - d_n + margin, 0.0)
+    return total / len(negative_windows)
+
+
+def diagonal_window_distance(query_window, reference_window):
+    """The reference code's way: the full L x L Euclidean distance matrix of two windows, mean of its diagonal."""
+    qw = np.asarray(query_window, dtype=np.float64)
+    rw = np.asarray(reference_window, dtype=np.float64)
+    full = np.sqrt(((qw[:, None, :] - rw[None, :, :]) ** 2).sum(-1))  # full[a, b] = ||q_a - r_b||
+    return float(np.trace(full)) / len(qw)
+
+
+def window_rows(query, reference, query_starts, length, offset, boundary, r_seg, centre_only=False):
+    """Plain-loop kernel rows [R, n_r]: query windows at the given starts against every reference frame's window
+    (+inf where a reference frame has none); ``centre_only`` compares the windows' current frames only."""
+    query = np.asarray(query, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    out = np.full((len(query_starts), len(reference)), np.inf)
+    reference_starts = [window_start(r_seg, j, length, offset, boundary) for j in range(len(reference))]
+    for i, qs in enumerate(query_starts):
+        for j, rs in enumerate(reference_starts):
+            if rs is None:
+                continue
+            if centre_only:
+                diff = query[qs + offset] - reference[rs + offset]
+                out[i, j] = math.sqrt(float(diff @ diff))
+            else:
+                out[i, j] = diagonal_window_distance(query[qs : qs + length], reference[rs : rs + length])
+    return out
+
+
+def hardest_negatives(query, reference, q_seg, r_seg, length, offset, boundary, positive_frames, near_frames, count):
+    """Brute-force mining per query frame (frame-aligned traversals): None when the query has no window, no
+    positive with a window or no negative; else (positive, d_p, hardest negatives, their distances) where the
+    positive is the closest reference within ``positive_frames`` frames and the negatives are the ``count``
+    closest reference frames farther than ``near_frames`` (ties by index), all among frames with a window."""
+    query_starts = [window_start(q_seg, i, length, offset, boundary) for i in range(len(query))]
+    with_window = [i for i, qs in enumerate(query_starts) if qs is not None]
+    rows = window_rows(query, reference, [query_starts[i] for i in with_window], length, offset, boundary, r_seg)
+    result = {i: None for i in range(len(query))}
+    for i, row in zip(with_window, rows):
+        positives = [j for j in range(len(reference)) if abs(i - j) <= positive_frames and math.isfinite(row[j])]
+        negatives = [j for j in range(len(reference)) if abs(i - j) > near_frames and math.isfinite(row[j])]
+        if not positives or not negatives:
+            continue
+        best = min(positives, key=lambda j: (row[j], j))
+        hardest = sorted(negatives, key=lambda j: (row[j], j))[:count]
+        result[i] = (best, float(row[best]), hardest, [float(row[j]) for j in hardest])
+    return result

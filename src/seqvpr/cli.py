@@ -96,6 +96,20 @@ def load_pair(reference: str, query: str, frames: str | None) -> tuple[Traversal
     return ref, qry
 
 
+def describe_pair(ref: Traversal, qry: Traversal, config: PatchNormConfig, descriptor: str = "patchnorm") -> tuple[Traversal, Traversal]:
+    """Both traversals with descriptors (images become descriptors, with a progress bar)."""
+    return describe(ref, descriptor, config, tqdm_progress), describe(qry, descriptor, config, tqdm_progress)
+
+
+def apply_model_option(model_dir: str, ref: Traversal, qry: Traversal, device: str) -> tuple[Traversal, Traversal, dict]:
+    """Both traversals through the SeqMatchNet transform saved in ``model_dir``; returns its config too."""
+    from seqvpr.pipeline import transform_traversal
+    from seqvpr.training.checkpoint import load_model
+
+    model, config = load_model(model_dir)
+    return transform_traversal(ref, model, device), transform_traversal(qry, model, device), config
+
+
 def resolve_ground_truth(ref: Traversal, qry: Traversal, radius: str | None, gt_file: str | None, reference: str) -> GroundTruth:
     """Ground truth from --ground-truth, --radius, or the description file's [ground_truth] table."""
     spec = ground_truth_spec(reference)
@@ -168,9 +182,11 @@ def cli() -> None:
 @cli.command(epilog=MATCH_EPILOG)
 @click.option("--reference", "-r", required=True, help="Reference traversal: descriptor file, image folder, .db or .toml.")
 @click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
-@click.option("--seq-len", "-L", default=1, show_default=True, type=int, help="Frames per sequence window.")
+@click.option("--seq-len", "-L", type=int, help="Frames per sequence window.  [default: 1, or the --model's L]")
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
               help="Window around the frame (centred) or ending at it (causal, for online use).")
+@click.option("--model", "model_dir", type=click.Path(),
+              help="A trained SeqMatchNet folder (seqvpr train seqmatchnet --out): transform descriptors first.")
 @click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
               help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
 @click.option("--velocities", default="1", show_default=True,
@@ -193,24 +209,27 @@ def cli() -> None:
 @click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=click.Path(),
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
-def match(reference, query, seq_len, align, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
+def match(reference, query, seq_len, align, model_dir, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
           patch, ks, no_positive, no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
     width, height = parse_thumbnail(thumbnail)
-    spec = SequenceSpec(seq_len, align, boundary, parse_velocities(velocities))
     k_values = parse_ks(ks)
-    settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, parse_size(memory_budget))
     ref, qry = load_pair(reference, query, frames)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
-    config = PatchNormConfig(width, height, patch)
-    ref = describe(ref, descriptor, config, tqdm_progress)
-    qry = describe(qry, descriptor, config, tqdm_progress)
+    ref, qry = describe_pair(ref, qry, PatchNormConfig(width, height, patch), descriptor)
+    model_config: dict = {}
+    if model_dir is not None:
+        ref, qry, model_config = apply_model_option(model_dir, ref, qry, device)
+    if seq_len is None:
+        seq_len = int(model_config.get("sequence", {}).get("length", 1))
+    spec = SequenceSpec(seq_len, align, boundary, parse_velocities(velocities))
+    settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, parse_size(memory_budget))
     result = match_traversals(ref, qry, settings, tqdm_progress)
     evaluation = evaluate_match(result, gt, k_values, no_positive)
     run = {
         "reference": reference, "query": query, "frames": frames, "radius": radius, "ground_truth": gt_file,
         "ground_truth_rule": gt.description, "descriptor": descriptor if ref.image_paths is not None else "file",
-        "no_positive": no_positive, **settings.as_dict(),
+        "no_positive": no_positive, "model": model_dir, **settings.as_dict(),
     }
     out = Path(out_dir)
     save_predictions(out / "predictions.csv", result, gt)
@@ -286,6 +305,16 @@ def demo(out_dir, seed, n_frames) -> None:
         click.echo("\n".join(lines[:2] if length == 1 else lines[1:2]))
         save_predictions(out / f"predictions_L{length}.csv", result, gt)
     click.echo(f"the same from the command line: seqvpr match --reference {ref_path} --query {qry_path} --radius 10m --seq-len 5")
+
+
+def _register_training_commands() -> None:
+    from seqvpr.cli_training import ablate, train
+
+    cli.add_command(train)
+    cli.add_command(ablate)
+
+
+_register_training_commands()
 
 
 def main() -> None:

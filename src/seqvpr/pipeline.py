@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,6 +24,9 @@ from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, 
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
 from seqvpr.sequences.matching import TopK, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
+
+if TYPE_CHECKING:
+    from seqvpr.models.seqmatchnet import FrameTransform
 
 ProgressFactory = Callable[[int, str], Callable[[int], None]]
 DESCRIPTORS = ("patchnorm",)
@@ -67,6 +71,21 @@ def describe(
     assert traversal.image_paths is not None
     tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
     return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
+
+
+def transform_traversal(traversal: Traversal, model: "FrameTransform", device: str = "cpu") -> Traversal:
+    """The traversal with its descriptors passed through a learned per-frame transform (e.g. SeqMatchNet)."""
+    from seqvpr.models.seqmatchnet import apply_transform
+
+    if traversal.descriptors is None:
+        raise SeqvprError(f"{traversal.source or traversal.name}: no descriptors to transform")
+    dim = traversal.descriptors.shape[1]
+    if dim != model.config.in_dim:
+        raise SeqvprError(
+            f"{traversal.source or traversal.name}: the model expects {model.config.in_dim}-D descriptors, "
+            f"these are {dim}-D"
+        )
+    return traversal.with_descriptors(apply_transform(model, traversal.descriptors, device=device))
 
 
 def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:

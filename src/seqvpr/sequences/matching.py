@@ -37,6 +37,21 @@ def frame_distances(query: torch.Tensor, reference: torch.Tensor) -> torch.Tenso
     return squared.clamp_(min=1e-12).sqrt_()
 
 
+def aligned_sequence_distances(
+    query_windows: torch.Tensor, reference_windows: torch.Tensor, frames: slice | None = None
+) -> torch.Tensor:
+    """Sequence distances of paired windows [..., L, D] -> [...]: the mean of order-aligned frame distances.
+
+    The pairwise form of the kernel, for losses: differentiable, and the square root is clamped like
+    ``frame_distances`` so identical windows give a finite (zero) gradient. ``frames`` picks a part of the
+    window, e.g. the centre frame only.
+    """
+    if frames is not None:
+        query_windows, reference_windows = query_windows[..., frames, :], reference_windows[..., frames, :]
+    diff = query_windows - reference_windows
+    return (diff * diff).sum(-1).clamp(min=1e-12).sqrt().mean(-1)
+
+
 def window_means(frame_dist: torch.Tensor, spec: SequenceSpec, velocity: float = 1.0, *, inplace: bool = False) -> torch.Tensor:
     """Placed window means P [n, m]: ``P[r, j] = (1/L) sum_k d[r - a + k, j - c + step_k]`` or +inf if out of range.
 
@@ -236,10 +251,39 @@ def _block_rows(n_q: int, n_r: int, length: int, itemsize: int, budget: int | No
 
 
 def _block_sequence_rows(query, reference, spec, starts, r_seg, begin, end) -> torch.Tensor:
-    """Sequence distances of queries [begin, end) from the frame distances of just the rows their windows use."""
+    """Sequence distances of queries [begin, end) (+inf rows for queries without a window)."""
     valid = starts >= 0
-    lo = min(begin, int(starts[valid].min()))
-    hi = max(end, int(starts[valid].max()) + spec.length)
-    d = frame_distances(query[lo:hi], reference)
-    local_starts = np.where(valid, starts - lo, -1)
-    return _sequence_rows(d, np.arange(begin, end) - lo, local_starts, r_seg, spec, inplace=True)
+    if valid.all():
+        return sequence_distance_rows(query, reference, spec, starts, r_seg)
+    out = torch.full((len(starts), len(reference)), float("inf"), dtype=query.dtype, device=query.device)
+    out[torch.as_tensor(np.flatnonzero(valid), device=query.device)] = sequence_distance_rows(
+        query, reference, spec, starts[valid], r_seg
+    )
+    return out
+
+
+def sequence_distance_rows(
+    query: torch.Tensor,
+    reference: torch.Tensor,
+    spec: SequenceSpec,
+    query_starts: np.ndarray,
+    reference_segments: np.ndarray | None = None,
+) -> torch.Tensor:
+    """Sequence distances [len(query_starts), n_reference] of the query windows starting at ``query_starts``.
+
+    Only the frames those windows cover are compared with the reference (one GEMM over their union, laid out as
+    contiguous runs), so a scattered set of windows costs about its own frames, and a contiguous block its rows
+    plus a halo of L - 1. Reference windows follow ``spec`` and ``reference_segments``; +inf where none exists.
+    """
+    starts = np.asarray(query_starts, dtype=np.int64)
+    if len(starts) and int(starts.min()) < 0:
+        raise SeqvprError("sequence_distance_rows: every query start must be a window start (>= 0)")
+    covered = np.unique((starts[:, None] + np.arange(spec.length)[None, :]).ravel())
+    position = np.full(int(covered[-1]) + 1 if len(covered) else 0, -1, dtype=np.int64)
+    position[covered] = np.arange(len(covered))
+    index = torch.as_tensor(covered, device=query.device)
+    d = frame_distances(query.index_select(0, index), reference)
+    # runs of consecutive covered frames are contiguous in d, and each window lies inside one run
+    local_starts = position[starts]
+    r_seg = _segments(reference_segments, len(reference))
+    return _sequence_rows(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)

@@ -1,0 +1,1 @@
+"""Learnable parts: small torch modules that take descriptors and return descriptors."""

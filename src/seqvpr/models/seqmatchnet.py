@@ -1,0 +1,115 @@
+"""SeqMatchNet's learnable per-frame descriptor transform, X' = normalize(W X + B), and its deeper MLP variant.
+
+Every frame is transformed independently (no temporal mixing); the sequence structure enters only through the
+loss and the miner, which use the matching kernel's sequence distance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from seqvpr.errors import SeqvprError
+
+Init = Literal["reference", "identity"]
+
+
+@dataclass(frozen=True)
+class TransformConfig:
+    """Shape and initialisation of the transform.
+
+    ``out_dim`` defaults to ``in_dim`` (as in the paper); ``hidden`` adds ReLU layers (the supplement's deeper
+    variant). ``init="reference"`` is PyTorch's default Linear/Conv1d initialisation (what the reference code
+    gets); ``"identity"`` starts from W = I (semi-orthogonal when the dimensions differ) and B = 0, i.e. from the
+    untransformed descriptors.
+    """
+
+    in_dim: int
+    out_dim: int | None = None
+    hidden: tuple[int, ...] = ()
+    init: Init = "reference"
+    normalize_input: bool = True
+
+    def __post_init__(self) -> None:
+        dims = (self.in_dim, self.output_dim, *self.hidden)
+        if any(int(d) != d or d < 1 for d in dims):
+            raise SeqvprError(f"transform dimensions must be positive integers, got in={self.in_dim} "
+                              f"out={self.out_dim} hidden={self.hidden}")
+        if self.init not in ("reference", "identity"):
+            raise SeqvprError(f"init must be 'reference' or 'identity', got {self.init!r}")
+
+    @property
+    def output_dim(self) -> int:
+        return self.in_dim if self.out_dim is None else self.out_dim
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "hidden": list(self.hidden)}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> TransformConfig:
+        return cls(
+            in_dim=int(values["in_dim"]),
+            out_dim=None if values.get("out_dim") is None else int(values["out_dim"]),
+            hidden=tuple(int(h) for h in values.get("hidden", ())),
+            init=values.get("init", "reference"),
+            normalize_input=bool(values.get("normalize_input", True)),
+        )
+
+
+class FrameTransform(nn.Module):
+    """normalize(W x + B) per frame (or an MLP with ReLUs before the last layer); input rows [..., in_dim]."""
+
+    def __init__(self, config: TransformConfig, seed: int = 0) -> None:
+        super().__init__()
+        self.config = config
+        sizes = (config.in_dim, *config.hidden, config.output_dim)
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        generator = torch.Generator().manual_seed(seed)
+        for layer in self.layers:
+            _initialise(layer, config.init, generator)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        if frames.shape[-1] != self.config.in_dim:
+            raise SeqvprError(
+                f"the model expects {self.config.in_dim}-D descriptors, got {frames.shape[-1]}-D"
+            )
+        x = nn.functional.normalize(frames, dim=-1) if self.config.normalize_input else frames
+        for number, layer in enumerate(self.layers):
+            x = layer(x)
+            if number < len(self.layers) - 1:
+                x = torch.relu(x)
+        return nn.functional.normalize(x, dim=-1)
+
+
+def _initialise(layer: nn.Linear, init: Init, generator: torch.Generator) -> None:
+    """Seeded initialisation: PyTorch's default for Linear/Conv1d, or identity-like with zero bias."""
+    with torch.no_grad():
+        if init == "reference":
+            nn.init.kaiming_uniform_(layer.weight, a=math.sqrt(5), generator=generator)
+            bound = 1.0 / math.sqrt(layer.in_features)
+            nn.init.uniform_(layer.bias, -bound, bound, generator=generator)
+            return
+        if layer.in_features == layer.out_features:
+            layer.weight.copy_(torch.eye(layer.out_features))
+        else:
+            nn.init.orthogonal_(layer.weight, generator=generator)
+        layer.bias.zero_()
+
+
+def apply_transform(
+    model: FrameTransform, descriptors: np.ndarray | torch.Tensor, batch_size: int = 4096, device: str = "cpu"
+) -> np.ndarray:
+    """Transformed descriptors [N, out_dim] as float32 numpy, computed in batches without gradients."""
+    model = model.to(device).eval()
+    source = torch.as_tensor(np.asarray(descriptors) if not torch.is_tensor(descriptors) else descriptors)
+    out = np.empty((len(source), model.config.output_dim), dtype=np.float32)
+    with torch.no_grad():
+        for begin in range(0, len(source), batch_size):
+            batch = source[begin : begin + batch_size].to(device=device, dtype=torch.float32)
+            out[begin : begin + batch_size] = model(batch).cpu().numpy()
+    return out

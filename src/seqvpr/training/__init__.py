@@ -1,0 +1,1 @@
+"""Losses, miners, training loops and checkpoints."""

@@ -1,0 +1,98 @@
+"""SeqMatchNet's Table 1: loss {single, seqmatch} x mining {single, seqmatch}, plus the untransformed baseline.
+
+Each variant is trained on the same data with the same settings (only the loss and the mining differ), its best
+checkpoint by validation recall is tested with sequence matching at the training L, and the untransformed
+descriptors are tested the same way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.traversal import Traversal
+from seqvpr.evaluation.metrics import Evaluation
+from seqvpr.models.seqmatchnet import TransformConfig
+from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals
+from seqvpr.training import checkpoint as ckpt
+from seqvpr.training.seqmatchnet import (
+    TrainingData,
+    TrainingMonitor,
+    TrainResult,
+    TrainSettings,
+    evaluate_transform,
+    train_seqmatchnet,
+)
+
+VARIANTS: tuple[tuple[str, str], ...] = (
+    ("single", "single"),
+    ("single", "seqmatch"),
+    ("seqmatch", "single"),
+    ("seqmatch", "seqmatch"),
+)
+
+
+@dataclass(frozen=True)
+class AblationRow:
+    """One row of the table: the variant's name, its test evaluation, and its training run (None: baseline)."""
+
+    name: str
+    loss: str | None
+    mining: str | None
+    test: Evaluation
+    training: TrainResult | None
+
+
+def run_ablation(
+    data: TrainingData,
+    test_reference: Traversal,
+    test_query: Traversal,
+    test_gt: GroundTruth,
+    transform: TransformConfig,
+    settings: TrainSettings,
+    out_dir: str | Path,
+    *,
+    variants: Sequence[tuple[str, str]] = VARIANTS,
+    monitor: Callable[[str], TrainingMonitor] | None = None,
+) -> list[AblationRow]:
+    """Train every (loss, mining) variant into ``out_dir/<loss>-<mining>`` and test it; baseline first.
+
+    A variant whose folder already holds a run with the same settings is resumed (finished runs are reused).
+    """
+    out = Path(out_dir)
+    spec = settings.sequence
+    baseline = evaluate_match(
+        match_traversals(test_reference, test_query, MatchSettings(spec, k=max(settings.ks), device=settings.device)),
+        test_gt,
+        settings.ks,
+    )
+    rows = [AblationRow("untransformed", None, None, baseline, None)]
+    for loss, mining in variants:
+        name = f"{loss}-{mining}"
+        folder = out / name
+        variant = replace(settings, loss=loss, mining=mining)
+        result = train_seqmatchnet(
+            data, transform, variant, folder,
+            resume=(folder / ckpt.STATE_JSON).is_file(),
+            monitor=monitor(name) if monitor else None,
+        )
+        model, _ = ckpt.load_model(folder)
+        test = evaluate_transform(model, test_reference, test_query, test_gt, spec, settings.ks, settings.device)
+        rows.append(AblationRow(f"{loss}/{mining}", loss, mining, test, result))
+    return rows
+
+
+def ablation_markdown(rows: Sequence[AblationRow], ks: Sequence[int]) -> str:
+    """The table as markdown: loss, mining, R@K..., best epoch."""
+    header = "| loss | mining | " + " | ".join(f"R@{k}" for k in ks) + " | best epoch (val R@K) |"
+    lines = [header, "|" + "---|" * (len(ks) + 3)]
+    for row in rows:
+        recall = " | ".join(f"{row.test.recall[k]:.3f}" for k in ks)
+        if row.training is None:
+            lines.append(f"| untransformed | – | {recall} | – |")
+        else:
+            best = row.training
+            lines.append(f"| {row.loss} | {row.mining} | {recall} | {best.best_epoch} |")
+    return "\n".join(lines)

@@ -1,0 +1,42 @@
+"""Triplet loss whose distance is the matching kernel's sequence distance (SeqMatchNet), or the centre frame's."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.matching import aligned_sequence_distances
+
+SequenceMethod = Literal["seqmatch", "single"]
+DEFAULT_MARGIN = math.sqrt(0.1)  # the reference's --margin 0.1, used as its square root
+
+
+def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
+    """Frames of a window a distance uses: all of them (seqmatch) or the current frame only (single)."""
+    if method == "seqmatch":
+        return None
+    if method == "single":
+        return slice(offset, offset + 1)
+    raise SeqvprError(f"sequence method must be 'seqmatch' or 'single', got {method!r}")
+
+
+def triplet_hinge(d_ap: torch.Tensor, d_an: torch.Tensor, margin: float = DEFAULT_MARGIN) -> torch.Tensor:
+    """mean over triplets of max(d_ap - d_an + margin, 0), on non-squared distances as in the reference."""
+    return torch.relu(d_ap - d_an + margin).mean()
+
+
+def sequence_triplet_loss(
+    query_windows: torch.Tensor,
+    positive_windows: torch.Tensor,
+    negative_windows: torch.Tensor,
+    owner: torch.Tensor,
+    margin: float = DEFAULT_MARGIN,
+    frames: slice | None = None,
+) -> torch.Tensor:
+    """Triplet loss over windows [*, L, D]: query b with its positive b and each negative t whose owner is b."""
+    d_ap = aligned_sequence_distances(query_windows, positive_windows, frames)
+    d_an = aligned_sequence_distances(query_windows[owner], negative_windows, frames)
+    return triplet_hinge(d_ap[owner], d_an, margin)
