@@ -1,5 +1,7 @@
 """Small assertions shared by the test modules."""
 
+import sys
+
 import pytest
 
 from seqvpr.errors import SeqvprError
@@ -13,3 +15,17 @@ def raises_one_line(match: str, fn, *args, **kwargs) -> str:
     assert "\n" not in message
     assert match in message
     return message
+
+
+def run_cli(monkeypatch, capsys, *args) -> tuple[int, str, str]:
+    """Run ``seqvpr ARGS`` in-process as a user would; return (exit status, stdout, stderr)."""
+    from seqvpr.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["seqvpr", *map(str, args)])
+    code = 0
+    try:
+        main()
+    except SystemExit as exit_:
+        code = exit_.code or 0
+    out, err = capsys.readouterr()
+    return code, out, err

@@ -1,24 +1,15 @@
 """The command line as a user meets it: results, JSON, predictions, and one-line errors without partial files."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
 
-from seqvpr.cli import main
+from tests.helpers import run_cli
 
 
-def run(monkeypatch, capsys, *args):
-    """Run ``seqvpr ARGS`` in-process; return (exit status, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["seqvpr", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as exit_:
-        code = exit_.code or 0
-    out, err = capsys.readouterr()
-    return code, out, err
+
+run = run_cli
 
 
 @pytest.fixture

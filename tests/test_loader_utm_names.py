@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 from PIL import Image
 
 from seqvpr.data.loaders.utm_names import is_utm_named_folder, load_utm_named_folder

@@ -1,20 +1,18 @@
 """SeqMatchNet training end to end on small problems: learning, resume, checkpoints, and the command line."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-from seqvpr.cli import main
 from seqvpr.data.groundtruth import Radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, apply_transform
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
-from tests.helpers import raises_one_line
+from tests.helpers import raises_one_line, run_cli
 
 
 def route(n=120, dim=16, seed=0, distortion=1.0, noise=0.3):
@@ -127,15 +125,7 @@ def test_transform_rejects_other_dimensions():
 # --- the command line ----------------------------------------------------------------------------------------
 
 
-def run(monkeypatch, capsys, *args):
-    monkeypatch.setattr(sys, "argv", ["seqvpr", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as exit_:
-        code = exit_.code or 0
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 @pytest.fixture
@@ -165,9 +155,9 @@ def test_cli_train_then_match_with_the_model(monkeypatch, capsys, tmp_path, file
     assert code == 0, err
     result = json.loads(out)
     assert result["settings"]["sequence"]["length"] == 3  # the model's L is the default
-    model, _ = ckpt.load_model(run_dir)
-    expected_settings = result["settings"]
-    assert expected_settings["model"] == str(run_dir)
+    assert result["settings"]["model"] == str(run_dir)
+    best = json.loads((run_dir / "config.json").read_text())
+    assert best["sequence"]["length"] == 3 and best["transform"]["in_dim"] == 16
 
 
 def test_cli_match_with_the_model_equals_matching_transformed_descriptors(monkeypatch, capsys, tmp_path, files):

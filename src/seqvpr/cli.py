@@ -118,11 +118,11 @@ def resolve_ground_truth(ref: Traversal, qry: Traversal, radius: str | None, gt_
     return ground_truth(ref, qry, parse_radius(radius) if radius else None, gt_file)
 
 
-def recall_table(evaluation: Evaluation, label: str) -> str:
+def recall_table(evaluation: Evaluation, label: str, width: int = 14) -> str:
     """A small text table: one row with R@K for each K, AUC and R@100P, and the query counts."""
     ks = list(evaluation.recall)
-    header = f"{'':<14}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'R@100P':>8}"
-    row = f"{label:<14}" + "".join(f"{evaluation.recall[k]:>8.3f}" for k in ks)
+    header = f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'R@100P':>8}"
+    row = f"{label:<{width}}" + "".join(f"{evaluation.recall[k]:>8.3f}" for k in ks)
     row += f"{evaluation.pr.auc:>8.3f}{evaluation.pr.recall_at_100_precision:>8.3f}"
     counts = (
         f"queries evaluated: {evaluation.queries_evaluated}; excluded: {evaluation.queries_excluded} "

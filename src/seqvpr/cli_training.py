@@ -266,6 +266,6 @@ def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_rad
                                 "best_epoch": None if r.training is None else r.training.best_epoch} for r in rows]))
         return
     click.echo(f"test: {test_ref!r} / {test_qry!r}, ground truth {gt.description}, L={settings.sequence.length}")
-    tables = [recall_table(row.test, row.name).split("\n") for row in rows]
+    tables = [recall_table(row.test, row.name, 18).split("\n") for row in rows]
     click.echo("\n".join([tables[0][0], *[table[1] for table in tables], tables[0][2]]))
     click.echo(f"tables: {out / 'ablation.md'}, {out / 'ablation.csv'}")

@@ -86,13 +86,12 @@ def run_ablation(
 
 def ablation_markdown(rows: Sequence[AblationRow], ks: Sequence[int]) -> str:
     """The table as markdown: loss, mining, R@K..., best epoch."""
-    header = "| loss | mining | " + " | ".join(f"R@{k}" for k in ks) + " | best epoch (val R@K) |"
+    header = "| loss | mining | " + " | ".join(f"R@{k}" for k in ks) + " | best epoch |"
     lines = [header, "|" + "---|" * (len(ks) + 3)]
     for row in rows:
         recall = " | ".join(f"{row.test.recall[k]:.3f}" for k in ks)
         if row.training is None:
             lines.append(f"| untransformed | – | {recall} | – |")
         else:
-            best = row.training
-            lines.append(f"| {row.loss} | {row.mining} | {recall} | {best.best_epoch} |")
+            lines.append(f"| {row.loss} | {row.mining} | {recall} | {row.training.best_epoch} |")
     return "\n".join(lines)

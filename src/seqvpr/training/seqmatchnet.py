@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import shutil
 import time
@@ -421,8 +422,6 @@ def _check_same(saved: dict, current: dict, path: Path) -> None:
 
 
 def _jsonable(values: dict) -> dict:
-    import json
-
     return json.loads(json.dumps(values, default=str))
 
 
