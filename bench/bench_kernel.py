@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
+from _common import cpu_model
 import torch
 
 try:
@@ -92,14 +91,6 @@ def shifted_sums(d: torch.Tensor, length: int) -> torch.Tensor:
     return acc
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def fmt(times: list[float]) -> tuple[str, str]:
@@ -128,7 +119,6 @@ def main(argv: list[str] | None = None) -> int:
     copy_clone = timed(lambda: d.clone(), args.repeats)
     copy_into = timed(lambda: buf.copy_(d), args.repeats)
 
-    rows: list[tuple[str, dict[int, list[float]]]] = []
     per_length: dict[str, dict[int, list[float]]] = {
         "kernel": {},
         "strided": {},

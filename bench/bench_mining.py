@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -52,6 +51,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from _common import cpu_model
 import torch
 
 try:
@@ -170,14 +170,6 @@ def compare(
     return ok, detail
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def load_nordland(root: Path) -> tuple[np.ndarray, np.ndarray]:
