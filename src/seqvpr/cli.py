@@ -214,6 +214,9 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
     width, height = parse_thumbnail(thumbnail)
     k_values = parse_ks(ks)
+    speeds, budget = parse_velocities(velocities), parse_size(memory_budget)
+    if seq_len is not None:
+        SequenceSpec(seq_len, align, boundary, speeds)  # bad options fail before any data is read
     ref, qry = load_pair(reference, query, frames)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
     ref, qry = describe_pair(ref, qry, PatchNormConfig(width, height, patch), descriptor)
@@ -222,8 +225,8 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
         ref, qry, model_config = apply_model_option(model_dir, ref, qry, device)
     if seq_len is None:
         seq_len = int(model_config.get("sequence", {}).get("length", 1))
-    spec = SequenceSpec(seq_len, align, boundary, parse_velocities(velocities))
-    settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, parse_size(memory_budget))
+    spec = SequenceSpec(seq_len, align, boundary, speeds)
+    settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, budget)
     result = match_traversals(ref, qry, settings, tqdm_progress)
     evaluation = evaluate_match(result, gt, k_values, no_positive)
     run = {
