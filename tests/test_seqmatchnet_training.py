@@ -85,7 +85,7 @@ def test_training_is_deterministic_for_a_seed_and_varies_with_it(tmp_path):
     assert a.history[1].loss != c.history[1].loss
 
 
-def test_resume_refuses_other_settings_and_a_second_run_in_the_same_folder(tmp_path):
+def test_resume_refuses_other_settings_a_second_run_and_starts_over_without_state(tmp_path):
     data = small_data()
     from dataclasses import replace
 
@@ -93,8 +93,8 @@ def test_resume_refuses_other_settings_and_a_second_run_in_the_same_folder(tmp_p
     raises_one_line("lr", train_seqmatchnet, data, TransformConfig(16), replace(SMALL, lr=0.1), tmp_path / "run",
                     resume=True)
     raises_one_line("--resume", train_seqmatchnet, data, TransformConfig(16), SMALL, tmp_path / "run")
-    raises_one_line("nothing to resume", train_seqmatchnet, data, TransformConfig(16), SMALL, tmp_path / "new",
-                    resume=True)
+    fresh = train_seqmatchnet(data, TransformConfig(16), replace(SMALL, epochs=1), tmp_path / "new", resume=True)
+    assert [r.epoch for r in fresh.history] == [0, 1]  # nothing to resume yet: a killed-at-start run starts over
 
 
 def test_saved_model_applies_identically_after_reload(tmp_path):
@@ -206,6 +206,17 @@ def test_cli_train_bad_input_is_one_line_without_output(monkeypatch, capsys, tmp
                          "--out", tmp_path / "run")
     assert code == 2
     assert err.startswith("seqvpr: error:") and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_cli_train_names_the_file_of_other_dimension(monkeypatch, capsys, tmp_path, files):
+    ref, _ = files
+    narrow = tmp_path / "narrow.npy"
+    np.save(narrow, np.load(ref)[:, :8])
+    code, _, err = run(monkeypatch, capsys, "train", "seqmatchnet", "-r", ref, "-q", narrow, *COMMON,
+                       "--out", tmp_path / "run")
+    assert code == 2 and err.count("\n") == 1
+    assert f"{ref} has 16, {narrow} (query) has 8" in err
     assert not (tmp_path / "run").exists()
 
 

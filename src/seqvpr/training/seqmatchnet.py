@@ -103,9 +103,14 @@ class TrainingData:
             traversal = getattr(self, name)
             if traversal.descriptors is None:
                 raise SeqvprError(f"{traversal.source or name}: training needs descriptors (describe the images first)")
-        dims = {getattr(self, n).descriptors.shape[1] for n in ("reference", "query", "val_reference", "val_query")}
-        if len(dims) != 1:
-            raise SeqvprError(f"training and validation descriptors have different dimensions: {sorted(dims)}")
+        dim = self.reference.descriptors.shape[1]
+        for name in ("query", "val_reference", "val_query"):
+            other = getattr(self, name)
+            if other.descriptors.shape[1] != dim:
+                raise SeqvprError(
+                    f"descriptor dimensions differ: {self.reference.source or 'reference'} has {dim}, "
+                    f"{other.source or name} ({name.replace('_', ' ')}) has {other.descriptors.shape[1]}"
+                )
         if self.negative_radius.unit != self.positive_radius.unit:
             raise SeqvprError("positive and negative radii must have the same unit (both m or both f)")
         if self.negative_radius.value < self.positive_radius.value:
@@ -180,7 +185,8 @@ def train_seqmatchnet(
     """Train the transform; the best model by validation R@``select_k`` is written to ``out_dir``.
 
     ``out_dir`` then holds ``model.safetensors`` + ``config.json`` (usable by ``seqvpr match --model``),
-    ``history.csv``, and the resumable state of the last finished epoch.
+    ``history.csv``, and the resumable state of the last finished epoch. ``resume`` continues from that state
+    (a run killed before its first state starts over, so ``resume=True`` is always safe to pass).
     """
     out = Path(out_dir)
     monitor = monitor or SilentMonitor()
@@ -193,8 +199,6 @@ def train_seqmatchnet(
     best_epoch, best_recall = 0, {}
     if resume and (out / ckpt.STATE_JSON).is_file():
         history, best_epoch, best_recall = run.restore(out)
-    elif resume:
-        raise SeqvprError(f"{out}: nothing to resume ({ckpt.STATE_JSON} not found)")
     elif (out / ckpt.STATE_JSON).exists():
         raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
     if not history:
