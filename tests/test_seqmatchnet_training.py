@@ -227,3 +227,21 @@ def test_cli_match_model_of_other_dimension(monkeypatch, capsys, tmp_path, files
                        tmp_path / "m", "--out", tmp_path / "out")
     assert code == 2 and "expects 8-D descriptors" in err and err.count("\n") == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_cli_train_in_frames_then_test_in_metres_on_another_dataset(monkeypatch, capsys, tmp_path, files):
+    """A model trained with a frame radius applies to another traversal pair whose ground truth is in metres."""
+    ref, qry = files
+    run_dir = tmp_path / "run"
+    code, _, err = run(monkeypatch, capsys, "train", "seqmatchnet", "-r", ref, "-q", qry, *COMMON, "--out", run_dir)
+    assert code == 0, err
+    reference, query = route(80, 16, seed=9)
+    along = np.stack([np.arange(80) * 5.0, np.zeros(80)], axis=1)  # 5 m between frames
+    np.savez(tmp_path / "other_ref.npz", descriptors=reference, positions=along)
+    np.savez(tmp_path / "other_qry.npz", descriptors=query, positions=along + [1.0, 2.0])
+    code, out, err = run(monkeypatch, capsys, "match", "-r", tmp_path / "other_ref.npz", "-q",
+                         tmp_path / "other_qry.npz", "--radius", "6m", "--model", run_dir, "--json",
+                         "--out", tmp_path / "m")
+    assert code == 0, err
+    result = json.loads(out)
+    assert result["queries_evaluated"] == 78 and result["settings"]["ground_truth_rule"] == "within 6 m"
