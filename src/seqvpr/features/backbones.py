@@ -168,3 +168,113 @@ def load_strict(model: nn.Module, state: dict[str, torch.Tensor], path: Path) ->
     problems = [f"missing {k}" for k in result.missing_keys] + [f"unexpected {k}" for k in result.unexpected_keys]
     if problems:
         raise SeqvprError(f"{path}: weights do not fit the model ({len(problems)} keys; first: {problems[0]})")
+
+
+class BasicBlock(nn.Module):
+    """ResNet-18/34 block (torchvision layout: conv1/bn1, conv2/bn2, optional downsample.0/.1)."""
+
+    expansion = 1
+
+    def __init__(self, in_channels: int, channels: int, stride: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, channels, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(channels)
+        self.conv2 = nn.Conv2d(channels, channels, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(channels)
+        self.downsample = _downsample(in_channels, channels, stride)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.relu(self.bn1(self.conv1(x)))
+        y = self.bn2(self.conv2(y))
+        return torch.relu(y + (x if self.downsample is None else self.downsample(x)))
+
+
+class Bottleneck(nn.Module):
+    """ResNet-50 block (torchvision layout, stride on the 3x3 convolution)."""
+
+    expansion = 4
+
+    def __init__(self, in_channels: int, channels: int, stride: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, channels, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(channels)
+        self.conv2 = nn.Conv2d(channels, channels, 3, stride, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(channels)
+        self.conv3 = nn.Conv2d(channels, channels * 4, 1, bias=False)
+        self.bn3 = nn.BatchNorm2d(channels * 4)
+        self.downsample = _downsample(in_channels, channels * 4, stride)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.relu(self.bn1(self.conv1(x)))
+        y = torch.relu(self.bn2(self.conv2(y)))
+        y = self.bn3(self.conv3(y))
+        return torch.relu(y + (x if self.downsample is None else self.downsample(x)))
+
+
+def _downsample(in_channels: int, out_channels: int, stride: int) -> nn.Sequential | None:
+    if stride == 1 and in_channels == out_channels:
+        return None
+    return nn.Sequential(nn.Conv2d(in_channels, out_channels, 1, stride, bias=False), nn.BatchNorm2d(out_channels))
+
+
+RESNET_LAYOUTS = {18: (BasicBlock, (2, 2, 2, 2)), 50: (Bottleneck, (3, 4, 6, 3))}
+#: CosPlace/JIST keep the ResNet children in an nn.Sequential called ``backbone``
+COSPLACE_CHILDREN = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
+
+
+class ResNet(nn.Module):
+    """ResNet-18/50 with torchvision parameter names; ``features`` gives the layer4 map (stride 32)."""
+
+    def __init__(self, depth: int) -> None:
+        super().__init__()
+        if depth not in RESNET_LAYOUTS:
+            raise SeqvprError(f"ResNet depth must be one of {sorted(RESNET_LAYOUTS)}, got {depth}")
+        block, repeats = RESNET_LAYOUTS[depth]
+        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(64)
+        channels = 64
+        for number, (width, count) in enumerate(zip((64, 128, 256, 512), repeats), start=1):
+            layers = []
+            for index in range(count):
+                stride = 2 if number > 1 and index == 0 else 1
+                layers.append(block(channels, width, stride))
+                channels = width * block.expansion
+            setattr(self, f"layer{number}", nn.Sequential(*layers))
+        self.out_channels = channels
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        x = nn.functional.max_pool2d(torch.relu(self.bn1(self.conv1(images))), 3, 2, 1)
+        return self.layer4(self.layer3(self.layer2(self.layer1(x))))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.features(images)
+
+
+def backbone_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """ResNet backbone weights from a torchvision or CosPlace-style state dict (heads such as fc are dropped)."""
+    out = {}
+    for key, value in state.items():
+        if key.startswith("backbone."):
+            child, _, rest = key.removeprefix("backbone.").partition(".")
+            if child not in COSPLACE_CHILDREN:
+                continue
+            key = f"{COSPLACE_CHILDREN[child]}.{rest}"
+        if key.split(".", 1)[0] in ("conv1", "bn1", "layer1", "layer2", "layer3", "layer4"):
+            out[key] = value
+    return out
+
+
+def resnet(depth: int, weights: str | Path | None) -> ResNet:
+    """ResNet-18/50 in eval mode with the weights of a user checkpoint (torchvision or CosPlace keys, with or
+    without ``module.``); ``weights=None`` gives a random initialisation, on purpose only."""
+    model = ResNet(depth)
+    if weights is None:
+        return model.eval()
+    if weights == "imagenet":
+        raise SeqvprError(
+            f"no ImageNet weights ship for ResNet-{depth}: pass a checkpoint path (torchvision or CosPlace "
+            "state dict, .pth or .safetensors), or use efficientnet-lite0"
+        )
+    path = Path(weights)
+    load_strict(model, backbone_state(load_state_dict_file(path)), path)
+    return model.eval()
