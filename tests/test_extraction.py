@@ -1,0 +1,108 @@
+"""Extraction: batching, the on-disk cache (reuse and invalidation), resume after an interruption, bad images."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from torch import nn
+
+from seqvpr.features.extraction import Extractor, ExtractorConfig, build_extractor, extract_descriptors
+from seqvpr.features.pooling import GeM
+from tests.helpers import raises_one_line
+
+
+class TinyBackbone(nn.Module):
+    """A small convolution standing in for a real backbone; counts the images it sees."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        torch.manual_seed(0)
+        self.conv = nn.Conv2d(3, 8, 3, stride=2)
+        self.images_seen = 0
+
+    def features(self, x):
+        self.images_seen += len(x)
+        return torch.relu(self.conv(x))
+
+
+def tiny() -> Extractor:
+    return Extractor(TinyBackbone(), GeM(), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)).eval()
+
+
+@pytest.fixture
+def images(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "images"
+    folder.mkdir()
+    paths = []
+    for i in range(10):
+        path = folder / f"{i:03d}.png"
+        Image.fromarray(rng.integers(0, 255, size=(30, 40, 3), dtype=np.uint8)).save(path)
+        paths.append(path)
+    return paths
+
+
+CONFIG = ExtractorConfig(width=32, height=24, batch_size=3)
+
+
+def test_batched_equals_one_at_a_time_with_the_real_backbone(images):
+    config = ExtractorConfig(width=64, height=48, batch_size=4)
+    model = build_extractor(config)
+    batched = extract_descriptors(images[:5], config, extractor=model).descriptors
+    single = extract_descriptors(images[:5], ExtractorConfig(width=64, height=48, batch_size=1), extractor=model)
+    assert batched.shape == (5, 1280)
+    assert np.allclose(batched, single.descriptors, atol=1e-5)
+    assert np.allclose(np.linalg.norm(batched, axis=1), 1.0, atol=1e-5)
+
+
+def test_cache_is_reused_and_invalidated_by_config_or_images(tmp_path, images):
+    cache = tmp_path / "cache"
+    model = tiny()
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 10
+    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 10 and np.array_equal(first.descriptors, again.descriptors)
+    extract_descriptors(images, ExtractorConfig(width=40, height=24, batch_size=3), cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 20  # another input size: recomputed
+    extract_descriptors(images[:9], CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 29  # another image list: recomputed
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(images[4])
+    os.utime(images[4], ns=(1, 1))
+    changed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 39  # an image changed: recomputed
+    assert not np.allclose(changed.descriptors[4], first.descriptors[4])
+
+
+def test_interrupted_extraction_resumes_where_it_stopped(tmp_path, images):
+    cache = tmp_path / "cache"
+    whole = extract_descriptors(images, CONFIG, extractor=tiny()).descriptors
+    seen = []
+
+    def interrupt(n):
+        seen.append(n)
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+
+    model = tiny()
+    with pytest.raises(KeyboardInterrupt):
+        extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, progress=interrupt)
+    assert model.backbone.images_seen == 6
+    resumed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 10  # only the 4 images not done before
+    assert np.allclose(resumed.descriptors, whole, atol=1e-6)
+    assert not any(p.name.endswith(".part") for p in cache.iterdir())
+
+
+def test_bad_image_is_an_error_naming_it_or_skipped(tmp_path, images):
+    images[3].write_bytes(b"not an image")
+    raises_one_line(f"{images[3]}: not a readable image", extract_descriptors, images, CONFIG, extractor=tiny())
+    result = extract_descriptors(images, CONFIG, extractor=tiny(), skip_bad=True)
+    assert result.skipped == (images[3],)
+    assert list(result.rows) == [0, 1, 2, 4, 5, 6, 7, 8, 9] and len(result.descriptors) == 9
+    raises_one_line("no such image", extract_descriptors, [tmp_path / "gone.png"], CONFIG, extractor=tiny())
+
+
+def test_unknown_backbone_is_one_line():
+    raises_one_line("backbone 'vgg'", ExtractorConfig, backbone="vgg")
