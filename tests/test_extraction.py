@@ -1,5 +1,6 @@
 """Extraction: batching, the on-disk cache (reuse and invalidation), resume after an interruption, bad images."""
 
+import json
 import os
 
 import numpy as np
@@ -106,3 +107,24 @@ def test_bad_image_is_an_error_naming_it_or_skipped(tmp_path, images):
 
 def test_unknown_backbone_is_one_line():
     raises_one_line("backbone 'vgg'", ExtractorConfig, backbone="vgg")
+
+
+def test_cli_extract_then_match_keeps_source_frames_of_skipped_images(monkeypatch, capsys, tmp_path, images):
+    from tests.helpers import run_cli
+
+    images[2].write_bytes(b"broken")
+    folder = images[0].parent
+    out = tmp_path / "ref.npz"
+    args = ["extract", folder, "--descriptor", "efficientnet-lite0", "--image-size", "64x48", "--out", out]
+    code, _, err = run_cli(monkeypatch, capsys, *args)
+    assert code == 2 and "002.png: not a readable image" in err and not out.exists()
+    code, stdout, err = run_cli(monkeypatch, capsys, *args, "--skip-bad", "--cache-dir", tmp_path / "cache")
+    assert code == 0, err
+    assert "skipped 1 unreadable images: 002.png" in err and "9 frames, 1280-D" in stdout
+    with np.load(out) as saved:
+        assert list(saved["frame_index"]) == [0, 1, 3, 4, 5, 6, 7, 8, 9]
+        assert list(saved["segments"]) == [0, 0, 1, 1, 1, 1, 1, 1, 1]  # the gap starts a new segment
+    code, stdout, err = run_cli(monkeypatch, capsys, "match", "-r", out, "-q", out, "--radius", "0f", "--json",
+                                "--out", tmp_path / "m")
+    assert code == 0, err
+    assert json.loads(stdout)["recall"]["1"] == 1.0  # every frame finds itself

@@ -19,7 +19,16 @@ from seqvpr.evaluation.metrics import Evaluation, evaluate
 from seqvpr.evaluation.predictions import read_predictions, write_predictions
 from seqvpr.features.patchnorm import PatchNormConfig
 from seqvpr.io import atomic_write
-from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match, ground_truth, match_traversals
+from seqvpr.features.extraction import ExtractorConfig
+from seqvpr.pipeline import (
+    DESCRIPTORS,
+    MatchResult,
+    MatchSettings,
+    describe,
+    evaluate_match,
+    ground_truth,
+    match_traversals,
+)
 from seqvpr.sequences.windows import SequenceSpec
 
 
@@ -96,9 +105,44 @@ def load_pair(reference: str, query: str, frames: str | None) -> tuple[Traversal
     return ref, qry
 
 
-def describe_pair(ref: Traversal, qry: Traversal, config: PatchNormConfig, descriptor: str = "patchnorm") -> tuple[Traversal, Traversal]:
+def describe_pair(
+    ref: Traversal, qry: Traversal, config: PatchNormConfig, descriptor: str = "patchnorm", **extraction
+) -> tuple[Traversal, Traversal]:
     """Both traversals with descriptors (images become descriptors, with a progress bar)."""
-    return describe(ref, descriptor, config, tqdm_progress), describe(qry, descriptor, config, tqdm_progress)
+    return (describe(ref, descriptor, config, tqdm_progress, **extraction),
+            describe(qry, descriptor, config, tqdm_progress, **extraction))
+
+
+def extraction_options(function):
+    """How images become descriptors: patch-normalised thumbnails or a backbone with GeM pooling."""
+    options = [
+        click.option("--descriptor", type=click.Choice(list(DESCRIPTORS)), default="patchnorm", show_default=True,
+                     help="How images become descriptors (descriptor files are used as they are)."),
+        click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT."),
+        click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels."),
+        click.option("--weights", default="imagenet", show_default=True,
+                     help="Backbone weights: 'imagenet' (EfficientNet-Lite0's packaged weights) or a checkpoint path."),
+        click.option("--image-size", default="320x240", show_default=True, help="Backbone input WIDTHxHEIGHT."),
+        click.option("--batch-size", "extract_batch", default=32, show_default=True, type=int,
+                     help="Images per backbone batch."),
+        click.option("--cache-dir", type=click.Path(), help="Cache extracted descriptors here (keyed by model and images)."),
+        click.option("--skip-bad", is_flag=True, help="Skip unreadable images (listed on stderr) instead of failing."),
+    ]
+    for option in reversed(options):
+        function = option(function)
+    return function
+
+
+def extraction_settings(descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad,
+                        device="cpu") -> tuple[str, PatchNormConfig, dict]:
+    """The parsed extraction options: descriptor name, patchnorm config, keyword arguments of ``describe``."""
+    width, height = parse_thumbnail(thumbnail)
+    image_width, image_height = parse_thumbnail(image_size)
+    backbone = descriptor if descriptor != "patchnorm" else "efficientnet-lite0"
+    config = ExtractorConfig(backbone, weights, "gem", image_width, image_height, extract_batch)
+    return descriptor, PatchNormConfig(width, height, patch), {
+        "extractor": config, "device": device, "cache_dir": cache_dir, "skip_bad": skip_bad,
+    }
 
 
 def apply_model_option(model_dir: str, ref: Traversal, qry: Traversal, device: str) -> tuple[Traversal, Traversal, dict]:
@@ -194,10 +238,7 @@ def cli() -> None:
 @click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
-@click.option("--descriptor", type=click.Choice(["patchnorm"]), default="patchnorm", show_default=True,
-              help="How images become descriptors (descriptor files are used as they are).")
-@click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT.")
-@click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels.")
+@extraction_options
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
               help="Queries with no positive: excluded from the denominator, or counted as misses.")
@@ -210,16 +251,19 @@ def cli() -> None:
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 def match(reference, query, seq_len, align, model_dir, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
-          patch, ks, no_positive, no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
+          patch, weights, image_size, extract_batch, cache_dir, skip_bad, ks, no_positive, no_normalize, dtype, device,
+          memory_budget, out_dir, as_json) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    width, height = parse_thumbnail(thumbnail)
+    descriptor, patchnorm, extraction = extraction_settings(
+        descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, device
+    )
     k_values = parse_ks(ks)
     speeds, budget = parse_velocities(velocities), parse_size(memory_budget)
     if seq_len is not None:
         SequenceSpec(seq_len, align, boundary, speeds)  # bad options fail before any data is read
     ref, qry = load_pair(reference, query, frames)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
-    ref, qry = describe_pair(ref, qry, PatchNormConfig(width, height, patch), descriptor)
+    ref, qry = describe_pair(ref, qry, patchnorm, descriptor, **extraction)
     model_config: dict = {}
     if model_dir is not None:
         ref, qry, model_config = apply_model_option(model_dir, ref, qry, device)
@@ -308,6 +352,40 @@ def demo(out_dir, seed, n_frames) -> None:
         click.echo("\n".join(lines[:2] if length == 1 else lines[1:2]))
         save_predictions(out / f"predictions_L{length}.csv", result, gt)
     click.echo(f"the same from the command line: seqvpr match --reference {ref_path} --query {qry_path} --radius 10m --seq-len 5")
+
+
+@cli.command(epilog="""\b
+Examples:
+  seqvpr extract images/ --out ref.npz
+  seqvpr extract images/ --descriptor resnet50 --weights cosplace_r50.pth --image-size 512x384 --out ref.npz
+  seqvpr match --reference ref.npz --query qry.npz --radius 25m -L 5
+""")
+@click.argument("images")
+@extraction_options
+@click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
+              help="Which side of a dbStruct or description file to read.")
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--out", "out_file", required=True, type=click.Path(),
+              help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
+def extract(images, descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, role,
+            device, out_file) -> None:
+    """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
+    from seqvpr.data.sources import save_traversal_npz
+
+    descriptor, patchnorm, extraction = extraction_settings(
+        descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, device
+    )
+    traversal = load_traversal(images, role)
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{images}: holds descriptors, not images; nothing to extract")
+    described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
+    skipped = len(traversal) - len(described)
+    if skipped:
+        kept = set(int(i) for i in described.frame_index)
+        names = [p.name for i, p in zip(traversal.frame_index, traversal.image_paths) if int(i) not in kept]
+        click.echo(f"skipped {skipped} unreadable images: {', '.join(names)}", err=True)
+    save_traversal_npz(Path(out_file), described)
+    click.echo(f"{out_file}: {len(described)} frames, {described.descriptors.shape[1]}-D {descriptor} descriptors")
 
 
 def _register_training_commands() -> None:

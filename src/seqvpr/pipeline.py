@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +21,7 @@ from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
+from seqvpr.features.extraction import BACKBONES, ExtractorConfig, extract_descriptors
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
 from seqvpr.sequences.matching import TopK, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
@@ -29,7 +30,7 @@ if TYPE_CHECKING:
     from seqvpr.models.seqmatchnet import FrameTransform
 
 ProgressFactory = Callable[[int, str], Callable[[int], None]]
-DESCRIPTORS = ("patchnorm",)
+DESCRIPTORS = ("patchnorm", *BACKBONES)
 
 
 @dataclass(frozen=True)
@@ -62,15 +63,31 @@ def describe(
     descriptor: str = "patchnorm",
     config: PatchNormConfig = PatchNormConfig(),
     progress: ProgressFactory | None = None,
+    *,
+    extractor: ExtractorConfig = ExtractorConfig(),
+    device: str = "cpu",
+    cache_dir: str | Path | None = None,
+    skip_bad: bool = False,
 ) -> Traversal:
-    """The traversal with descriptors: kept if it has them, else computed from its images."""
+    """The traversal with descriptors: kept if it has them, else computed from its images.
+
+    ``descriptor`` is ``patchnorm`` (weight-free thumbnails, ``config``) or a backbone name (with ``extractor``'s
+    weights, pooling and input size). With ``skip_bad`` unreadable images are dropped from the traversal.
+    """
     if traversal.descriptors is not None:
         return traversal
     if descriptor not in DESCRIPTORS:
         raise SeqvprError(f"descriptor {descriptor!r} is not known (choose from: {', '.join(DESCRIPTORS)})")
     assert traversal.image_paths is not None
     tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
-    return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
+    if descriptor == "patchnorm":
+        return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
+    extraction = extract_descriptors(
+        traversal.image_paths, replace(extractor, backbone=descriptor), device=device, cache_dir=cache_dir,
+        skip_bad=skip_bad, progress=tick,
+    )
+    kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
+    return kept.with_descriptors(extraction.descriptors)
 
 
 def transform_traversal(traversal: Traversal, model: "FrameTransform", device: str = "cpu") -> Traversal:

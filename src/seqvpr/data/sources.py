@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -112,7 +112,7 @@ def load_traversal_npz(path: Path) -> Traversal:
     with np.load(path, allow_pickle=False) as archive:
         arrays = {name: archive[name] for name in archive.files}
     descriptors = load_descriptor_array(f"{path}:descriptors")
-    return Traversal.from_descriptors(
+    traversal = Traversal.from_descriptors(
         descriptors,
         name=path.stem,
         positions=arrays.get("positions"),
@@ -120,13 +120,20 @@ def load_traversal_npz(path: Path) -> Traversal:
         timestamps=arrays.get("timestamps"),
         source=str(path),
     )
+    if "frame_index" in arrays:  # source frame numbers survive extraction with skipped images
+        frame_index = np.asarray(arrays["frame_index"], dtype=np.int64)
+        if frame_index.shape != (len(descriptors),):
+            raise SeqvprError(f"{path}: frame_index must have one entry per descriptor row")
+        traversal = replace(traversal, frame_index=frame_index)
+    return traversal
 
 
 def save_traversal_npz(path: Path, traversal: Traversal) -> None:
     """Write a traversal file readable by ``load_traversal_npz`` (atomically)."""
     from seqvpr.io import atomic_write
 
-    arrays = {"descriptors": traversal.descriptors, "segments": traversal.segment_ids}
+    arrays = {"descriptors": traversal.descriptors, "segments": traversal.segment_ids,
+              "frame_index": traversal.frame_index}
     if traversal.positions is not None:
         arrays["positions"] = traversal.positions
     if traversal.timestamps is not None:
