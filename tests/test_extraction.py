@@ -128,3 +128,14 @@ def test_cli_extract_then_match_keeps_source_frames_of_skipped_images(monkeypatc
                                 "--out", tmp_path / "m")
     assert code == 0, err
     assert json.loads(stdout)["recall"]["1"] == 1.0  # every frame finds itself
+
+
+def test_cli_extract_bad_options_name_the_option(monkeypatch, capsys, tmp_path, images):
+    from tests.helpers import run_cli
+
+    code, _, err = run_cli(monkeypatch, capsys, "extract", images[0].parent, "--descriptor", "efficientnet-lite0",
+                           "--image-size", "10", "--out", tmp_path / "x.npz")
+    assert code == 2 and "--image-size '10'" in err and not (tmp_path / "x.npz").exists()
+    code, _, err = run_cli(monkeypatch, capsys, "extract", images[0].parent, "--descriptor", "resnet18",
+                           "--out", tmp_path / "x.npz")
+    assert code == 2 and "pass a checkpoint path" in err and err.count("\n") == 1

@@ -87,12 +87,15 @@ def parse_size(text: str | None) -> int | None:
         raise SeqvprError(f"--memory-budget {text!r}: expected bytes such as 512M or 2G") from None
 
 
-def parse_thumbnail(text: str) -> tuple[int, int]:
+def parse_thumbnail(text: str, option: str = "--thumbnail") -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` -> (width, height), both positive."""
     try:
         width, height = (int(x) for x in text.lower().split("x"))
+        if width < 1 or height < 1:
+            raise ValueError
         return width, height
     except ValueError:
-        raise SeqvprError(f"--thumbnail {text!r}: expected WIDTHxHEIGHT, e.g. 64x32") from None
+        raise SeqvprError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 64x32") from None
 
 
 def load_pair(reference: str, query: str, frames: str | None) -> tuple[Traversal, Traversal]:
@@ -137,7 +140,7 @@ def extraction_settings(descriptor, thumbnail, patch, weights, image_size, extra
                         device="cpu") -> tuple[str, PatchNormConfig, dict]:
     """The parsed extraction options: descriptor name, patchnorm config, keyword arguments of ``describe``."""
     width, height = parse_thumbnail(thumbnail)
-    image_width, image_height = parse_thumbnail(image_size)
+    image_width, image_height = parse_thumbnail(image_size, "--image-size")
     backbone = descriptor if descriptor != "patchnorm" else "efficientnet-lite0"
     config = ExtractorConfig(backbone, weights, "gem", image_width, image_height, extract_batch)
     return descriptor, PatchNormConfig(width, height, patch), {
