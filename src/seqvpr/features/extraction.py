@@ -98,13 +98,17 @@ def cache_key(config: ExtractorConfig, paths: Sequence[Path]) -> str:
     """A digest of the configuration, the weights file and every image's path, size and mtime."""
     settings = {k: v for k, v in asdict(config).items() if k != "batch_size"}  # batching does not change rows
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
-    weights = backbones.lite0_weights_path() if config.weights == "imagenet" and "lite" in config.backbone else (
-        Path(config.weights) if config.weights not in (None, "imagenet") else None
-    )
-    for path in ([weights] if weights else []) + list(paths):
+    for path in _weights_files(config) + list(paths):
         stat = os.stat(path) if os.path.exists(path) else None
         digest.update(f"{Path(path).resolve()}|{stat.st_size if stat else -1}|{stat.st_mtime_ns if stat else -1}\n".encode())
     return digest.hexdigest()[:24]
+
+
+def _weights_files(config: ExtractorConfig) -> list[Path]:
+    """The weights file a configuration reads (none for random weights or ResNet without a checkpoint)."""
+    if config.weights is None or (config.weights == "imagenet" and config.backbone != "efficientnet-lite0"):
+        return []
+    return [backbones.lite0_weights_path() if config.weights == "imagenet" else Path(config.weights)]
 
 
 def extract_descriptors(
