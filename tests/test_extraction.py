@@ -9,8 +9,15 @@ import torch
 from PIL import Image
 from torch import nn
 
-from seqvpr.features.extraction import Extractor, ExtractorConfig, build_extractor, extract_descriptors
-from seqvpr.features.pooling import GeM
+from seqvpr.features.extraction import (
+    Extractor,
+    ExtractorConfig,
+    build_extractor,
+    extract_descriptors,
+    init_netvlad,
+    load_image,
+)
+from seqvpr.features.pooling import GeM, NetVLAD
 from tests.helpers import raises_one_line
 
 
@@ -139,3 +146,52 @@ def test_cli_extract_bad_options_name_the_option(monkeypatch, capsys, tmp_path, 
     code, _, err = run_cli(monkeypatch, capsys, "extract", images[0].parent, "--descriptor", "resnet18",
                            "--out", tmp_path / "x.npz")
     assert code == 2 and "pass a checkpoint path" in err and err.count("\n") == 1
+
+
+def tiny_netvlad(clusters: int = 4) -> Extractor:
+    backbone = TinyBackbone()
+    backbone.local_features = backbone.features
+    return Extractor(backbone, NetVLAD(clusters, 8), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)).eval()
+
+
+def test_netvlad_extraction_equals_pooling_the_local_features_and_its_head_keys_the_cache(tmp_path, images):
+    config = ExtractorConfig(width=32, height=24, batch_size=3, pooling="netvlad", clusters=4)
+    model = tiny_netvlad()
+    init_netvlad(model, images, config, seed=1)
+    with torch.no_grad():
+        local = model.backbone.features((torch.stack([load_image(p, 32, 24) for p in images]) - 0.5) / 0.5)
+        expected = model.pooling(local).numpy()
+    cache = tmp_path / "cache"
+    first = extract_descriptors(images, config, cache_dir=cache, extractor=model)
+    assert first.descriptors.shape == (10, 32)
+    assert np.allclose(first.descriptors, expected, atol=1e-5)
+    assert extract_descriptors(images, config, cache_dir=cache, extractor=model).cache_file == first.cache_file
+    init_netvlad(model, images[:5], config, seed=2)  # a re-fitted head must not reuse the cache
+    again = extract_descriptors(images, config, cache_dir=cache, extractor=model)
+    assert again.cache_file != first.cache_file and len(list(cache.glob("*.npz"))) == 2
+
+
+def test_netvlad_init_is_seeded_and_needs_a_netvlad_extractor(images):
+    config = ExtractorConfig(width=32, height=24, batch_size=4, pooling="netvlad", clusters=4)
+    heads = []
+    for _ in range(2):
+        model = tiny_netvlad()
+        init_netvlad(model, images, config, seed=3)
+        heads.append(model.pooling.centroids.detach().clone())
+    assert torch.equal(heads[0], heads[1])
+    raises_one_line("NetVLAD head", init_netvlad, tiny(), images, CONFIG)
+    raises_one_line("initialised extractor", extract_descriptors, images, config)
+
+
+def test_cli_match_netvlad_pca_whitened_finds_each_frame_itself(monkeypatch, capsys, tmp_path, images):
+    from tests.helpers import run_cli
+
+    folder = images[0].parent
+    code, stdout, err = run_cli(monkeypatch, capsys, "match", "-r", folder, "-q", folder, "--radius", "0f",
+                                "--descriptor", "efficientnet-lite0", "--image-size", "64x48", "--pooling",
+                                "netvlad", "--clusters", "8", "--pca-dim", "64", "--json", "--out", tmp_path / "m")
+    assert code == 0, err
+    result = json.loads(stdout)
+    assert result["recall"]["1"] == 1.0
+    assert result["settings"]["pooling"] == "netvlad"
+    assert "PCA-whitening to 9 dimensions" in err  # 10 reference frames allow at most 9

@@ -71,3 +71,17 @@ def test_pca_whitening_rejects_impossible_dimensions(dim):
 def test_pca_whitening_rejects_other_input_dimension():
     pca = fit_pca_whitening(np.random.default_rng(0).normal(size=(10, 5)), 2)
     raises_one_line("fitted on 5-D", pca.apply, np.ones((3, 4)))
+
+
+def test_whiten_pair_fits_on_the_reference_only_and_caps_the_dimension():
+    from seqvpr.data.traversal import Traversal
+    from seqvpr.pipeline import whiten_pair
+
+    rng = np.random.default_rng(5)
+    ref = Traversal.from_descriptors(rng.normal(size=(12, 20)).astype(np.float32), name="r")
+    qry = Traversal.from_descriptors(rng.normal(size=(7, 20)).astype(np.float32), name="q")
+    white_ref, white_qry, used = whiten_pair(ref, qry, 4096)
+    assert used == 11
+    fitted = fit_pca_whitening(ref.descriptors, 11)
+    assert np.allclose(white_qry.descriptors, fitted.apply(qry.descriptors), atol=1e-6)
+    assert np.allclose(white_ref.descriptors, fitted.apply(ref.descriptors), atol=1e-6)

@@ -19,7 +19,7 @@ from seqvpr.evaluation.metrics import Evaluation, evaluate
 from seqvpr.evaluation.predictions import read_predictions, write_predictions
 from seqvpr.features.patchnorm import PatchNormConfig
 from seqvpr.io import atomic_write
-from seqvpr.features.extraction import ExtractorConfig
+from seqvpr.features.extraction import POOLINGS, ExtractorConfig
 from seqvpr.pipeline import (
     DESCRIPTORS,
     MatchResult,
@@ -28,6 +28,8 @@ from seqvpr.pipeline import (
     evaluate_match,
     ground_truth,
     match_traversals,
+    netvlad_extractor,
+    whiten_pair,
 )
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -111,13 +113,19 @@ def load_pair(reference: str, query: str, frames: str | None) -> tuple[Traversal
 def describe_pair(
     ref: Traversal, qry: Traversal, config: PatchNormConfig, descriptor: str = "patchnorm", **extraction
 ) -> tuple[Traversal, Traversal]:
-    """Both traversals with descriptors (images become descriptors, with a progress bar)."""
+    """Both traversals with descriptors (images become descriptors, with a progress bar); a NetVLAD head is
+    initialised on the reference images (the query's when only it has images)."""
+    extractor = extraction.get("extractor")
+    if descriptor != "patchnorm" and extractor is not None and extractor.pooling == "netvlad":
+        images = ref.image_paths if ref.image_paths is not None else qry.image_paths
+        if images is not None:
+            extraction["model"] = netvlad_extractor(extractor, images, extraction.get("device", "cpu"), tqdm_progress)
     return (describe(ref, descriptor, config, tqdm_progress, **extraction),
             describe(qry, descriptor, config, tqdm_progress, **extraction))
 
 
 def extraction_options(function):
-    """How images become descriptors: patch-normalised thumbnails or a backbone with GeM pooling."""
+    """How images become descriptors: patch-normalised thumbnails or a backbone with GeM or NetVLAD pooling."""
     options = [
         click.option("--descriptor", type=click.Choice(list(DESCRIPTORS)), default="patchnorm", show_default=True,
                      help="How images become descriptors (descriptor files are used as they are)."),
@@ -125,6 +133,9 @@ def extraction_options(function):
         click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels."),
         click.option("--weights", default="imagenet", show_default=True,
                      help="Backbone weights: 'imagenet' (EfficientNet-Lite0's packaged weights) or a checkpoint path."),
+        click.option("--pooling", type=click.Choice(list(POOLINGS)), default="gem", show_default=True,
+                     help="Backbone pooling: GeM, or NetVLAD with clusters from k-means of local features."),
+        click.option("--clusters", default=64, show_default=True, type=int, help="netvlad: number of clusters."),
         click.option("--image-size", default="320x240", show_default=True, help="Backbone input WIDTHxHEIGHT."),
         click.option("--batch-size", "extract_batch", default=32, show_default=True, type=int,
                      help="Images per backbone batch."),
@@ -136,13 +147,13 @@ def extraction_options(function):
     return function
 
 
-def extraction_settings(descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad,
-                        device="cpu") -> tuple[str, PatchNormConfig, dict]:
+def extraction_settings(descriptor, thumbnail, patch, weights, pooling, clusters, image_size, extract_batch, cache_dir,
+                        skip_bad, device="cpu") -> tuple[str, PatchNormConfig, dict]:
     """The parsed extraction options: descriptor name, patchnorm config, keyword arguments of ``describe``."""
     width, height = parse_thumbnail(thumbnail)
     image_width, image_height = parse_thumbnail(image_size, "--image-size")
     backbone = descriptor if descriptor != "patchnorm" else "efficientnet-lite0"
-    config = ExtractorConfig(backbone, weights, "gem", image_width, image_height, extract_batch)
+    config = ExtractorConfig(backbone, weights, pooling, image_width, image_height, extract_batch, clusters)
     return descriptor, PatchNormConfig(width, height, patch), {
         "extractor": config, "device": device, "cache_dir": cache_dir, "skip_bad": skip_bad,
     }
@@ -242,6 +253,8 @@ def cli() -> None:
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
 @extraction_options
+@click.option("--pca-dim", default=0, show_default=True, type=int,
+              help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
               help="Queries with no positive: excluded from the denominator, or counted as misses.")
@@ -254,12 +267,14 @@ def cli() -> None:
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 def match(reference, query, seq_len, align, model_dir, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
-          patch, weights, image_size, extract_batch, cache_dir, skip_bad, ks, no_positive, no_normalize, dtype, device,
-          memory_budget, out_dir, as_json) -> None:
+          patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, pca_dim, ks, no_positive,
+          no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
     descriptor, patchnorm, extraction = extraction_settings(
-        descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, device
+        descriptor, thumbnail, patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, device
     )
+    if pca_dim < 0:
+        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {pca_dim}")
     k_values = parse_ks(ks)
     speeds, budget = parse_velocities(velocities), parse_size(memory_budget)
     if seq_len is not None:
@@ -267,6 +282,10 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
     ref, qry = load_pair(reference, query, frames)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
     ref, qry = describe_pair(ref, qry, patchnorm, descriptor, **extraction)
+    if pca_dim:
+        ref, qry, used = whiten_pair(ref, qry, pca_dim)
+        if used < pca_dim:
+            click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
     model_config: dict = {}
     if model_dir is not None:
         ref, qry, model_config = apply_model_option(model_dir, ref, qry, device)
@@ -279,7 +298,7 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
     run = {
         "reference": reference, "query": query, "frames": frames, "radius": radius, "ground_truth": gt_file,
         "ground_truth_rule": gt.description, "descriptor": descriptor if ref.image_paths is not None else "file",
-        "no_positive": no_positive, "model": model_dir, **settings.as_dict(),
+        "pooling": pooling, "pca_dim": pca_dim, "no_positive": no_positive, "model": model_dir, **settings.as_dict(),
     }
     out = Path(out_dir)
     save_predictions(out / "predictions.csv", result, gt)
@@ -365,22 +384,29 @@ Examples:
 """)
 @click.argument("images")
 @extraction_options
+@click.option("--cluster-images", help="netvlad: traversal whose images initialise the clusters  [default: IMAGES]; "
+              "extract the query with the reference's images here so both share one NetVLAD head.")
 @click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
               help="Which side of a dbStruct or description file to read.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--out", "out_file", required=True, type=click.Path(),
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
-def extract(images, descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, role,
-            device, out_file) -> None:
+def extract(images, descriptor, thumbnail, patch, weights, pooling, clusters, image_size, extract_batch, cache_dir,
+            skip_bad, cluster_images, role, device, out_file) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
     from seqvpr.data.sources import save_traversal_npz
 
     descriptor, patchnorm, extraction = extraction_settings(
-        descriptor, thumbnail, patch, weights, image_size, extract_batch, cache_dir, skip_bad, device
+        descriptor, thumbnail, patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, device
     )
     traversal = load_traversal(images, role)
     if traversal.image_paths is None:
         raise SeqvprError(f"{images}: holds descriptors, not images; nothing to extract")
+    if descriptor != "patchnorm" and pooling == "netvlad":
+        source = load_traversal(cluster_images, "reference") if cluster_images else traversal
+        if source.image_paths is None:
+            raise SeqvprError(f"{cluster_images}: --cluster-images must be a traversal of images")
+        extraction["model"] = netvlad_extractor(extraction["extractor"], source.image_paths, device, tqdm_progress)
     described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
     skipped = len(traversal) - len(described)
     if skipped:

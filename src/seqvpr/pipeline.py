@@ -21,8 +21,16 @@ from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
-from seqvpr.features.extraction import BACKBONES, ExtractorConfig, extract_descriptors
+from seqvpr.features.extraction import (
+    BACKBONES,
+    Extractor,
+    ExtractorConfig,
+    build_extractor,
+    extract_descriptors,
+    init_netvlad,
+)
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
+from seqvpr.features.whitening import fit_pca_whitening
 from seqvpr.sequences.matching import TopK, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -68,11 +76,13 @@ def describe(
     device: str = "cpu",
     cache_dir: str | Path | None = None,
     skip_bad: bool = False,
+    model: Extractor | None = None,
 ) -> Traversal:
     """The traversal with descriptors: kept if it has them, else computed from its images.
 
     ``descriptor`` is ``patchnorm`` (weight-free thumbnails, ``config``) or a backbone name (with ``extractor``'s
-    weights, pooling and input size). With ``skip_bad`` unreadable images are dropped from the traversal.
+    weights, pooling and input size; ``model``, if given, is that extractor already built, e.g. a NetVLAD head
+    from ``netvlad_extractor``). With ``skip_bad`` unreadable images are dropped from the traversal.
     """
     if traversal.descriptors is not None:
         return traversal
@@ -84,10 +94,37 @@ def describe(
         return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
     extraction = extract_descriptors(
         traversal.image_paths, replace(extractor, backbone=descriptor), device=device, cache_dir=cache_dir,
-        skip_bad=skip_bad, progress=tick,
+        skip_bad=skip_bad, progress=tick, extractor=model,
     )
     kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
     return kept.with_descriptors(extraction.descriptors)
+
+
+def netvlad_extractor(
+    config: ExtractorConfig,
+    images: Sequence[Path],
+    device: str = "cpu",
+    progress: ProgressFactory | None = None,
+    seed: int = 0,
+) -> Extractor:
+    """A backbone + NetVLAD extractor whose clusters are k-means of the local features of ``images`` (seeded)."""
+    if config.pooling != "netvlad":
+        raise SeqvprError(f"netvlad_extractor needs pooling 'netvlad', got {config.pooling!r}")
+    model = build_extractor(config)
+    tick = progress(min(len(images), 300), "NetVLAD k-means init") if progress else None
+    init_netvlad(model, images, config, device=device, seed=seed, progress=tick)
+    return model
+
+
+def whiten_pair(reference: Traversal, query: Traversal, dim: int) -> tuple[Traversal, Traversal, int]:
+    """Both traversals PCA-whitened to ``dim`` dimensions, fitted on the reference (the papers' NetVLAD + PCA-W);
+    ``dim`` is lowered to what the reference supports (frames - 1, descriptor size). Returns the dimension used."""
+    if reference.descriptors is None or query.descriptors is None:
+        raise SeqvprError("PCA-whitening needs descriptors on both traversals (describe() the images first)")
+    used = min(dim, len(reference) - 1, reference.descriptors.shape[1])
+    whitening = fit_pca_whitening(reference.descriptors, used)
+    return (reference.with_descriptors(whitening.apply(reference.descriptors)),
+            query.with_descriptors(whitening.apply(query.descriptors)), used)
 
 
 def transform_traversal(traversal: Traversal, model: "FrameTransform", device: str = "cpu") -> Traversal:

@@ -107,13 +107,18 @@ class EfficientNetLite(nn.Module):
         self._bn1 = _bn(1280)
         self._fc = nn.Linear(1280, num_classes)
         self.out_channels = 1280
+        self.local_channels = channels
 
-    def features(self, images: torch.Tensor) -> torch.Tensor:
-        """Last feature map of normalised images [B, 3, H, W] (see ``LITE_MEAN``/``LITE_STD``)."""
+    def local_features(self, images: torch.Tensor) -> torch.Tensor:
+        """The last block's map [B, 320, H/32, W/32], before the 1x1 head: the local features NetVLAD pools."""
         x = nn.functional.relu6(self._bn0(self._conv_stem(images)))
         for block in self._blocks:
             x = block(x)
-        return nn.functional.relu6(self._bn1(self._conv_head(x)))
+        return x
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """Last feature map of normalised images [B, 3, H, W] (see ``LITE_MEAN``/``LITE_STD``)."""
+        return nn.functional.relu6(self._bn1(self._conv_head(self.local_features(images))))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self._fc(self.features(images).mean((2, 3)))
@@ -240,11 +245,15 @@ class ResNet(nn.Module):
                 layers.append(block(channels, width, stride))
                 channels = width * block.expansion
             setattr(self, f"layer{number}", nn.Sequential(*layers))
-        self.out_channels = channels
+        self.out_channels = self.local_channels = channels
 
     def features(self, images: torch.Tensor) -> torch.Tensor:
+        """The layer4 map [B, C, H/32, W/32]; also the local features NetVLAD pools."""
         x = nn.functional.max_pool2d(torch.relu(self.bn1(self.conv1(images))), 3, 2, 1)
         return self.layer4(self.layer3(self.layer2(self.layer1(x))))
+
+    def local_features(self, images: torch.Tensor) -> torch.Tensor:
+        return self.features(images)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.features(images)

@@ -22,17 +22,20 @@ from torch import nn
 
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
-from seqvpr.features.pooling import GeM
+from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.io import atomic_write
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
+POOLINGS = ("gem", "netvlad")
+CPU_MICRO_BATCH = 2  # images per forward pass on CPU: large batches of depthwise convolutions are slower there
 
 
 @dataclass(frozen=True)
 class ExtractorConfig:
-    """Backbone, its weights ('imagenet' or a checkpoint path), pooling, input size (width, height), batch size."""
+    """Backbone, its weights ('imagenet' or a checkpoint path), pooling ('gem' or 'netvlad' with ``clusters``),
+    input size (width, height) and batch size (images read per step; on CPU they go through in micro-batches)."""
 
     backbone: str = "efficientnet-lite0"
     weights: str | None = "imagenet"
@@ -40,18 +43,24 @@ class ExtractorConfig:
     width: int = 320
     height: int = 240
     batch_size: int = 32
+    clusters: int = 64
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
             raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(BACKBONES)})")
-        if self.pooling != "gem":
-            raise SeqvprError(f"pooling {self.pooling!r} is not known (choose from: gem)")
+        if self.pooling not in POOLINGS:
+            raise SeqvprError(f"pooling {self.pooling!r} is not known (choose from: {', '.join(POOLINGS)})")
         if min(self.width, self.height, self.batch_size) < 1:
             raise SeqvprError("image size and batch size must be positive")
+        if self.clusters < 2:
+            raise SeqvprError(f"NetVLAD needs at least 2 clusters, got {self.clusters}")
 
 
 class Extractor(nn.Module):
-    """Backbone feature map -> pooled, L2-normalised descriptor; ``mean``/``std`` normalise [0, 1] pixels."""
+    """Backbone feature map -> pooled, L2-normalised descriptor; ``mean``/``std`` normalise [0, 1] pixels.
+
+    GeM pools the backbone's last map (``features``); NetVLAD pools its local features (``local_features``).
+    """
 
     def __init__(self, backbone: nn.Module, pooling: nn.Module, mean: Sequence[float], std: Sequence[float]) -> None:
         super().__init__()
@@ -59,17 +68,77 @@ class Extractor(nn.Module):
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1))
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1))
 
+    def feature_map(self, images: torch.Tensor) -> torch.Tensor:
+        """The map the pooling head reads, for images in [0, 1]."""
+        normalised = (images - self.mean) / self.std
+        if isinstance(self.pooling, NetVLAD):
+            return self.backbone.local_features(normalised)
+        return self.backbone.features(normalised)
+
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.pooling(self.backbone.features((images - self.mean) / self.std))
+        return self.pooling(self.feature_map(images))
 
 
 def build_extractor(config: ExtractorConfig) -> Extractor:
-    """The extractor a configuration describes, in eval mode."""
+    """The extractor a configuration describes, in eval mode (a NetVLAD head still needs ``init_netvlad``)."""
     if config.backbone == "efficientnet-lite0":
         net = backbones.efficientnet_lite0(config.weights)
-        return Extractor(net, GeM(), backbones.LITE_MEAN, backbones.LITE_STD).eval()
-    net = backbones.resnet(int(config.backbone.removeprefix("resnet")), config.weights)
-    return Extractor(net, GeM(), IMAGENET_MEAN, IMAGENET_STD).eval()
+        mean, std = backbones.LITE_MEAN, backbones.LITE_STD
+    else:
+        net = backbones.resnet(int(config.backbone.removeprefix("resnet")), config.weights)
+        mean, std = IMAGENET_MEAN, IMAGENET_STD
+    pooling = GeM() if config.pooling == "gem" else NetVLAD(config.clusters, net.local_channels)
+    return Extractor(net, pooling, mean, std).eval()
+
+
+def init_netvlad(
+    extractor: Extractor,
+    paths: Sequence[Path],
+    config: ExtractorConfig,
+    *,
+    device: str = "cpu",
+    max_images: int = 300,
+    per_image: int = 50,
+    seed: int = 0,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Initialise the NetVLAD head by k-means over local features of (up to ``max_images`` evenly spaced) images,
+    ``per_image`` seeded random positions each, as the NetVLAD paper does."""
+    if not isinstance(extractor.pooling, NetVLAD):
+        raise SeqvprError("init_netvlad needs an extractor with a NetVLAD head (pooling 'netvlad')")
+    chosen = [Path(paths[i]) for i in np.unique(np.linspace(0, len(paths) - 1, min(max_images, len(paths))).astype(int))]
+    rng = torch.Generator().manual_seed(seed)
+    samples = []
+    extractor = extractor.to(device)
+    with torch.no_grad():
+        for begin in range(0, len(chosen), config.batch_size):
+            batch = [load_image(p, config.width, config.height) for p in chosen[begin : begin + config.batch_size]]
+            for images in _micro_batches(torch.stack(batch), device):
+                local = extractor.feature_map(images).flatten(2).transpose(1, 2).cpu()  # [b, HW, C]
+                for image_local in local:
+                    pick = torch.randperm(len(image_local), generator=rng)[:per_image]
+                    samples.append(image_local[pick])
+            if progress:
+                progress(len(batch))
+    extractor.pooling.init_from_features(torch.cat(samples), seed=seed)
+
+
+def model_digest(model: nn.Module) -> str:
+    """A digest of a module's parameters and buffers, so a cache never outlives a changed (e.g. re-fitted) head."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:24]
+
+
+def _micro_batches(images: torch.Tensor, device: str) -> list[torch.Tensor]:
+    """The batch on the device, split into CPU micro-batches in channels-last layout (faster there), whole on GPU."""
+    images = images.to(device)
+    if images.device.type != "cpu":
+        return [images]
+    images = images.contiguous(memory_format=torch.channels_last)
+    return list(images.split(CPU_MICRO_BATCH))
 
 
 def load_image(path: Path, width: int, height: int) -> torch.Tensor:
@@ -94,10 +163,11 @@ class Extraction:
     cache_file: Path | None
 
 
-def cache_key(config: ExtractorConfig, paths: Sequence[Path]) -> str:
-    """A digest of the configuration, the weights file and every image's path, size and mtime."""
+def cache_key(config: ExtractorConfig, paths: Sequence[Path], head: str = "") -> str:
+    """A digest of the configuration, the weights file, the pooling head's state (``head``, from ``model_digest``)
+    and every image's path, size and mtime."""
     settings = {k: v for k, v in asdict(config).items() if k != "batch_size"}  # batching does not change rows
-    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode() + head.encode())
     for path in _weights_files(config) + list(paths):
         stat = os.stat(path) if os.path.exists(path) else None
         digest.update(f"{Path(path).resolve()}|{stat.st_size if stat else -1}|{stat.st_mtime_ns if stat else -1}\n".encode())
@@ -129,7 +199,10 @@ def extract_descriptors(
     paths = [Path(p) for p in paths]
     if not paths:
         raise SeqvprError("no images to extract descriptors from")
-    key = cache_key(config, paths) if cache_dir is not None else None
+    if config.pooling == "netvlad" and extractor is None:
+        raise SeqvprError("NetVLAD pooling needs an initialised extractor (build_extractor, then init_netvlad)")
+    head = model_digest(extractor.pooling) if extractor is not None and config.pooling == "netvlad" else ""
+    key = cache_key(config, paths, head) if cache_dir is not None else None
     final = Path(cache_dir) / f"{key}.npz" if key else None
     if final is not None and final.is_file():
         with np.load(final, allow_pickle=False) as cached:
@@ -138,6 +211,8 @@ def extract_descriptors(
             skipped = tuple(paths[i] for i in cached["skipped"])
             return Extraction(cached["descriptors"], cached["rows"], skipped, final)
     model = (extractor or build_extractor(config)).to(device)
+    if device == "cpu" or str(device).startswith("cpu"):
+        model = model.to(memory_format=torch.channels_last)
     part = _Partial(Path(cache_dir) / f"{key}.part" if key else None)
     rows_out: list[np.ndarray] = part.rows
     kept: list[int] = part.kept
@@ -156,7 +231,7 @@ def extract_descriptors(
                     if not skip_bad:
                         raise
                     batch_skipped.append(index)
-            out = model(torch.stack(images).to(device)).cpu().numpy().astype(np.float32) if images else None
+            out = _describe_batch(model, images, device) if images else None
             if out is not None:
                 rows_out.append(out)
             kept.extend(batch_rows)
@@ -172,6 +247,12 @@ def extract_descriptors(
             np.savez(handle, descriptors=result.descriptors, rows=result.rows, skipped=np.asarray(skipped, np.int64))
         part.remove()
     return result
+
+
+def _describe_batch(model: Extractor, images: list[torch.Tensor], device: str) -> np.ndarray:
+    """Descriptors [n, D] of one batch of loaded images."""
+    parts = [model(chunk).cpu() for chunk in _micro_batches(torch.stack(images), device)]
+    return torch.cat(parts).numpy().astype(np.float32)
 
 
 class _Partial:
