@@ -1,0 +1,579 @@
+"""A static, self-contained HTML report: recall table, distance matrices, Recall@K and PR curves, example matches.
+
+The folder opens offline: plots are PNGs drawn with matplotlib's Agg canvas (no display needed), example images are
+copied in as small thumbnails, and ``index.html`` uses inline CSS and relative links only. The folder is built under
+a temporary sibling name and renamed into place, so an interrupted run never leaves half a report.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import html
+import math
+import os
+import shutil
+import textwrap
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
+from PIL import Image
+
+from seqvpr.errors import SeqvprError
+
+DPI = 100
+MAX_DRAWN = 1000  # largest number of rows / columns of a distance matrix that is drawn as is
+THUMB_SIZE = (240, 180)  # bounding box of example thumbnails, in pixels
+EXAMPLES_DIR = "examples"
+CORRECT_COLOUR = "#2ca02c"
+WRONG_COLOUR = "#d62728"
+GT_COLOUR = "#1f9bff"
+NO_WINDOW_COLOUR = "#d9d9d9"
+METHOD_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One row of the report: a method's name, Recall@K for K=1..K_max, its PR curve and summary figures."""
+
+    name: str
+    recall_at_k: dict[int, float]
+    precision: np.ndarray
+    recall: np.ndarray
+    pr_auc: float
+    recall_at_100_precision: float
+
+
+@dataclass(frozen=True)
+class DistanceView:
+    """A distance matrix to draw: [n_query, n_reference] (NaN where no window), GT positives mask, top-1 path."""
+
+    title: str
+    distances: np.ndarray
+    positives: np.ndarray
+    top1: np.ndarray
+    correct: np.ndarray
+
+
+@dataclass(frozen=True)
+class QueryExample:
+    """A query image and its top matches (paths), with whether each is a correct place."""
+
+    query_image: Path
+    query_label: str
+    match_images: list[Path]
+    match_labels: list[str]
+    match_correct: list[bool]
+
+
+# ----------------------------------------------------------------------------------------------- validation
+
+
+def check_distance_view(view: DistanceView) -> None:
+    """Raise SeqvprError unless the matrix, mask and path of ``view`` agree in shape (before any drawing)."""
+    d = np.asarray(view.distances)
+    if d.ndim != 2:
+        raise SeqvprError(f"distance view {view.title!r}: distances must be 2-D, got shape {d.shape}")
+    if np.shape(view.positives) != d.shape:
+        raise SeqvprError(f"distance view {view.title!r}: positives {np.shape(view.positives)} != distances {d.shape}")
+    if np.shape(view.top1) != (d.shape[0],) or np.shape(view.correct) != (d.shape[0],):
+        raise SeqvprError(f"distance view {view.title!r}: top1 and correct need shape ({d.shape[0]},)")
+    top1 = np.asarray(view.top1)
+    if len(top1) and (top1.min(initial=0) < -1 or top1.max(initial=-1) >= d.shape[1]):
+        raise SeqvprError(f"distance view {view.title!r}: top1 holds a reference outside 0..{d.shape[1] - 1}")
+
+
+def check_example(example: QueryExample) -> None:
+    """Raise SeqvprError unless an example has as many match labels and verdicts as match images."""
+    n = len(example.match_images)
+    if len(example.match_labels) != n or len(example.match_correct) != n:
+        raise SeqvprError(
+            f"example {example.query_label!r}: {n} match images but {len(example.match_labels)} labels "
+            f"and {len(example.match_correct)} verdicts"
+        )
+
+
+# ----------------------------------------------------------------------------------------------- plots
+
+
+def method_colours(methods: Sequence[MethodResult]) -> dict[str, str]:
+    """One colour per method name, in order, so a method looks the same in every plot and in the table."""
+    return {m.name: METHOD_COLOURS[i % len(METHOD_COLOURS)] for i, m in enumerate(methods)}
+
+
+def new_figure(width: float, height: float) -> Figure:
+    """A figure on an Agg canvas (never a display) with constrained layout, at the report's dpi."""
+    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` as a PNG at the report's dpi."""
+    fig.savefig(path, format="png", dpi=DPI, facecolor="white")
+
+
+def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
+    """Recall@K against K, one line per method; log-x once K reaches 10 so the small Ks stay readable."""
+    fig = new_figure(5.6, 4.2)
+    ax = fig.add_subplot()
+    k_max = 1
+    for m in methods:
+        ks = sorted(k for k, v in m.recall_at_k.items() if v is not None and math.isfinite(v))
+        if not ks:
+            continue
+        k_max = max(k_max, ks[-1])
+        marker = "o" if len(ks) <= 12 else None
+        ax.plot(ks, [m.recall_at_k[k] for k in ks], label=m.name, color=colours[m.name], lw=2, marker=marker, ms=4)
+    if k_max >= 10:
+        ax.set_xscale("log")
+        ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= k_max]
+        ax.xaxis.set_major_locator(FixedLocator(ticks))
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_locator(NullLocator())
+    ax.set_xlim(0.9 if k_max >= 10 else 0.5, k_max * 1.1 if k_max >= 10 else k_max + 0.5)
+    ax.set_ylim(0.0, 1.02)
+    ax.set_xlabel("K")
+    ax.set_ylabel("recall")
+    ax.set_title("Recall@K")
+    ax.grid(True, which="major", alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", frameon=True)
+    save_figure(fig, path)
+
+
+def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
+    """Precision against recall of the top-1 match over all distance thresholds, one line per method."""
+    fig = new_figure(5.6, 4.2)
+    ax = fig.add_subplot()
+    for m in methods:
+        recall, precision = np.asarray(m.recall, float), np.asarray(m.precision, float)
+        label = f"{m.name} (AUC {m.pr_auc:.3f})"
+        if len(recall):
+            # Start at recall 0 with the first precision so the curve reaches the y-axis.
+            ax.plot(np.r_[0.0, recall], np.r_[precision[0], precision], label=label, color=colours[m.name], lw=2)
+        else:
+            ax.plot([], [], label=label, color=colours[m.name], lw=2)
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.02)
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_title("Precision–recall (top-1 match)")
+    ax.grid(True, alpha=0.3)
+    if methods:
+        ax.legend(loc="lower left", frameon=True)
+    save_figure(fig, path)
+
+
+def block_steps(shape: tuple[int, int], limit: int = MAX_DRAWN) -> tuple[int, int]:
+    """Rows and columns per drawn cell so that neither side of the drawn matrix exceeds ``limit``."""
+    return max(1, math.ceil(shape[0] / limit)), max(1, math.ceil(shape[1] / limit))
+
+
+def block_reduce(a: np.ndarray, steps: tuple[int, int], fill, reduce) -> np.ndarray:
+    """Reduce ``a`` over blocks of ``steps`` cells (edges padded with ``fill``), e.g. min keeps a thin valley."""
+    sq, sr = steps
+    if sq == 1 and sr == 1:
+        return a
+    q, r = a.shape
+    padded = np.full((math.ceil(q / sq) * sq, math.ceil(r / sr) * sr), fill, dtype=a.dtype)
+    padded[:q, :r] = a
+    return reduce(padded.reshape(padded.shape[0] // sq, sq, padded.shape[1] // sr, sr), axis=(1, 3))
+
+
+def drawable_distances(distances: np.ndarray, steps: tuple[int, int]) -> np.ndarray:
+    """Block-minimum of the finite distances (NaN where a block has none), so the low-distance band survives."""
+    d = np.where(np.isfinite(distances), distances, np.inf).astype(np.float32, copy=False)
+    small = block_reduce(d, steps, np.inf, np.min)
+    return np.where(np.isfinite(small), small, np.nan)
+
+
+def colour_limits(drawn: np.ndarray) -> tuple[float, float]:
+    """Robust colour range (1st to 99th percentile of finite values), so a few outliers don't wash it out."""
+    finite = drawn[np.isfinite(drawn)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(finite, [1, 99])
+    return (float(lo), float(hi)) if hi > lo else (float(lo) - 0.5, float(lo) + 0.5)
+
+
+def plot_distance_view(view: DistanceView, path: Path) -> None:
+    """The distance matrix (query rows down, reference columns across), GT band outline and the top-1 path."""
+    distances = np.asarray(view.distances, dtype=float)
+    positives = np.asarray(view.positives, dtype=bool)
+    top1, correct = np.asarray(view.top1, dtype=np.int64), np.asarray(view.correct, dtype=bool)
+    n_q, n_r = distances.shape
+    steps = block_steps((n_q, n_r))
+    drawn = drawable_distances(distances, steps)
+    pos_drawn = block_reduce(positives, steps, False, np.any)
+    # Extent in original frame numbers: cell (i, j) of the drawn matrix covers rows i*sq.. and columns j*sr..
+    h, w = drawn.shape
+    extent = (-0.5, w * steps[1] - 0.5, h * steps[0] - 0.5, -0.5)
+
+    aspect = n_q / max(n_r, 1)
+    fig = new_figure(7.0, float(np.clip(7.0 * aspect, 4.5, 7.5)) + 0.4)
+    ax = fig.add_subplot()
+    cmap = _matrix_colormap()
+    vmin, vmax = colour_limits(drawn)
+    image = ax.imshow(
+        np.ma.masked_invalid(drawn), cmap=cmap, vmin=vmin, vmax=vmax, origin="upper", extent=extent,
+        aspect="auto", interpolation="antialiased",
+    )
+    fig.colorbar(image, ax=ax, label="distance", shrink=0.9, pad=0.02)
+
+    handles = []
+    if pos_drawn.any():
+        overlay = np.zeros((*pos_drawn.shape, 4), dtype=np.float32)
+        overlay[pos_drawn] = (*_rgb(GT_COLOUR), 0.28)
+        ax.imshow(overlay, origin="upper", extent=extent, aspect="auto", interpolation="nearest")
+        if pos_drawn.shape[0] > 1 and pos_drawn.shape[1] > 1:
+            xs = np.arange(w) * steps[1] + (steps[1] - 1) / 2
+            ys = np.arange(h) * steps[0] + (steps[0] - 1) / 2
+            ax.contour(xs, ys, pos_drawn.astype(np.float32), levels=[0.5], colors=[GT_COLOUR], linewidths=0.8)
+        handles.append(Patch(facecolor=(*_rgb(GT_COLOUR), 0.35), edgecolor=GT_COLOUR, label="ground-truth positives"))
+
+    rows = np.arange(n_q)
+    has = top1 >= 0
+    size = float(np.clip(3000.0 / max(n_q, 1), 1.5, 14.0))
+    # Wrong matches are drawn last and larger: they are the few points worth finding.
+    for mask, colour, label, scale in (
+        (has & correct, CORRECT_COLOUR, "top-1 correct", 1.0),
+        (has & ~correct, WRONG_COLOUR, "top-1 wrong", 2.0),
+    ):
+        if mask.any():
+            ax.scatter(top1[mask], rows[mask], s=size * scale, c=colour, marker="o", linewidths=0, zorder=3)
+        handles.append(Line2D([], [], ls="", marker="o", ms=6, color=colour, label=f"{label} ({int(mask.sum())})"))
+    if (~np.isfinite(distances)).all(axis=1).any():
+        handles.append(Patch(facecolor=NO_WINDOW_COLOUR, edgecolor="#999999", label="no distance"))
+
+    ax.set_xlim(-0.5, n_r - 0.5)
+    ax.set_ylim(n_q - 0.5, -0.5)
+    ax.set_xlabel("reference frame")
+    ax.set_ylabel("query frame")
+    title = textwrap.fill(view.title, 70)
+    if steps != (1, 1):
+        title += f"\n(each pixel: minimum over {steps[0]}×{steps[1]} frames)"
+    ax.set_title(title)
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), frameon=False, fontsize=9)
+    save_figure(fig, path)
+
+
+def _matrix_colormap():
+    """Dark = close, light = far, grey where undefined; green/red dots and the blue band stay visible on it."""
+    return colormaps["bone"].with_extremes(bad=NO_WINDOW_COLOUR)
+
+
+def _rgb(hex_colour: str) -> tuple[float, float, float]:
+    """'#rrggbb' as three floats in 0..1."""
+    v = hex_colour.lstrip("#")
+    return tuple(int(v[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+# ----------------------------------------------------------------------------------------------- thumbnails
+
+
+def make_thumbnail(src: Path, dst: Path, size: tuple[int, int] = THUMB_SIZE) -> bool:
+    """Write a small JPEG copy of ``src`` at ``dst``; False (and no file) when ``src`` cannot be read."""
+    try:
+        with Image.open(src) as img:
+            img.draft("RGB", size)  # lets JPEG decode at a reduced scale: much faster for large frames
+            thumb = img.convert("RGB")
+            thumb.thumbnail(size, Image.Resampling.LANCZOS)
+            thumb.save(dst, format="JPEG", quality=85)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
+def copy_thumbnails(examples: Sequence[QueryExample], folder: Path) -> dict[Path, str | None]:
+    """Thumbnail each distinct example image once into ``folder``; source path -> relative src (None: unreadable)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    names: dict[Path, str | None] = {}
+    for example in examples:
+        for src in [example.query_image, *example.match_images]:
+            src = Path(src)
+            if src in names:
+                continue
+            name = f"img{len(names):04d}.jpg"
+            names[src] = f"{EXAMPLES_DIR}/{name}" if make_thumbnail(src, folder / name) else None
+    return names
+
+
+# ----------------------------------------------------------------------------------------------- HTML
+
+
+CSS = """
+body { font-family: -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif; color: #222;
+       background: #f6f7f9; margin: 0; }
+main { max-width: 1200px; margin: 0 auto; padding: 24px 32px 48px; background: #fff; }
+h1 { font-size: 1.7em; margin: 0.2em 0 0.4em; }
+h2 { font-size: 1.25em; margin: 1.8em 0 0.6em; padding-bottom: 0.2em; border-bottom: 1px solid #e2e4e8; }
+p.summary { line-height: 1.5; max-width: 60em; margin: 0.4em 0; }
+table.recall { border-collapse: collapse; font-variant-numeric: tabular-nums; }
+table.recall th, table.recall td { padding: 6px 14px; border-bottom: 1px solid #e2e4e8; text-align: right; }
+table.recall th:first-child, table.recall td:first-child { text-align: left; }
+table.recall thead th { background: #f0f2f5; border-bottom: 2px solid #c9cdd3; }
+table.recall td.best { font-weight: 700; }
+span.swatch { display: inline-block; width: 12px; height: 12px; border-radius: 2px; margin-right: 8px;
+              vertical-align: -1px; }
+.plots { display: flex; flex-wrap: wrap; gap: 16px; }
+.plots figure { margin: 0; flex: 1 1 520px; max-width: 560px; }
+.plots figure.wide { flex: 1 1 700px; max-width: 720px; }
+.plots img { width: 100%; height: auto; border: 1px solid #e2e4e8; }
+figcaption { font-size: 0.85em; color: #555; margin-top: 4px; }
+.examples { display: grid; gap: 14px 10px; align-items: start; }
+.cell { margin: 0; }
+.cell .frame { border: 4px solid #555; border-radius: 3px; line-height: 0; background: #eee; }
+.cell.query .frame { border-color: #444; border-style: double; border-width: 5px; }
+.cell.correct .frame { border-color: """ + CORRECT_COLOUR + """; }
+.cell.wrong .frame { border-color: """ + WRONG_COLOUR + """; }
+.cell img { width: 100%; height: auto; display: block; }
+.cell .missing { display: block; line-height: 1.3; padding: 28px 6px; text-align: center; color: #777;
+                 font-size: 0.8em; }
+.cell figcaption { font-size: 0.8em; line-height: 1.3; margin-top: 3px; word-break: break-word; }
+.cell.query figcaption { font-weight: 600; }
+.cell.correct figcaption .mark { color: """ + CORRECT_COLOUR + """; font-weight: 700; }
+.cell.wrong figcaption .mark { color: """ + WRONG_COLOUR + """; font-weight: 700; }
+.legend { font-size: 0.9em; color: #444; margin: 0 0 10px; }
+.legend .box { display: inline-block; width: 14px; height: 10px; border: 3px solid; margin: 0 6px 0 14px;
+               vertical-align: -2px; }
+.legend .box.query-box { border-color: #444; margin-left: 0; }
+.legend .box.ok-box { border-color: """ + CORRECT_COLOUR + """; }
+.legend .box.bad-box { border-color: """ + WRONG_COLOUR + """; }
+ul.files { font-family: ui-monospace, Menlo, Consolas, monospace; font-size: 0.9em; }
+ul.files span { font-family: -apple-system, "Segoe UI", Roboto, Arial, sans-serif; color: #555; }
+"""
+
+
+def format_value(value: float | None) -> str:
+    """A figure of the table: three decimals, or 'n/a' when missing or not a number."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return f"{value:.3f}"
+
+
+def recall_table_html(methods: Sequence[MethodResult], table_ks: Sequence[int], colours: dict[str, str]) -> str:
+    """The methods × (R@K…, PR-AUC, R@100%P) table, best value of each column in bold."""
+    columns = [(f"R@{k}", [m.recall_at_k.get(k) for m in methods]) for k in table_ks]
+    columns.append(("PR-AUC", [m.pr_auc for m in methods]))
+    columns.append(("R@100%P", [m.recall_at_100_precision for m in methods]))
+    head = "".join(f"<th>{html.escape(name)}</th>" for name, _ in columns)
+    best = [_best_index(values) for _, values in columns]
+    rows = []
+    for i, m in enumerate(methods):
+        cells = "".join(
+            ('<td class="best">' if best[c] == i else "<td>") + f"{format_value(values[i])}</td>"
+            for c, (_, values) in enumerate(columns)
+        )
+        swatch = f'<span class="swatch" style="background:{colours[m.name]}"></span>'
+        rows.append(f"<tr><td>{swatch}{html.escape(m.name)}</td>{cells}</tr>")
+    return (
+        f'<table class="recall"><thead><tr><th>Method</th>{head}</tr></thead>\n'
+        f"<tbody>\n{chr(10).join(rows)}\n</tbody></table>"
+    )
+
+
+def _best_index(values: Sequence[float | None]) -> int | None:
+    """Index of the largest finite value, or None when there are fewer than two methods to compare."""
+    finite = [(v, i) for i, v in enumerate(values) if v is not None and math.isfinite(v)]
+    return max(finite)[1] if len(values) > 1 and finite else None
+
+
+def example_cell_html(src: str | None, label: str, kind: str, caption_prefix: str) -> str:
+    """One framed thumbnail with its caption; ``kind`` is the CSS class: query, correct or wrong."""
+    alt = html.escape(f"{caption_prefix} {label}".strip(), quote=True)
+    if src:
+        body = f'<img src="{html.escape(src, quote=True)}" alt="{alt}" loading="lazy">'
+    else:
+        body = '<span class="missing">image missing</span>'
+    mark = {"correct": '<span class="mark">✓</span> ', "wrong": '<span class="mark">✗</span> '}.get(kind, "")
+    return (
+        f'<figure class="cell {kind}"><div class="frame">{body}</div>'
+        f"<figcaption>{mark}{html.escape(caption_prefix)} {html.escape(label)}</figcaption></figure>"
+    )
+
+
+def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | None]) -> str:
+    """The grid: one row per query, the query first and then its ranked matches framed green or red."""
+    n_cols = 1 + max((len(e.match_images) for e in examples), default=0)
+    cells = []
+    for e in examples:
+        cells.append(example_cell_html(thumbs[Path(e.query_image)], e.query_label, "query", "query"))
+        for rank, (img, label, ok) in enumerate(zip(e.match_images, e.match_labels, e.match_correct), start=1):
+            cells.append(example_cell_html(thumbs[Path(img)], label, "correct" if ok else "wrong", f"#{rank}"))
+        cells.extend('<div class="cell"></div>' for _ in range(n_cols - 1 - len(e.match_images)))
+    legend = (
+        '<p class="legend"><span class="box query-box"></span>query'
+        '<span class="box ok-box"></span>correct place<span class="box bad-box"></span>wrong place</p>'
+    )
+    grid = f'<div class="examples" style="grid-template-columns: repeat({n_cols}, minmax(0, 1fr));">\n'
+    return legend + grid + "\n".join(cells) + "\n</div>"
+
+
+def summary_html(summary: str) -> str:
+    """The caller's setting text, escaped, one paragraph per blank-line-separated block."""
+    blocks = [b.strip() for b in summary.split("\n\n") if b.strip()]
+    return "\n".join(f'<p class="summary">{html.escape(b)}</p>' for b in blocks)
+
+
+def files_html(files: Sequence[tuple[str, str]], n_thumbnails: int) -> str:
+    """The list of files in the report folder, each linked relatively, with what it holds."""
+    items = [
+        f'<li><a href="{html.escape(name, quote=True)}">{html.escape(name)}</a> <span>— {html.escape(what)}</span></li>'
+        for name, what in files
+    ]
+    if n_thumbnails:
+        items.append(f"<li>{EXAMPLES_DIR}/ <span>— {n_thumbnails} example thumbnails</span></li>")
+    return '<ul class="files">\n' + "\n".join(items) + "\n</ul>"
+
+
+def page_html(title: str, sections: Sequence[str]) -> str:
+    """The whole page around the sections: inline CSS only, no scripts, nothing fetched from the network."""
+    body = "\n".join(sections)
+    return (
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+        '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
+        f"<title>{html.escape(title)}</title>\n<style>{CSS}</style>\n</head>\n"
+        f"<body>\n<main>\n{body}\n</main>\n</body>\n</html>\n"
+    )
+
+
+def write_results_csv(methods: Sequence[MethodResult], path: Path) -> None:
+    """The table's numbers for machines: every K that any method has, PR-AUC and recall at 100 % precision."""
+    ks = sorted({k for m in methods for k in m.recall_at_k})
+    with open(path, "w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["method", *(f"R@{k}" for k in ks), "PR-AUC", "R@100%P"])
+        for m in methods:
+            values = [m.recall_at_k.get(k, float("nan")) for k in ks]
+            writer.writerow([m.name, *(f"{v:.6f}" for v in values), f"{m.pr_auc:.6f}", f"{m.recall_at_100_precision:.6f}"])
+
+
+# ----------------------------------------------------------------------------------------------- the report
+
+
+def build_report(
+    folder: Path,
+    *,
+    title: str,
+    summary: str,
+    methods: Sequence[MethodResult],
+    table_ks: Sequence[int],
+    distance_views: Sequence[DistanceView],
+    examples: Sequence[QueryExample],
+    example_title: str,
+) -> None:
+    """Write every file of the report into the (empty) ``folder``."""
+    colours = method_colours(methods)
+    files: list[tuple[str, str]] = [("results.csv", "the numbers of the table, every K")]
+    write_results_csv(methods, folder / "results.csv")
+    sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary)]
+
+    sections.append("<h2>Recall</h2>")
+    sections.append(recall_table_html(methods, table_ks, colours))
+    sections.append(
+        '<p class="legend">R@K: share of queries with a correct place among the K nearest references. '
+        "PR-AUC and R@100%P: precision–recall of accepting the top-1 match below a distance threshold. "
+        "Best value per column in bold.</p>"
+    )
+
+    if methods:
+        plot_recall_at_k(methods, colours, folder / "recall_at_k.png")
+        plot_pr_curves(methods, colours, folder / "pr_curves.png")
+        files += [("recall_at_k.png", "Recall@K curves"), ("pr_curves.png", "precision–recall curves")]
+        sections.append("<h2>Curves</h2>")
+        sections.append(
+            '<div class="plots">'
+            '<figure><img src="recall_at_k.png" alt="Recall@K curves"><figcaption>Recall@K against K.</figcaption></figure>'
+            '<figure><img src="pr_curves.png" alt="Precision-recall curves">'
+            "<figcaption>Precision against recall of the top-1 match, over all distance thresholds.</figcaption></figure>"
+            "</div>"
+        )
+
+    if distance_views:
+        sections.append("<h2>Distance matrices</h2>")
+        figures = []
+        for i, view in enumerate(distance_views):
+            name = f"distance_{i}.png"
+            plot_distance_view(view, folder / name)
+            files.append((name, f"distance matrix: {view.title}"))
+            figures.append(
+                f'<figure class="wide"><img src="{name}" alt="{html.escape(view.title, quote=True)}">'
+                f"<figcaption>{html.escape(view.title)}: darker is closer; the blue band marks the ground-truth "
+                "positives; dots are each query's top-1 reference, green when correct, red when wrong.</figcaption></figure>"
+            )
+        sections.append('<div class="plots">' + "".join(figures) + "</div>")
+
+    n_thumbs = 0
+    if examples:
+        thumbs = copy_thumbnails(examples, folder / EXAMPLES_DIR)
+        n_thumbs = sum(1 for v in thumbs.values() if v)
+        sections.append(f"<h2>{html.escape(example_title or 'Example queries')}</h2>")
+        sections.append(examples_html(examples, thumbs))
+
+    sections.append("<h2>Files</h2>")
+    sections.append(files_html([("index.html", "this page"), *files], n_thumbs))
+    (folder / "index.html").write_text(page_html(title, sections), encoding="utf-8")
+
+
+def replace_folder(new: Path, target: Path) -> None:
+    """Put the finished folder ``new`` in place of ``target`` (an old one is removed); never half a folder there."""
+    if target.exists() and not target.is_dir():
+        raise SeqvprError(f"{target} exists and is not a folder; not replacing it with a report")
+    old = target.parent / f".{target.name}.old-{os.getpid()}"
+    if old.exists():
+        shutil.rmtree(old)
+    had_old = target.exists()
+    if had_old:
+        os.rename(target, old)
+    try:
+        os.rename(new, target)
+    except BaseException:
+        if had_old:
+            os.rename(old, target)
+        raise
+    if had_old:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_report(
+    out_dir: Path,
+    *,
+    title: str,
+    summary: str,
+    methods: list[MethodResult],
+    table_ks: Sequence[int] = (1, 5, 20),
+    distance_views: Sequence[DistanceView] = (),
+    examples: Sequence[QueryExample] = (),
+    example_title: str = "",
+) -> Path:
+    """Write the report folder ``out_dir`` atomically (built aside, then renamed in); returns its index.html."""
+    out_dir = Path(out_dir)
+    for view in distance_views:
+        check_distance_view(view)
+    for example in examples:
+        check_example(example)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        build_report(
+            tmp, title=title, summary=summary, methods=methods, table_ks=table_ks,
+            distance_views=distance_views, examples=examples, example_title=example_title,
+        )
+        replace_folder(tmp, out_dir)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(tmp)
+        raise
+    return out_dir / "index.html"
