@@ -89,9 +89,25 @@ def test_malformed_predictions_file(monkeypatch, capsys, tmp_path, pair):
     assert code == 2 and "p.csv: line 2" in stderr and "\n" not in stderr.strip()
 
 
-def test_demo_runs(monkeypatch, capsys, tmp_path):
-    code, stdout, _ = run(monkeypatch, capsys, "demo", "--out", tmp_path / "demo", "--frames", "300")
-    assert code == 0 and "L=5" in stdout and (tmp_path / "demo" / "predictions_L5.csv").exists()
+def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypatch, capsys, tmp_path):
+    import re
+
+    out = tmp_path / "demo"
+    code, stdout, stderr = run(monkeypatch, capsys, "demo", "--quick", "--out", out)
+    assert code == 0, stderr
+    cells = [re.split(r"\s{2,}", line.strip()) for line in stdout.splitlines()
+             if line.startswith(("single image", "sequence matching", "SeqMatchNet"))]
+    rows = {name: [float(v) for v in values] for name, *values in cells}
+    assert set(rows) == {"single image", "sequence matching L=5", "SeqMatchNet L=5"}
+    assert rows["sequence matching L=5"][0] > rows["single image"][0]  # sequences beat single frames here
+    page = out / "report" / "index.html"
+    html = page.read_text()
+    assert "SeqMatchNet L=5" in html and f"{rows['single image'][0]:.3f}" in html
+    links = re.findall(r'(?:src|href)="([^"]+)"', html)
+    assert links and all((page.parent / link).is_file() for link in links)
+    assert not any(link.startswith(("http:", "https:", "//", "/")) for link in links)
+    assert sorted(p.name for p in (out / "world").iterdir()) == ["test_query", "test_reference", "train_query",
+                                                                  "train_reference"]
 
 
 def test_description_file_with_ground_truth_table(monkeypatch, capsys, tmp_path, pair):

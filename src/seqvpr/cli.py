@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +15,7 @@ from tqdm import tqdm
 from seqvpr.data.groundtruth import GroundTruth, parse_radius
 from seqvpr.data.sources import ground_truth_spec, load_traversal
 from seqvpr.data.traversal import Traversal
+from seqvpr.data.world import CONDITIONS as DEMO_CONDITIONS
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation, evaluate
 from seqvpr.evaluation.predictions import read_predictions, write_predictions
@@ -352,28 +354,53 @@ def _rows_of(frame_index: np.ndarray, wanted: np.ndarray, path: str, what: str) 
     return rows.reshape(wanted.shape)
 
 
-@cli.command()
+@cli.command(epilog="""\b
+Examples:
+  seqvpr demo                      # about 3 minutes on 2 cores
+  seqvpr demo --quick              # a smaller world, under a minute
+  seqvpr demo --condition winter --seed 3 --out demo-winter
+""")
 @click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=click.Path(),
-              help="Folder for the generated traversals and the results.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the generated route.")
-@click.option("--frames", "n_frames", default=1500, show_default=True, type=int, help="Frames per traversal.")
-def demo(out_dir, seed, n_frames) -> None:
-    """Generate a small route (reference and query descriptors with positions) and match it at L = 1, 5, 10."""
-    from seqvpr.data.synthetic import write_demo_route
+              help="Folder for the rendered world, the descriptor cache, the model and the report.")
+@click.option("--quick", is_flag=True, help="A smaller world (200 frames per traversal) and a short training run.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the world and of training.")
+@click.option("--frames", "n_frames", type=int, help="Frames per traversal.  [default: 600; --quick: 200]")
+@click.option("--condition", type=click.Choice(list(DEMO_CONDITIONS)), default="night", show_default=True,
+              help="The query drive's condition (the reference is driven by day).")
+@click.option("--epochs", type=int, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
+@click.option("--no-train", is_flag=True, help="Skip SeqMatchNet training (matching baselines only).")
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) -> None:
+    """Render a synthetic route world, describe it with EfficientNet-Lite0, match single images and sequences,
+    train SeqMatchNet, and write an HTML report (OUT/report/index.html)."""
+    from seqvpr.cli_training import TqdmMonitor
+    from seqvpr.demo import DemoSettings, recall_rows, run_demo
 
+    settings = DemoSettings.quick() if quick else DemoSettings()
+    changes = {"seed": seed, "condition": condition, "train": not no_train, "device": device}
+    if n_frames is not None:
+        changes["frames"] = n_frames
+    if epochs is not None:
+        changes["epochs"] = epochs
+    settings = replace(settings, **changes)
+    if settings.frames < 50:
+        raise SeqvprError(f"--frames must be at least 50, got {settings.frames}")
+    if settings.epochs < 1:
+        raise SeqvprError(f"--epochs must be at least 1, got {settings.epochs}")
     out = Path(out_dir)
-    ref_path, qry_path = write_demo_route(out, n_frames=n_frames, seed=seed)
-    click.echo(f"generated {ref_path} and {qry_path} (seed {seed}); matching within 10 m:")
-    ref, qry = load_pair(str(ref_path), str(qry_path), None)
-    gt = ground_truth(ref, qry, parse_radius("10m"))
-    for length in (1, 5, 10):
-        settings = MatchSettings(SequenceSpec(length), k=20)
-        result = match_traversals(ref, qry, settings, tqdm_progress)
-        evaluation = evaluate_match(result, gt, (1, 5, 20))
-        lines = recall_table(evaluation, f"L={length}").split("\n")
-        click.echo("\n".join(lines[:2] if length == 1 else lines[1:2]))
-        save_predictions(out / f"predictions_L{length}.csv", result, gt)
-    click.echo(f"the same from the command line: seqvpr match --reference {ref_path} --query {qry_path} --radius 10m --seq-len 5")
+    click.echo(f"rendering a {settings.frames}-frame world (seed {seed}; query: {condition}) into {out / 'world'}")
+    result = run_demo(out, settings, progress=tqdm_progress, monitor=TqdmMonitor("seqmatchnet "),
+                      echo=lambda text: click.echo(text))
+    click.echo(f"test route, correct within {settings.radius_m:g} m:")
+    click.echo(recall_rows(result.runs))
+    click.echo("seconds: " + ", ".join(f"{stage} {value:.0f}" for stage, value in result.seconds.items()))
+    click.echo(f"report: {result.report}")
+    world = out / "world"
+    click.echo(
+        f"the same from the command line: seqvpr match -r {world / 'test_reference'} -q {world / 'test_query'} "
+        f"--descriptor efficientnet-lite0 --image-size {settings.width}x{settings.height} --radius "
+        f"{settings.radius_m:g}m -L 5 --cache-dir {out / 'cache'}"
+    )
 
 
 @cli.command(epilog="""\b

@@ -31,7 +31,7 @@ from seqvpr.features.extraction import (
 )
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
 from seqvpr.features.whitening import fit_pca_whitening
-from seqvpr.sequences.matching import TopK, sequence_topk
+from seqvpr.sequences.matching import TopK, frame_distances, sequence_distance_matrix, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 
 if TYPE_CHECKING:
@@ -184,6 +184,14 @@ def match_traversals(
         progress=tick,
     )
     return MatchResult(reference, query, topk, settings)
+
+
+def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings()) -> np.ndarray:
+    """The full sequence-distance matrix [n_query, n_reference] (+inf where a window is missing), for plots and
+    small traversals; ``match_traversals`` keeps only the top K and never holds it."""
+    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    full = sequence_distance_matrix(frame_distances(qry, ref), settings.sequence, query.segment_ids, reference.segment_ids)
+    return full.double().cpu().numpy()
 
 
 def ground_truth(
