@@ -1,13 +1,17 @@
-"""Atomic output files: write to a temporary name beside the target, then rename, so no partial file remains."""
+"""Atomic output files and folders: write under a temporary name beside the target, then rename, so no partial
+output remains under the final name."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+from seqvpr.errors import SeqvprError
 
 
 @contextlib.contextmanager
@@ -24,3 +28,36 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Yield an empty temporary folder beside ``path``; on success it replaces ``path`` (an old folder is removed),
+    on error it is deleted, so an interrupted run never leaves half a folder under the final name."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise SeqvprError(f"{path} exists and is not a folder; not replacing it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    try:
+        yield tmp
+        _replace_folder(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _replace_folder(new: Path, target: Path) -> None:
+    """Put the finished folder ``new`` in place of ``target``; the old one is restored if the swap fails."""
+    if not target.exists():
+        os.replace(new, target)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
+    os.replace(target, old / target.name)
+    try:
+        os.replace(new, target)
+    except BaseException:
+        os.replace(old / target.name, target)
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)

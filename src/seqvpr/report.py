@@ -7,12 +7,9 @@ a temporary sibling name and renamed into place, so an interrupted run never lea
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import html
 import math
-import os
-import shutil
 import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,6 +25,7 @@ from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
+from seqvpr.io import atomic_folder
 
 DPI = 100
 MAX_DRAWN = 1000  # largest number of rows / columns of a distance matrix that is drawn as is
@@ -524,26 +522,6 @@ def build_report(
     (folder / "index.html").write_text(page_html(title, sections), encoding="utf-8")
 
 
-def replace_folder(new: Path, target: Path) -> None:
-    """Put the finished folder ``new`` in place of ``target`` (an old one is removed); never half a folder there."""
-    if target.exists() and not target.is_dir():
-        raise SeqvprError(f"{target} exists and is not a folder; not replacing it with a report")
-    old = target.parent / f".{target.name}.old-{os.getpid()}"
-    if old.exists():
-        shutil.rmtree(old)
-    had_old = target.exists()
-    if had_old:
-        os.rename(target, old)
-    try:
-        os.rename(new, target)
-    except BaseException:
-        if had_old:
-            os.rename(old, target)
-        raise
-    if had_old:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def write_report(
     out_dir: Path,
     *,
@@ -561,19 +539,9 @@ def write_report(
         check_distance_view(view)
     for example in examples:
         check_example(example)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    with atomic_folder(out_dir) as tmp:
         build_report(
             tmp, title=title, summary=summary, methods=methods, table_ks=table_ks,
             distance_views=distance_views, examples=examples, example_title=example_title,
         )
-        replace_folder(tmp, out_dir)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            shutil.rmtree(tmp)
-        raise
     return out_dir / "index.html"

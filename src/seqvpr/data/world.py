@@ -20,8 +20,6 @@ from __future__ import annotations
 import csv
 import functools
 import math
-import os
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +27,8 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 from PIL import Image
+
+from seqvpr.io import atomic_folder
 
 CONDITIONS = ("day", "dusk", "night", "winter", "fog", "rain")
 
@@ -1294,12 +1294,7 @@ def render_traversal(world: World, route_xy: np.ndarray, drive: Drive, n_frames:
     """
     out = Path(out_dir)
     poses = drive_poses(route_xy, drive, n_frames)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    with atomic_folder(out) as tmp:
         names = []
         for i in range(n_frames):
             rng = np.random.default_rng([drive.seed, 12, i])
@@ -1310,10 +1305,6 @@ def render_traversal(world: World, route_xy: np.ndarray, drive: Drive, n_frames:
             if progress is not None:
                 progress(1)
         _write_positions(tmp / "positions.csv", names, poses)
-        _replace_folder(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 
@@ -1324,19 +1315,6 @@ def _write_positions(path: Path, names: list[str], poses: Poses) -> None:
         writer.writerow(["name", "easting", "northing", "timestamp", "heading", "segment"])
         for name, (x, y), t, h in zip(names, poses.positions, poses.timestamps, poses.headings):
             writer.writerow([name, f"{x:.3f}", f"{y:.3f}", f"{t:.3f}", f"{h:.2f}", 0])
-
-
-def _replace_folder(tmp: Path, out: Path) -> None:
-    """Move a finished folder to its final name, replacing what was there."""
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
 
 
 def demo_drives(query_condition: str = "night", seed: int = 0) -> tuple[Drive, Drive]:
