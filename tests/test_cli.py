@@ -128,3 +128,14 @@ def test_traversal_npz_keeps_positions_for_metric_radius(monkeypatch, capsys, tm
     ref, qry = write_demo_route(tmp_path, n_frames=200, seed=3)
     code, stdout, _ = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "10m", "-L", "5", "--json", "--out", tmp_path / "o")
     assert code == 0 and json.loads(stdout)["settings"]["ground_truth_rule"] == "within 10 m"
+
+
+def test_demo_bad_options_are_one_line_errors_without_output(monkeypatch, capsys, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for args, message in ((["--out", afile], "--out exists and is not a folder"),
+                          (["--frames", "10", "--out", tmp_path / "d"], "--frames must be at least 50"),
+                          (["--epochs", "0", "--out", tmp_path / "d"], "--epochs must be at least 1")):
+        code, _, stderr = run(monkeypatch, capsys, "demo", *args)
+        assert code == 2 and message in stderr and stderr.count("\n") == 1
+    assert not (tmp_path / "d").exists()

@@ -388,6 +388,8 @@ def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) ->
     if settings.epochs < 1:
         raise SeqvprError(f"--epochs must be at least 1, got {settings.epochs}")
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise SeqvprError(f"{out}: --out exists and is not a folder")
     click.echo(f"rendering a {settings.frames}-frame world (seed {seed}; query: {condition}) into {out / 'world'}")
     result = run_demo(out, settings, progress=tqdm_progress, monitor=TqdmMonitor("seqmatchnet "),
                       echo=lambda text: click.echo(text))
