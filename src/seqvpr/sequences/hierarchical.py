@@ -1,0 +1,66 @@
+"""Hierarchical matching (HVPR): a cheap shortlist, then exact sequence re-ranking of the shortlisted frames.
+
+The shortlist is any ``TopK`` over reference frames (for instance faiss over SeqNet S5 or SeqGeM sequence
+descriptors); the re-ranking distance is the matching kernel's (mean of order-aligned frame distances between
+the query's and the candidate's windows), over the descriptors given (e.g. SeqMatchNet-transformed frames).
+With the whole reference as the shortlist it equals exhaustive sequence matching.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.matching import TopK, aligned_sequence_distances
+from seqvpr.sequences.windows import SequenceSpec, window_starts
+
+
+def rerank(
+    query: torch.Tensor,
+    reference: torch.Tensor,
+    shortlist: TopK,
+    spec: SequenceSpec,
+    query_segments: np.ndarray | None = None,
+    reference_segments: np.ndarray | None = None,
+    *,
+    k: int | None = None,
+    memory_budget: int = 256 * 1024**2,
+) -> TopK:
+    """The shortlisted reference frames of each query re-ordered by exact sequence distance; the best ``k`` kept.
+
+    ``query`` and ``reference`` are frame descriptors [n, D] (normalised as the caller wants). Candidates whose
+    reference window does not exist (segment ends) drop out; queries without a window keep none.
+    """
+    if any(v != 1.0 for v in spec.velocities):
+        raise SeqvprError("re-ranking compares windows at one speed; use velocities 1")
+    if shortlist.indices.shape[0] != len(query):
+        raise SeqvprError(f"the shortlist has {shortlist.indices.shape[0]} query rows, the query has {len(query)} frames")
+    n_q, n_r = len(query), len(reference)
+    q_seg = np.zeros(n_q, np.int64) if query_segments is None else np.asarray(query_segments)
+    r_seg = np.zeros(n_r, np.int64) if reference_segments is None else np.asarray(reference_segments)
+    q_starts = window_starts(q_seg, spec.length, spec.offset, spec.boundary)
+    r_starts = window_starts(r_seg, spec.length, spec.offset, spec.boundary)
+    candidates = shortlist.indices
+    keep = candidates.shape[1] if k is None else min(k, candidates.shape[1])
+    indices = np.full((n_q, keep), -1, dtype=np.int64)
+    distances = np.full((n_q, keep), np.inf, dtype=np.float64)
+    has_window = (q_starts >= 0) & shortlist.has_window
+    rows = np.flatnonzero(has_window)
+    per_query = max(1, candidates.shape[1] * spec.length * query.shape[1] * query.element_size())
+    step = max(1, memory_budget // per_query)
+    offsets = torch.arange(spec.length, device=query.device)
+    for begin in range(0, len(rows), step):
+        batch = rows[begin : begin + step]
+        picked = candidates[batch]
+        starts = np.where(picked >= 0, r_starts[np.maximum(picked, 0)], -1)
+        valid = starts >= 0
+        q_windows = query[torch.as_tensor(q_starts[batch], device=query.device)[:, None] + offsets]  # [b, L, D]
+        r_index = torch.as_tensor(np.maximum(starts, 0), device=query.device)[..., None] + offsets  # [b, K, L]
+        d = aligned_sequence_distances(q_windows[:, None], reference[r_index]).double().cpu().numpy()
+        d[~valid] = np.inf
+        order = np.argsort(d, axis=1, kind="stable")[:, :keep]
+        best = np.take_along_axis(d, order, axis=1)
+        indices[batch] = np.where(np.isfinite(best), np.take_along_axis(picked, order, axis=1), -1)
+        distances[batch] = best
+    return TopK(indices, distances, has_window)
