@@ -31,9 +31,13 @@ from seqvpr.pipeline import (
     ground_truth,
     match_traversals,
     netvlad_extractor,
+    rerank_match,
+    retrieve_traversals,
     whiten_pair,
 )
 from seqvpr.sequences.windows import SequenceSpec
+
+RETRIEVAL_METHODS = ("smoothing", "delta", "concat", "seqgem", "seqgem-signed")
 
 
 def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
@@ -255,6 +259,13 @@ def cli() -> None:
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
 @extraction_options
+@click.option("--method", type=click.Choice(["matching", *RETRIEVAL_METHODS]), default="matching", show_default=True,
+              help="Sequence matching over frames, or one descriptor per window (smoothing, Delta, concatenation, "
+                   "SeqGeM with p=3; seqgem-signed keeps negative parts) searched with faiss.")
+@click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
+              help="faiss index for --method other than matching: exact (flat) or approximate (HNSW).")
+@click.option("--rerank", type=int, default=0, show_default=True,
+              help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
 @click.option("--pca-dim", default=0, show_default=True, type=int,
               help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
@@ -269,14 +280,16 @@ def cli() -> None:
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 def match(reference, query, seq_len, align, model_dir, boundary, velocities, radius, gt_file, frames, descriptor, thumbnail,
-          patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, pca_dim, ks, no_positive,
-          no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
+          patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, method, index_kind, rerank,
+          pca_dim, ks, no_positive, no_normalize, dtype, device, memory_budget, out_dir, as_json) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
     descriptor, patchnorm, extraction = extraction_settings(
         descriptor, thumbnail, patch, weights, pooling, clusters, image_size, extract_batch, cache_dir, skip_bad, device
     )
     if pca_dim < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {pca_dim}")
+    if rerank < 0 or (rerank and method == "matching"):
+        raise SeqvprError(f"--rerank N needs N >= 0 and a --method other than matching (got {rerank}, {method})")
     k_values = parse_ks(ks)
     speeds, budget = parse_velocities(velocities), parse_size(memory_budget)
     if seq_len is not None:
@@ -295,11 +308,18 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
         seq_len = int(model_config.get("sequence", {}).get("length", 1))
     spec = SequenceSpec(seq_len, align, boundary, speeds)
     settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, budget)
-    result = match_traversals(ref, qry, settings, tqdm_progress)
+    if method == "matching":
+        result = match_traversals(ref, qry, settings, tqdm_progress)
+    else:
+        shortlist = replace(settings, k=max(rerank, settings.k))
+        result = retrieve_traversals(ref, qry, method, shortlist, index=index_kind)
+        if rerank:
+            result = rerank_match(result, settings)
     evaluation = evaluate_match(result, gt, k_values, no_positive)
     run = {
         "reference": reference, "query": query, "frames": frames, "radius": radius, "ground_truth": gt_file,
         "ground_truth_rule": gt.description, "descriptor": descriptor if ref.image_paths is not None else "file",
+        "method": method, "index": index_kind if method != "matching" else None, "rerank": rerank,
         "pooling": pooling, "pca_dim": pca_dim, "no_positive": no_positive, "model": model_dir, **settings.as_dict(),
     }
     out = Path(out_dir)

@@ -186,6 +186,48 @@ def match_traversals(
     return MatchResult(reference, query, topk, settings)
 
 
+def retrieve_traversals(
+    reference: Traversal,
+    query: Traversal,
+    method: str,
+    settings: MatchSettings = MatchSettings(),
+    *,
+    index: str = "flat",
+    model: torch.nn.Module | None = None,
+) -> MatchResult:
+    """Top-K reference frames per query frame by one sequence descriptor per window (smoothing, Delta, SeqGeM,
+    ``seqgem-signed`` for descriptors with negative entries, SeqNet with ``model``...) and a faiss index: the
+    compact alternative to ``match_traversals``."""
+    from seqvpr.sequences.descriptors import SeqGeM, sequence_descriptors
+    from seqvpr.sequences.retrieval import retrieve
+
+    if method == "seqgem-signed":
+        method, model = "seqgem", model or SeqGeM(mode="signed")
+
+    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    if ref.shape[1] != qry.shape[1]:
+        raise SeqvprError(
+            f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
+            f"{query.source or query.name} has {qry.shape[1]}"
+        )
+    spec = settings.sequence
+    ref_vectors = sequence_descriptors(ref, reference.segment_ids, spec, method, model, device=settings.device)
+    qry_vectors = sequence_descriptors(qry, query.segment_ids, spec, method, model, device=settings.device)
+    return MatchResult(reference, query, retrieve(qry_vectors, ref_vectors, settings.k, kind=index), settings)
+
+
+def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None) -> MatchResult:
+    """Hierarchical matching (HVPR): the shortlist's reference frames re-ordered by exact sequence distance over
+    the traversals' frame descriptors (e.g. SeqMatchNet-transformed), best ``settings.k`` kept."""
+    from seqvpr.sequences.hierarchical import rerank
+
+    settings = settings or shortlist.settings
+    ref, qry = _as_tensor(shortlist.reference, settings), _as_tensor(shortlist.query, settings)
+    top = rerank(qry, ref, shortlist.topk, settings.sequence, shortlist.query.segment_ids,
+                 shortlist.reference.segment_ids, k=settings.k)
+    return MatchResult(shortlist.reference, shortlist.query, top, settings)
+
+
 def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings()) -> np.ndarray:
     """The full sequence-distance matrix [n_query, n_reference] (+inf where a window is missing), for plots and
     small traversals; ``match_traversals`` keeps only the top K and never holds it."""
