@@ -466,6 +466,28 @@ def extract(images, descriptor, thumbnail, patch, weights, pooling, clusters, im
     click.echo(f"{out_file}: {len(described)} frames, {described.descriptors.shape[1]}-D {descriptor} descriptors")
 
 
+@cli.command(epilog="""\b
+Example:
+  seqvpr benchmark bench/benchmark.toml --out runs/benchmark
+""")
+@click.argument("config_file", metavar="CONFIG")
+@click.option("--out", "out_dir", default="seqvpr-benchmark", show_default=True, type=click.Path(),
+              help="Folder for trained models, results.csv and results.md.")
+def benchmark(config_file, out_dir) -> None:
+    """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
+    from seqvpr.benchmark import main_table, length_table, read_config, run_benchmark, write_results
+    from seqvpr.cli_training import TqdmMonitor
+
+    config = read_config(config_file)
+    out = Path(out_dir)
+    rows = run_benchmark(config, out, progress=tqdm_progress, monitor=TqdmMonitor("seqmatchnet "),
+                         echo=lambda text: click.echo(text, err=True))
+    csv_path, md_path = write_results(rows, config, out)
+    click.echo(f"Methods at L={config.seq_len}:\n{main_table(rows, config)}\n")
+    click.echo(f"Sequence length (R@{config.ks[0]}):\n{length_table(rows, config)}\n")
+    click.echo(f"results: {csv_path}, {md_path}")
+
+
 def _register_training_commands() -> None:
     from seqvpr.cli_training import ablate, train
 

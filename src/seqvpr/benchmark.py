@@ -1,0 +1,326 @@
+"""`seqvpr benchmark CONFIG`: every method on every dataset's test split, as the papers' comparison tables.
+
+A config (TOML) names datasets (reference, query, ground-truth radius, train/select/test frame ranges) and methods.
+Methods that learn are trained on the train split and selected on the select split; every method is scored on the
+test split at the config's sequence length, and the length-capable ones again at each length of the length table.
+A method that fails is reported in its row and the others go on.
+
+    [benchmark]
+    methods = ["single", "matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr"]
+    seq_len = 5
+    lengths = [5, 10, 20]
+    ks = [1, 5, 20]
+
+    [training]            # SeqMatchNet settings (TrainSettings fields), optional
+    epochs = 10
+    lr = 0.01
+
+    [[dataset]]
+    name = "nordland"
+    reference = "nordland_64x32/summer"
+    query = "nordland_64x32/winter"
+    radius = "1f"
+    train = "17:1200"
+    select = "1200:1600"
+    test = "1600:2000"
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
+from seqvpr.data.sources import load_traversal
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.evaluation.metrics import Evaluation
+from seqvpr.io import atomic_write
+from seqvpr.pipeline import (
+    MatchResult,
+    MatchSettings,
+    describe,
+    evaluate_match,
+    match_traversals,
+    rerank_match,
+    retrieve_traversals,
+    transform_traversal,
+)
+from seqvpr.sequences.windows import SequenceSpec
+
+METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr")
+LENGTH_METHODS = ("matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr")
+HVPR_SHORTLIST = 20
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """One dataset of the config: traversals, ground-truth radius, and the train/select/test frame ranges."""
+
+    name: str
+    reference: str
+    query: str
+    radius: str
+    train: str
+    select: str
+    test: str
+    descriptor: str = "patchnorm"
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """The whole benchmark: datasets, methods, the main sequence length, the length table's lengths, K values."""
+
+    datasets: tuple[DatasetSpec, ...]
+    methods: tuple[str, ...] = METHODS
+    seq_len: int = 5
+    lengths: tuple[int, ...] = (5, 10, 20)
+    ks: tuple[int, ...] = (1, 5, 20)
+    training: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Row:
+    """One table cell group: a method on a dataset at a length, with its evaluation or why it failed."""
+
+    dataset: str
+    method: str
+    length: int
+    evaluation: Evaluation | None
+    error: str = ""
+
+
+def read_config(path: str | Path) -> BenchmarkConfig:
+    """Parse and check a benchmark TOML file; paths inside are relative to the file's folder."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SeqvprError(f"{path}: no such benchmark config") from None
+    except tomllib.TOMLDecodeError as error:
+        raise SeqvprError(f"{path}: not valid TOML ({error})") from None
+    datasets = raw.get("dataset")
+    if not datasets:
+        raise SeqvprError(f"{path}: no [[dataset]] tables")
+    known = {f.name for f in fields(DatasetSpec)}
+    specs = []
+    for number, table in enumerate(datasets, start=1):
+        missing = [name for name in ("name", "reference", "query", "radius", "train", "select", "test") if name not in table]
+        if missing:
+            raise SeqvprError(f"{path}: dataset {number} lacks {', '.join(missing)}")
+        unknown = sorted(set(table) - known)
+        if unknown:
+            raise SeqvprError(f"{path}: dataset {number} has unknown keys {', '.join(unknown)}")
+        values = {k: str(v) for k, v in table.items()}
+        for key in ("reference", "query"):
+            values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
+        specs.append(DatasetSpec(**values))
+    settings = raw.get("benchmark", {})
+    methods = tuple(settings.get("methods", METHODS))
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise SeqvprError(f"{path}: unknown methods {', '.join(bad)} (choose from: {', '.join(METHODS)})")
+    training = dict(raw.get("training", {}))
+    from seqvpr.training.seqmatchnet import TrainSettings
+
+    allowed = {f.name for f in fields(TrainSettings)} - {"sequence"}
+    unknown = sorted(set(training) - allowed)
+    if unknown:
+        raise SeqvprError(f"{path}: [training] has unknown keys {', '.join(unknown)} (known: {', '.join(sorted(allowed))})")
+    if "ks" in training:
+        training["ks"] = tuple(training["ks"])
+    return BenchmarkConfig(
+        tuple(specs), methods, int(settings.get("seq_len", 5)), tuple(int(v) for v in settings.get("lengths", (5, 10, 20))),
+        tuple(int(v) for v in settings.get("ks", (1, 5, 20))), training,
+    )
+
+
+def frame_range(text: str, what: str) -> tuple[int | None, int | None]:
+    """``START:STOP`` -> a half-open range of source frames."""
+    start, sep, stop = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return (int(start) if start else None), (int(stop) if stop else None)
+    except ValueError:
+        raise SeqvprError(f"{what} {text!r}: expected START:STOP, e.g. 17:1200") from None
+
+
+@dataclass
+class Splits:
+    """A dataset's described traversals cut into train, select and test pairs, and its radius."""
+
+    train: tuple[Traversal, Traversal]
+    select: tuple[Traversal, Traversal]
+    test: tuple[Traversal, Traversal]
+    radius: Radius
+
+
+def load_splits(spec: DatasetSpec, progress=None) -> Splits:
+    """Load and describe a dataset's traversals and cut them into its three splits."""
+    reference = describe(load_traversal(spec.reference, "reference"), spec.descriptor, progress=progress)
+    query = describe(load_traversal(spec.query, "query"), spec.descriptor, progress=progress)
+
+    def cut(text: str, what: str) -> tuple[Traversal, Traversal]:
+        start, stop = frame_range(text, f"{spec.name}: {what}")
+        return reference.slice_frames(start, stop), query.slice_frames(start, stop)
+
+    return Splits(cut(spec.train, "train"), cut(spec.select, "select"), cut(spec.test, "test"), parse_radius(spec.radius))
+
+
+class MethodRunner:
+    """Runs the methods on one dataset; trained models are made once and shared (SeqMatchNet also feeds HVPR)."""
+
+    def __init__(self, splits: Splits, config: BenchmarkConfig, out: Path, monitor=None) -> None:
+        self.splits, self.config, self.out, self.monitor = splits, config, out, monitor
+        self._transform = None
+
+    def seqmatchnet_model(self):
+        """SeqMatchNet trained on the train split at the config's length, best epoch on the select split."""
+        if self._transform is None:
+            from seqvpr.models.seqmatchnet import TransformConfig
+            from seqvpr.training.checkpoint import load_model
+            from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
+
+            radius = self.splits.radius
+            data = TrainingData(*self.splits.train, *self.splits.select, radius, Radius(4 * radius.value, radius.unit),
+                                radius)
+            settings = TrainSettings(**{**self.config.training, "sequence": SequenceSpec(self.config.seq_len)})
+            result = train_seqmatchnet(data, TransformConfig(data.dim), settings, self.out / "seqmatchnet",
+                                       monitor=self.monitor)
+            self._transform, _ = load_model(result.folder)
+        return self._transform
+
+    def run(self, method: str, length: int) -> MatchResult:
+        """The method's top-K on the test split at sequence length ``length``."""
+        reference, query = self.splits.test
+        settings = MatchSettings(SequenceSpec(length), k=max(max(self.config.ks), HVPR_SHORTLIST))
+        if method == "single":
+            return match_traversals(reference, query, replace(settings, sequence=SequenceSpec(1)))
+        if method == "matching":
+            return match_traversals(reference, query, settings)
+        if method == "seqmatchnet":
+            model = self.seqmatchnet_model()
+            return match_traversals(transform_traversal(reference, model), transform_traversal(query, model), settings)
+        if method in ("smoothing", "delta", "seqgem"):
+            return retrieve_traversals(reference, query, method, settings)
+        if method == "hvpr":
+            model = self.seqmatchnet_model()
+            shortlist = retrieve_traversals(reference, query, "seqgem", settings)
+            transformed = replace(shortlist, reference=transform_traversal(reference, model),
+                                  query=transform_traversal(query, model))
+            return rerank_match(transformed)
+        raise SeqvprError(f"method {method!r} is not known")
+
+
+def run_benchmark(
+    config: BenchmarkConfig, out: Path, *, progress=None, monitor=None, echo: Callable[[str], None] = lambda t: None
+) -> list[Row]:
+    """Every method on every dataset (main length, then the length table); failures become rows, not exceptions."""
+    rows: list[Row] = []
+    for spec in config.datasets:
+        try:
+            splits = load_splits(spec, progress)
+        except Exception as error:  # noqa: BLE001 - a dataset that fails to load fails its rows, not the run
+            rows += [Row(spec.name, m, config.seq_len, None, one_line(error)) for m in config.methods]
+            echo(f"{spec.name}: failed to load: {one_line(error)}")
+            continue
+        runner = MethodRunner(splits, config, out / spec.name, monitor)
+        gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
+        plan = [(m, config.seq_len) for m in config.methods]
+        plan += [(m, n) for n in config.lengths for m in config.methods if m in LENGTH_METHODS and n != config.seq_len]
+        for method, length in plan:
+            echo(f"{spec.name}: {method} L={length}")
+            try:
+                evaluation = evaluate_match(runner.run(method, length), gt, config.ks)
+                rows.append(Row(spec.name, method, length, evaluation))
+            except Exception as error:  # noqa: BLE001 - reported in the method's row
+                rows.append(Row(spec.name, method, length, None, one_line(error)))
+                echo(f"{spec.name}: {method} L={length} failed: {one_line(error)}")
+    return rows
+
+
+def one_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"
+
+
+def main_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
+    """Markdown: one row per method, R@K columns per dataset, at the main sequence length."""
+    names = [spec.name for spec in config.datasets]
+    header = "| method | " + " | ".join(f"{name} R@{k}" for name in names for k in config.ks) + " |"
+    lines = [header, "|---|" + "---:|" * (len(names) * len(config.ks))]
+    for method in config.methods:
+        cells = []
+        for name in names:
+            row = _find(rows, name, method, config.seq_len)
+            cells += _cells(row, config.ks)
+        label = method if method == "single" else f"{method} (L={config.seq_len})"
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines + _failures(rows))
+
+
+def length_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
+    """Markdown: R@1 per method at each length of the length table, per dataset (like SeqMatchNet's Table 4)."""
+    names = [spec.name for spec in config.datasets]
+    methods = [m for m in config.methods if m in LENGTH_METHODS]
+    header = "| method | " + " | ".join(f"{name} L={n}" for name in names for n in config.lengths) + " |"
+    lines = [header, "|---|" + "---:|" * (len(names) * len(config.lengths))]
+    for method in methods:
+        cells = []
+        for name in names:
+            for length in config.lengths:
+                row = _find(rows, name, method, length)
+                cells.append(_cells(row, config.ks[:1])[0])
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def rows_csv(rows: Sequence[Row], ks: Sequence[int]) -> str:
+    """All rows as CSV: dataset, method, L, R@K..., PR-AUC, queries evaluated, error."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["dataset", "method", "L", *[f"R@{k}" for k in ks], "pr_auc", "queries_evaluated", "error"])
+    for row in rows:
+        e = row.evaluation
+        values = [f"{e.recall[k]:.4f}" for k in ks] + [f"{e.pr.auc:.4f}", e.queries_evaluated] if e else [""] * (len(ks) + 2)
+        writer.writerow([row.dataset, row.method, row.length, *values, row.error])
+    return buffer.getvalue()
+
+
+def write_results(rows: Sequence[Row], config: BenchmarkConfig, out: Path) -> tuple[Path, Path]:
+    """results.csv and results.md (both tables) in ``out``, each written atomically."""
+    markdown = f"## Methods at L={config.seq_len}\n\n{main_table(rows, config)}\n\n## Sequence length (R@{config.ks[0]})\n\n"
+    markdown += length_table(rows, config) + "\n"
+    with atomic_write(out / "results.csv") as handle:
+        handle.write(rows_csv(rows, config.ks))
+    with atomic_write(out / "results.md") as handle:
+        handle.write(markdown)
+    return out / "results.csv", out / "results.md"
+
+
+def _find(rows: Sequence[Row], dataset: str, method: str, length: int) -> Row | None:
+    if method == "single":
+        length = next((r.length for r in rows if r.dataset == dataset and r.method == "single"), length)
+    return next((r for r in rows if r.dataset == dataset and r.method == method and r.length == length), None)
+
+
+def _cells(row: Row | None, ks: Sequence[int]) -> list[str]:
+    if row is None:
+        return ["–"] * len(ks)
+    if row.evaluation is None:
+        return ["failed"] * len(ks)
+    return [f"{row.evaluation.recall[k]:.3f}" for k in ks]
+
+
+def _failures(rows: Sequence[Row]) -> list[str]:
+    failed = [r for r in rows if r.error]
+    return [""] + [f"- {r.dataset} / {r.method} L={r.length}: {r.error}" for r in failed] if failed else []
