@@ -36,7 +36,7 @@ from typing import Any
 
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
-from seqvpr.data.traversal import Traversal
+from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_write
@@ -143,17 +143,6 @@ def read_config(path: str | Path) -> BenchmarkConfig:
     )
 
 
-def frame_range(text: str, what: str) -> tuple[int | None, int | None]:
-    """``START:STOP`` -> a half-open range of source frames."""
-    start, sep, stop = text.partition(":")
-    try:
-        if not sep:
-            raise ValueError
-        return (int(start) if start else None), (int(stop) if stop else None)
-    except ValueError:
-        raise SeqvprError(f"{what} {text!r}: expected START:STOP, e.g. 17:1200") from None
-
-
 @dataclass
 class Splits:
     """A dataset's described traversals cut into train, select and test pairs, and its radius."""
@@ -170,7 +159,7 @@ def load_splits(spec: DatasetSpec, progress=None) -> Splits:
     query = describe(load_traversal(spec.query, "query"), spec.descriptor, progress=progress)
 
     def cut(text: str, what: str) -> tuple[Traversal, Traversal]:
-        start, stop = frame_range(text, f"{spec.name}: {what}")
+        start, stop = parse_frame_range(text, f"{spec.name}: {what}")
         return reference.slice_frames(start, stop), query.slice_frames(start, stop)
 
     return Splits(cut(spec.train, "train"), cut(spec.select, "select"), cut(spec.test, "test"), parse_radius(spec.radius))

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from seqvpr.data.groundtruth import GroundTruth, parse_radius
 from seqvpr.data.sources import ground_truth_spec, load_traversal
-from seqvpr.data.traversal import Traversal
+from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.data.world import CONDITIONS as DEMO_CONDITIONS
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation, evaluate
@@ -47,16 +47,8 @@ def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
 
 
 def parse_frames(text: str | None) -> tuple[int | None, int | None]:
-    """``START:STOP`` (either side may be empty) -> a half-open range of source frame indices."""
-    if not text:
-        return None, None
-    start, sep, stop = text.partition(":")
-    try:
-        if not sep:
-            raise ValueError
-        return (int(start) if start else None), (int(stop) if stop else None)
-    except ValueError:
-        raise SeqvprError(f"--frames {text!r}: expected START:STOP, e.g. 17:2000") from None
+    """``--frames START:STOP`` -> a half-open range of source frame indices."""
+    return parse_frame_range(text, "--frames")
 
 
 def parse_ks(text: str) -> tuple[int, ...]:

@@ -179,3 +179,17 @@ def segments_from_gaps(
         steps = np.linalg.norm(np.diff(np.asarray(positions, dtype=np.float64), axis=0), axis=1)
         breaks |= steps > max_distance_gap
     return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)
+
+
+def parse_frame_range(text: str | None, what: str = "--frames") -> tuple[int | None, int | None]:
+    """``START:STOP`` (either side may be empty) -> a half-open range of source frame indices; ``what`` names the
+    option or field in the one-line error."""
+    if not text:
+        return None, None
+    start, sep, stop = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return (int(start) if start else None), (int(stop) if stop else None)
+    except ValueError:
+        raise SeqvprError(f"{what} {text!r}: expected START:STOP, e.g. 17:2000") from None

@@ -11,7 +11,7 @@ killed run to the same weights as an uninterrupted one (deterministic on CPU for
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -29,6 +29,7 @@ from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.losses import DEFAULT_MARGIN, SequenceMethod, sequence_triplet_loss, window_part
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
 from seqvpr.training.trainer import (
+    SettingsRecord,
     EpochRecord,
     SilentMonitor,
     TrainingData,
@@ -49,7 +50,7 @@ Optimizer = Literal["sgd", "adam"]
 
 
 @dataclass(frozen=True)
-class TrainSettings:
+class TrainSettings(SettingsRecord):
     """Every choice of a SeqMatchNet run; defaults follow the reference code (SGD 1e-3, step x0.5 every 5)."""
 
     sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
@@ -76,16 +77,6 @@ class TrainSettings:
         check_optimizer_settings(self)
         window_part(self.loss, self.sequence.length, self.sequence.offset)
         window_part(self.mining, self.sequence.length, self.sequence.offset)
-
-    def as_dict(self) -> dict[str, Any]:
-        values = asdict(self)
-        values["ks"] = list(self.ks)
-        values["sequence"]["velocities"] = list(self.sequence.velocities)
-        return values
-
-    def resume_key(self) -> dict[str, Any]:
-        """What must not change when a run is resumed (everything but the number of epochs and the device)."""
-        return {k: v for k, v in self.as_dict().items() if k not in ("epochs", "device")}
 
 
 def train_seqmatchnet(

@@ -19,7 +19,7 @@ The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -37,6 +37,7 @@ from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.losses import DEFAULT_MARGIN, triplet_hinge
 from seqvpr.training.mining import DistanceRows, Triplet
 from seqvpr.training.trainer import (
+    SettingsRecord,
     TrainingData,
     TrainingFrames,
     TrainingMonitor,
@@ -50,7 +51,7 @@ FEATURE_BATCH = 4096  # windows per forward pass when computing mining features
 
 
 @dataclass(frozen=True)
-class SeqNetSettings:
+class SeqNetSettings(SettingsRecord):
     """Every choice of a SeqNet run. Defaults follow the reference seqNet code (design digest, reference
     implementations §2.2 flags, §2.3 model, §2.5 training, §7 checklist):
 
@@ -104,16 +105,6 @@ class SeqNetSettings:
             raise SeqvprError(f"seqnet: sequence descriptors use velocity 1 only, got {self.sequence.velocities}")
         if self.out_dim is not None and self.out_dim < 1:
             raise SeqvprError(f"seqnet: out_dim must be >= 1, got {self.out_dim}")
-
-    def as_dict(self) -> dict[str, Any]:
-        values = asdict(self)
-        values["ks"] = list(self.ks)
-        values["sequence"]["velocities"] = list(self.sequence.velocities)
-        return values
-
-    def resume_key(self) -> dict[str, Any]:
-        """What must not change when a run is resumed (everything but the number of epochs and the device)."""
-        return {k: v for k, v in self.as_dict().items() if k not in ("epochs", "device")}
 
 
 def train_seqnet(

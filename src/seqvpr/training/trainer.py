@@ -40,6 +40,20 @@ from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.mining import DistanceRows, MiningConfig, SequenceMiner, Triplet
 
 
+class SettingsRecord:
+    """What every training-settings dataclass shares: a JSON-ready dict, and the part a resume must match."""
+
+    def as_dict(self) -> dict[str, Any]:
+        values = asdict(self)  # type: ignore[call-overload]
+        values["ks"] = list(self.ks)  # type: ignore[attr-defined]
+        values["sequence"]["velocities"] = list(self.sequence.velocities)  # type: ignore[attr-defined]
+        return values
+
+    def resume_key(self) -> dict[str, Any]:
+        """What must not change when a run is resumed (everything but the number of epochs and the device)."""
+        return {k: v for k, v in self.as_dict().items() if k not in ("epochs", "device")}
+
+
 @dataclass(frozen=True)
 class TrainingData:
     """Training and validation traversals with their radii (positives, negatives, validation ground truth)."""
