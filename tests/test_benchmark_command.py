@@ -53,6 +53,8 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
     assert long and all("longer than every segment" in r["error"] for r in long)
     assert float(main["matching"]["R@1"]) > float(main["single"]["R@1"])  # sequences help on this route
     assert (tmp_path / "b" / "results.md").read_text().count("failed") >= len(long)
+    code, again, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
+    assert code == 0 and again == stdout  # a re-run into the same folder reuses the trained model
 
 
 def test_config_errors_are_one_line(tmp_path):

@@ -184,7 +184,7 @@ class MethodRunner:
                                 radius)
             settings = TrainSettings(**{**self.config.training, "sequence": SequenceSpec(self.config.seq_len)})
             result = train_seqmatchnet(data, TransformConfig(data.dim), settings, self.out / "seqmatchnet",
-                                       monitor=self.monitor)
+                                       resume=True, monitor=self.monitor)  # a re-run continues or reuses the run
             self._transform, _ = load_model(result.folder)
         return self._transform
 
