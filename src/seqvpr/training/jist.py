@@ -24,7 +24,6 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
@@ -268,11 +267,6 @@ def select_triplets(
     return out
 
 
-def radius_windows(tree: cKDTree, points: np.ndarray, radius: float) -> list[np.ndarray]:
-    """Per point, the sorted reference window indices whose anchor frame lies within ``radius`` metres."""
-    return [np.sort(np.asarray(found, dtype=np.int64)) for found in tree.query_ball_point(points, radius)]
-
-
 def mine_triplets(
     model: JistModel,
     data: JistData,
@@ -285,18 +279,18 @@ def mine_triplets(
     """One refresh of digest 3.6: sample query windows that have positives and a pool of reference windows, encode
     the frames they (and all the queries' positives) use once, pool windows, then ``select_triplets``. Window
     positions are their own (anchor) frame's positions. Seeded by ``rng``."""
-    ref_xy = data.train_reference.positions[reference_windows.rows]
-    qry_xy = data.train_query.positions[query_windows.rows]
-    tree = cKDTree(ref_xy)
-    all_positives = radius_windows(tree, qry_xy, data.positive_radius)
-    eligible = np.flatnonzero([len(p) > 0 for p in all_positives])
+    anchors_ref = data.train_reference.select(reference_windows.rows)
+    anchors_qry = data.train_query.select(query_windows.rows)
+    near = ground_truth_within_radius(anchors_qry, anchors_ref, Radius(float(data.positive_radius), "m"))
+    not_negative = ground_truth_within_radius(anchors_qry, anchors_ref, Radius(float(data.negative_radius), "m"))
+    eligible = np.flatnonzero(near.has_positive())
     if len(eligible) == 0:
         raise SeqvprError(f"no training query window has a reference window within {data.positive_radius:g} m")
     queries = np.sort(rng.choice(eligible, size=min(settings.queries_per_refresh, len(eligible)), replace=False))
     n_ref = len(reference_windows.rows)
     pool = np.sort(rng.choice(n_ref, size=min(settings.negative_pool, n_ref), replace=False))
-    positives = [all_positives[q] for q in queries]
-    non_negatives = radius_windows(tree, qry_xy[queries], data.negative_radius)
+    positives = [near.positives_of(int(q)) for q in queries]
+    non_negatives = [not_negative.positives_of(int(q)) for q in queries]
     needed = np.unique(np.concatenate([pool, *positives]))
     ref_desc = torch.zeros(n_ref, model.dim, device=settings.device)
     ref_desc[torch.as_tensor(needed, device=settings.device)] = window_descriptors(
