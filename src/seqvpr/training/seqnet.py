@@ -32,6 +32,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
 from seqvpr.sequences.descriptors import SeqNet
+from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.losses import DEFAULT_MARGIN, triplet_hinge
@@ -160,8 +161,7 @@ def seqnet_rows(query_starts: np.ndarray, reference_starts: np.ndarray) -> Dista
         if (picked < 0).any():
             raise SeqvprError("seqnet kernel: a query window start that no query frame has")
         q = query[torch.as_tensor(picked, device=query.device)]
-        squared = (q * q).sum(1, keepdim=True) + (reference * reference).sum(1)[None, :] - 2.0 * q @ reference.T
-        distances = squared.clamp_min(0.0).sqrt()
+        distances = frame_distances(q, reference)
         return distances.masked_fill(no_window.to(distances.device)[None, :], float("inf"))
 
     return rows
