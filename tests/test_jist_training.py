@@ -21,7 +21,9 @@ from seqvpr.training.jist import (
     JistData,
     JistTrainSettings,
     classification_batch,
+    describe_with_jist,
     evaluate_jist,
+    frame_positions,
     image_windows,
     load_jist,
     mine_triplets,
@@ -194,3 +196,30 @@ def test_bad_input_is_one_line_error(data, tmp_path):
     with pytest.raises(SeqvprError, match="does not exist") as error:
         train_jist(bad, CONFIG, SETTINGS, tmp_path / "out", backbone_factory=TinyBackbone)
     assert "\n" not in str(error.value)
+
+
+def test_pipeline_retrieval_over_jist_frames_equals_evaluate_jist(data, run):
+    """describe_with_jist + retrieve_traversals(seqgem, the model's pool) is JIST's own evaluation (benchmark path)."""
+    from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+    from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+
+    model, store = run.model.eval(), ImageStore(W, H)
+    reference = describe_with_jist(model, data.val_reference, W, H, store=store)
+    query = describe_with_jist(model, data.val_query, W, H, store=store)
+    assert reference.descriptors.shape == (len(data.val_reference), CONFIG.out_dim)
+    settings = MatchSettings(training_spec(CONFIG.seq_length), k=5)
+    result = retrieve_traversals(reference, query, "seqgem", settings, model=model.sequence_pool)
+    gt = ground_truth_within_radius(query, reference, Radius(data.val_radius, "m"))
+    ours = evaluate_match(result, gt, (1, 5))
+    theirs = evaluate_jist(model, data.val_reference, data.val_query, seq_length=CONFIG.seq_length,
+                           radius=data.val_radius, ks=(1, 5), store=store)
+    assert ours.recall == theirs.recall
+    np.testing.assert_array_equal(ours.correct, theirs.correct)
+
+
+def test_frame_positions_count_frames_along_the_route(data):
+    frame_aligned = dataclasses.replace(data.val_query, positions=None, headings=None).select(np.arange(3, 9))
+    placed = frame_positions(frame_aligned, spacing=2.0)
+    np.testing.assert_array_equal(placed.positions[:, 0], 2.0 * frame_aligned.frame_index)
+    assert (placed.positions[:, 1] == 0).all() and (placed.headings == 0).all()
+    assert frame_positions(data.val_query) is data.val_query  # positions already known: unchanged

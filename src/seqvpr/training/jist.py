@@ -377,6 +377,32 @@ def evaluate_jist(
     return evaluate(top.indices, top.distances, top.has_window, gt, tuple(ks))
 
 
+def frame_positions(traversal: Traversal, spacing: float = 1.0) -> Traversal:
+    """The traversal with along-route positions (``frame_index * spacing``, 0) and heading 0, for frame-aligned
+    datasets (Nordland): JIST's radii and CosPlace cells are then counted in frames (times ``spacing``)."""
+    from dataclasses import replace
+
+    if traversal.positions is not None:
+        return traversal
+    east = traversal.frame_index.astype(np.float64) * float(spacing)
+    return replace(traversal, positions=np.stack([east, np.zeros_like(east)], axis=1),
+                   headings=np.zeros(len(traversal)))
+
+
+def describe_with_jist(
+    model: JistModel, traversal: Traversal, width: int, height: int, device: str = "cpu",
+    store: ImageStore | None = None, batch: int = 32,
+) -> Traversal:
+    """The traversal with JIST frame descriptors (its encoder, images at ``width`` x ``height``); pooling them with
+    ``model.sequence_pool`` (e.g. ``retrieve_traversals(..., "seqgem", model=model.sequence_pool)``) gives JIST's
+    sequence descriptors."""
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{traversal.source or traversal.name}: JIST needs images, this traversal has descriptors only")
+    check_images_exist(traversal, traversal.source or traversal.name)
+    store = store or ImageStore(width, height)
+    return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())
+
+
 def _autocast(settings: JistTrainSettings):
     """Mixed precision on CUDA only when asked; a no-op context elsewhere."""
     enabled = settings.amp and str(settings.device).startswith("cuda")
