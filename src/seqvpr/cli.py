@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import click
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from seqvpr.data.groundtruth import GroundTruth, parse_radius
@@ -38,6 +39,7 @@ from seqvpr.pipeline import (
 from seqvpr.sequences.windows import SequenceSpec
 
 RETRIEVAL_METHODS = ("smoothing", "delta", "concat", "seqgem", "seqgem-signed")
+MODEL_METHODS = ("seqnet", "jist")  # retrieval methods that are a --model of that kind
 
 
 def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
@@ -157,13 +159,107 @@ def extraction_settings(descriptor, thumbnail, patch, weights, pooling, clusters
     }
 
 
-def apply_model_option(model_dir: str, ref: Traversal, qry: Traversal, device: str) -> tuple[Traversal, Traversal, dict]:
-    """Both traversals through the SeqMatchNet transform saved in ``model_dir``; returns its config too."""
-    from seqvpr.pipeline import transform_traversal
-    from seqvpr.training.checkpoint import load_model
+MODEL_KINDS = {"seqvpr-seqmatchnet": "seqmatchnet", "seqvpr-seqnet": "seqnet", "seqvpr-jist": "jist"}
+MODEL_NAMES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST"}
 
-    model, config = load_model(model_dir)
-    return transform_traversal(ref, model, device), transform_traversal(qry, model, device), config
+
+@dataclass(frozen=True)
+class TrainedModel:
+    """A model folder of ``seqvpr train``: its kind, the module, its sequence length and (JIST) image size."""
+
+    kind: str
+    module: torch.nn.Module
+    length: int
+    image_size: tuple[int, int] | None = None
+
+
+def model_kind(model_dir: str) -> str:
+    """'seqmatchnet', 'seqnet' or 'jist', from the ``format`` in the folder's config.json."""
+    from seqvpr.training import checkpoint as ckpt
+
+    folder = Path(model_dir)
+    if not folder.is_dir():
+        raise SeqvprError(f"{folder}: no such model folder (expected {ckpt.MODEL_FILE} and {ckpt.CONFIG_FILE} inside)")
+    config = ckpt.read_json(folder / ckpt.CONFIG_FILE)
+    kind = MODEL_KINDS.get(config.get("format"))
+    if kind is None:
+        raise SeqvprError(f"{folder / ckpt.CONFIG_FILE}: unknown model format {config.get('format')!r} "
+                          f"(expected one of: {', '.join(MODEL_KINDS)})")
+    return kind
+
+
+def load_trained_model(model_dir: str, kind: str, device: str = "cpu") -> TrainedModel:
+    """The model of a ``seqvpr train`` folder of the given kind, with its L (and JIST's image size; its encoder
+    is moved to ``device``, where it reads the images)."""
+    from seqvpr.training import checkpoint as ckpt
+
+    if kind == "seqnet":
+        from seqvpr.training.seqnet import load_seqnet
+
+        seqnet, config = load_seqnet(model_dir)
+        return TrainedModel(kind, seqnet, int(config.get("L") or seqnet.w))
+    if kind == "jist":
+        from seqvpr.training.jist import load_jist
+
+        try:
+            jist = load_jist(model_dir).to(device)
+        except (RuntimeError, AssertionError) as error:
+            raise SeqvprError(f"device {device!r} is not usable here ({str(error).splitlines()[0]})") from None
+        meta = ckpt.read_json(Path(model_dir) / ckpt.CONFIG_FILE)
+        width, height = meta.get("image_size") or (640, 480)
+        return TrainedModel(kind, jist, int(meta["config"]["seq_length"]), (int(width), int(height)))
+    transform, config = ckpt.load_model(model_dir)
+    return TrainedModel(kind, transform, int(config.get("sequence", {}).get("length", 1)))
+
+
+def resolve_method(method: str | None, kind: str | None) -> str:
+    """The matching method: --method, or the --model's own (SeqNet, JIST), or sequence matching; a method and a
+    model that do not go together are a one-line error."""
+    if method is None:
+        return kind if kind in MODEL_METHODS else "matching"
+    if method in MODEL_METHODS and kind != method:
+        found = "no --model" if kind is None else f"a {MODEL_NAMES[kind]} --model"
+        raise SeqvprError(f"--method {method} needs a {MODEL_NAMES[method]} --model "
+                          f"(seqvpr train {method} --out), got {found}")
+    if kind in MODEL_METHODS and method != kind:
+        raise SeqvprError(f"a {MODEL_NAMES[kind]} --model gives sequence descriptors itself: use --method {kind} "
+                          f"(or leave --method out), not --method {method}")
+    return method
+
+
+def describe_for_model(
+    ref: Traversal, qry: Traversal, model: TrainedModel | None, device: str,
+    describe_both: Callable[[Traversal, Traversal], tuple[Traversal, Traversal]],
+) -> tuple[Traversal, Traversal]:
+    """Frame descriptors of both traversals: a JIST model's encoder reads the images at its image size, anything
+    else is ``describe_both`` (the extraction options)."""
+    if model is None or model.kind != "jist":
+        return describe_both(ref, qry)
+    from seqvpr.training.jist import ImageStore, describe_with_jist
+
+    store = ImageStore(*model.image_size)
+    return (describe_with_jist(model.module, ref, *model.image_size, device, store=store),
+            describe_with_jist(model.module, qry, *model.image_size, device, store=store))
+
+
+def transform_for_model(
+    ref: Traversal, qry: Traversal, model: TrainedModel | None, device: str
+) -> tuple[Traversal, Traversal]:
+    """Both traversals through a SeqMatchNet model's per-frame transform; unchanged for other models."""
+    if model is None or model.kind != "seqmatchnet":
+        return ref, qry
+    from seqvpr.pipeline import transform_traversal
+
+    return transform_traversal(ref, model.module, device), transform_traversal(qry, model.module, device)
+
+
+def retrieval_of(method: str, model: TrainedModel | None) -> tuple[str, torch.nn.Module | None]:
+    """The ``retrieve_traversals`` method and module of a --method: SeqNet's own, JIST's SeqGeM pool, or none."""
+    if method == "seqnet":
+        return "seqnet", model.module
+    if method == "jist":
+        return "seqgem", model.module.sequence_pool
+    return method, None
 
 
 def resolve_ground_truth(ref: Traversal, qry: Traversal, radius: str | None, gt_file: str | None, reference: str) -> GroundTruth:
@@ -242,7 +338,8 @@ def cli() -> None:
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
               help="Window around the frame (centred) or ending at it (causal, for online use).")
 @click.option("--model", "model_dir", type=click.Path(),
-              help="A trained SeqMatchNet folder (seqvpr train seqmatchnet --out): transform descriptors first.")
+              help="A seqvpr train --out folder: SeqMatchNet transforms the descriptors first; SeqNet and JIST give "
+                   "sequence descriptors (--method seqnet / jist, implied), JIST describing the images itself.")
 @click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
               help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
 @click.option("--velocities", default="1", show_default=True,
@@ -251,9 +348,10 @@ def cli() -> None:
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
 @extraction_options
-@click.option("--method", type=click.Choice(["matching", *RETRIEVAL_METHODS]), default="matching", show_default=True,
+@click.option("--method", type=click.Choice(["matching", *RETRIEVAL_METHODS, *MODEL_METHODS]),
               help="Sequence matching over frames, or one descriptor per window (smoothing, Delta, concatenation, "
-                   "SeqGeM with p=3; seqgem-signed keeps negative parts) searched with faiss.")
+                   "SeqGeM with p=3; seqgem-signed keeps negative parts; seqnet / jist: the --model's) searched with "
+                   "faiss.  [default: matching, or the --model's method]")
 @click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
               help="faiss index for --method other than matching: exact (flat) or approximate (HNSW).")
 @click.option("--rerank", type=int, default=0, show_default=True,
@@ -280,39 +378,47 @@ def match(reference, query, seq_len, align, model_dir, boundary, velocities, rad
     )
     if pca_dim < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {pca_dim}")
+    kind = model_kind(model_dir) if model_dir is not None else None
+    method = resolve_method(method, kind)
+    if kind == "jist" and pca_dim:
+        raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
     if rerank < 0 or (rerank and method == "matching"):
         raise SeqvprError(f"--rerank N needs N >= 0 and a --method other than matching (got {rerank}, {method})")
     k_values = parse_ks(ks)
     speeds, budget = parse_velocities(velocities), parse_size(memory_budget)
     if seq_len is not None:
         SequenceSpec(seq_len, align, boundary, speeds)  # bad options fail before any data is read
+    model = load_trained_model(model_dir, kind, device) if model_dir is not None else None
     ref, qry = load_pair(reference, query, frames)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
-    ref, qry = describe_pair(ref, qry, patchnorm, descriptor, **extraction)
+    has_images = ref.image_paths is not None
+    ref, qry = describe_for_model(ref, qry, model, device,
+                                  lambda r, q: describe_pair(r, q, patchnorm, descriptor, **extraction))
     if pca_dim:
         ref, qry, used = whiten_pair(ref, qry, pca_dim)
         if used < pca_dim:
             click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
-    model_config: dict = {}
-    if model_dir is not None:
-        ref, qry, model_config = apply_model_option(model_dir, ref, qry, device)
+    ref, qry = transform_for_model(ref, qry, model, device)
     if seq_len is None:
-        seq_len = int(model_config.get("sequence", {}).get("length", 1))
+        seq_len = model.length if model is not None else 1
     spec = SequenceSpec(seq_len, align, boundary, speeds)
     settings = MatchSettings(spec, max(k_values), not no_normalize, dtype, device, budget)
     if method == "matching":
         result = match_traversals(ref, qry, settings, tqdm_progress)
     else:
         shortlist = replace(settings, k=max(rerank, settings.k))
-        result = retrieve_traversals(ref, qry, method, shortlist, index=index_kind)
+        name, module = retrieval_of(method, model)
+        result = retrieve_traversals(ref, qry, name, shortlist, index=index_kind, model=module)
         if rerank:
             result = rerank_match(result, settings)
     evaluation = evaluate_match(result, gt, k_values, no_positive)
+    used_descriptor = "jist" if kind == "jist" else descriptor if has_images else "file"
     run = {
         "reference": reference, "query": query, "frames": frames, "radius": radius, "ground_truth": gt_file,
-        "ground_truth_rule": gt.description, "descriptor": descriptor if ref.image_paths is not None else "file",
+        "ground_truth_rule": gt.description, "descriptor": used_descriptor,
         "method": method, "index": index_kind if method != "matching" else None, "rerank": rerank,
-        "pooling": pooling, "pca_dim": pca_dim, "no_positive": no_positive, "model": model_dir, **settings.as_dict(),
+        "pooling": pooling, "pca_dim": pca_dim, "no_positive": no_positive, "model": model_dir, "model_kind": kind,
+        **settings.as_dict(),
     }
     out = Path(out_dir)
     save_predictions(out / "predictions.csv", result, gt)

@@ -1,0 +1,217 @@
+"""`seqvpr train seqnet`, `seqvpr train jist` and `seqvpr match --model` on their folders, against the library:
+the command line must score exactly what the library functions score, and bad input is one line without output."""
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from seqvpr.cli import cli
+from seqvpr.cli_training import jist_data, train_jist_command, train_seqmatchnet_command, train_seqnet_command
+from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.sources import load_traversal, save_traversal_npz
+from seqvpr.data.synthetic import generate_route
+from seqvpr.data.world import write_demo_world
+from seqvpr.pipeline import MatchSettings, evaluate_match, rerank_match, retrieve_traversals
+from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.training.jist import JistTrainSettings, evaluate_jist, load_jist
+from seqvpr.training.seqmatchnet import TrainSettings
+from seqvpr.training.seqnet import SeqNetSettings, load_seqnet
+from tests.helpers import run_cli
+
+SEQNET_ARGS = ["--train-frames", "0:90", "--val-frames", "90:120", "--radius", "5m", "--neg-radius", "20m", "-L", "4",
+               "--w", "2", "--out-dim", "8", "--epochs", "2", "--batch-size", "8", "--negative-pool", "30",
+               "--optimizer", "adam", "--lr", "3e-3", "--weight-decay", "0"]
+JIST_ARGS = ["--train-frames", "0:30", "--val-frames", "30:40", "--radius", "25m", "--pos-radius", "10m",
+             "--backbone", "efficientnet-lite0", "--out-dim", "32", "-L", "3", "--epochs", "1", "--refreshes", "1",
+             "--max-iterations", "2", "--batch-size", "2", "--images-per-batch", "8", "--image-size", "64x48",
+             "--cell-size", "20", "--min-images", "2"]
+KS = (1, 5, 10)
+
+
+def invoke(*args) -> tuple[str, str]:
+    """``seqvpr ARGS`` through click's CliRunner; must succeed; returns (stdout, stderr)."""
+    result = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return result.stdout, result.stderr
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory) -> tuple[Path, Path]:
+    """Descriptor traversal files (16-D, positions 2 m apart) of one synthetic route."""
+    folder = tmp_path_factory.mktemp("route")
+    reference, query = generate_route(n_frames=150, dim=16, seed=3)
+    save_traversal_npz(folder / "ref.npz", reference)
+    save_traversal_npz(folder / "qry.npz", query)
+    return folder / "ref.npz", folder / "qry.npz"
+
+
+@pytest.fixture(scope="module")
+def seqnet_run(route, tmp_path_factory) -> tuple[Path, str, str]:
+    ref, qry = route
+    out = tmp_path_factory.mktemp("seqnet") / "run"
+    stdout, stderr = invoke("train", "seqnet", "-r", ref, "-q", qry, *SEQNET_ARGS, "--out", out)
+    return out, stdout, stderr
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> dict[str, Path]:
+    return write_demo_world(tmp_path_factory.mktemp("world"), frames=40, width=64, height=48, seed=0,
+                            query_condition="dusk")
+
+
+@pytest.fixture(scope="module")
+def jist_run(world, tmp_path_factory) -> tuple[Path, str, str]:
+    out = tmp_path_factory.mktemp("jist") / "run"
+    stdout, stderr = invoke("train", "jist", "-r", world["train_reference"], "-q", world["train_query"], *JIST_ARGS,
+                            "--out", out)
+    return out, stdout, stderr
+
+
+# --- SeqNet ---------------------------------------------------------------------------------------------------------
+
+
+def test_option_defaults_are_each_models_settings_defaults():
+    """One shared option list, each command with its own model's defaults (SeqNet: 200 epochs, lr 1e-4, ...)."""
+    fields = ("epochs", "lr", "lr_step", "lr_gamma", "select_k", "refresh_every", "negatives", "batch_size",
+              "margin", "momentum", "weight_decay", "optimizer", "seed")
+    for command, settings in ((train_seqnet_command, SeqNetSettings()), (train_seqmatchnet_command, TrainSettings())):
+        defaults = {p.name: p.default for p in command.params}
+        assert {f: defaults[f] for f in fields} == {f: getattr(settings, f) for f in fields}
+        assert defaults["seq_len"] == settings.sequence.length
+        assert defaults["ks"] == ",".join(map(str, settings.ks))
+    seqnet = {p.name: p.default for p in train_seqnet_command.params}
+    assert seqnet["refresh_every"] is None and seqnet["w"] == 3 and seqnet["epochs"] == 200
+    assert "velocities" not in seqnet and "hidden" not in seqnet
+    jist = {p.name: p.default for p in train_jist_command.params}
+    settings = JistTrainSettings()
+    assert (jist["epochs"], jist["refreshes"]) == (settings.epochs, settings.refreshes)
+    assert jist["image_size"] == f"{settings.width}x{settings.height}"
+
+
+def test_train_seqnet_writes_its_model_folder(seqnet_run):
+    out, stdout, stderr = seqnet_run
+    assert stdout.startswith("best epoch") and f"seqvpr match --model {out}" in stdout
+    assert "epoch 2:" in stderr and "validation R@1" in stderr
+    model, config = load_seqnet(out)
+    assert (config["in_dim"], config["out_dim"], config["w"], config["L"]) == (16, 8, 2, 4)
+    assert config["training"]["refresh_every"] is None and config["training"]["select_k"] == 5
+    assert len((out / "history.csv").read_text().splitlines()) == 4  # header, epoch 0 (untrained), 1, 2
+
+
+def seqnet_library(route, run_dir, rerank=0):
+    """What the library scores on the test frames 120:150 with the SeqNet of ``run_dir`` (optionally HVPR)."""
+    model, config = load_seqnet(run_dir)
+    ref, qry = (load_traversal(p, role).slice_frames(120, 150) for p, role in zip(route, ("reference", "query")))
+    settings = MatchSettings(SequenceSpec(config["L"]), k=20)
+    shortlist = dataclasses.replace(settings, k=max(rerank, 20))
+    result = retrieve_traversals(ref, qry, "seqnet", shortlist, model=model)
+    if rerank:
+        result = rerank_match(result, settings)
+    return evaluate_match(result, ground_truth_within_radius(qry, ref, Radius(5.0, "m")), (1, 5, 10, 20))
+
+
+@pytest.mark.parametrize("rerank", [0, 10])
+def test_match_with_a_seqnet_model_equals_the_library(route, seqnet_run, tmp_path, rerank):
+    ref, qry = route
+    out, _, _ = seqnet_run
+    stdout, _ = invoke("match", "-r", ref, "-q", qry, "--frames", "120:150", "--radius", "5m", "--model", out,
+                       "--rerank", rerank, "--json", "--out", tmp_path / "m")
+    result = json.loads(stdout)
+    expected = seqnet_library(route, out, rerank)
+    assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
+    assert result["queries_evaluated"] == expected.queries_evaluated
+    settings = result["settings"]
+    assert (settings["method"], settings["model_kind"], settings["sequence"]["length"]) == ("seqnet", "seqnet", 4)
+    assert (tmp_path / "m" / "predictions.csv").is_file()
+
+
+# --- JIST -----------------------------------------------------------------------------------------------------------
+
+
+def test_train_jist_writes_a_loadable_model(jist_run):
+    out, stdout, stderr = jist_run
+    assert stdout.startswith("best epoch 0: validation R@1") and f"model: {out}" in stdout
+    assert "epoch 0: 2 iterations, loss" in stderr and "validation R@1" in stderr
+    model = load_jist(out)
+    config = json.loads((out / "config.json").read_text())
+    assert config["image_size"] == [64, 48] and config["config"]["seq_length"] == 3
+    assert config["config"]["trainable_stages"] == ["stage7", "head"]  # efficientnet-lite0's default
+    assert (config["settings"]["grouping"]["cell_m"], config["settings"]["max_iterations"]) == (20.0, 2)
+    assert model.dim == 32 and len((out / "history.csv").read_text().splitlines()) == 2
+
+
+def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
+    out, _, _ = jist_run
+    stdout, _ = invoke("match", "-r", world["test_reference"], "-q", world["test_query"], "--radius", "25m",
+                       "--model", out, "--k", "1,5,10", "--json", "--out", tmp_path / "m")
+    result = json.loads(stdout)
+    ref, qry = load_traversal(world["test_reference"], "reference"), load_traversal(world["test_query"], "query")
+    expected = evaluate_jist(load_jist(out), ref, qry, seq_length=3, radius=25.0, ks=KS, width=64, height=48)
+    assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
+    assert result["queries_evaluated"] == expected.queries_evaluated
+    settings = result["settings"]
+    assert (settings["method"], settings["descriptor"], settings["sequence"]["length"]) == ("jist", "jist", 3)
+
+
+def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_path):
+    """Image folders without positions (Nordland-like): --radius 1f counts frames, negatives outside 2.5 frames."""
+    folders = {}
+    for key in ("train_reference", "train_query"):
+        folders[key] = tmp_path / key
+        folders[key].mkdir()
+        for image in sorted(world[key].glob("*.jpg")):
+            shutil.copy(image, folders[key] / image.name)
+    options = {"reference": str(folders["train_reference"]), "query": str(folders["train_query"]), "frames": None,
+               "train_frames": "0:30", "val_frames": "30:40", "val_reference": None, "val_query": None,
+               "radius": "1f", "pos_radius": None, "neg_radius": None}
+    data = jist_data(options)
+    assert (data.positive_radius, data.negative_radius, data.val_radius) == (1.0, 2.5, 1.0)
+    np.testing.assert_array_equal(data.val_query.positions[:, 0], np.arange(30, 40))
+    np.testing.assert_array_equal(data.train_reference.positions[:, 0], np.arange(30))
+
+
+# --- one-line errors, no output -------------------------------------------------------------------------------------
+
+
+def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
+    ref, qry = route
+    unknown = tmp_path / "unknown"
+    unknown.mkdir()
+    (unknown / "config.json").write_text('{"format": "someone-elses"}')
+    match = ["match", "-r", ref, "-q", qry, "--radius", "5m"]
+    images = ["-r", world["train_reference"], "-q", world["train_query"]]
+    return {
+        "method without model": ([*match, "--method", "seqnet"], "--method seqnet needs a SeqNet --model"),
+        "seqnet model, other method": ([*match, "--model", seqnet_run[0], "--method", "delta"], "use --method seqnet"),
+        "jist method, seqnet model": ([*match, "--model", seqnet_run[0], "--method", "jist"], "got a SeqNet --model"),
+        "jist model, matching": ([*match, "--model", jist_run[0], "--method", "matching"], "use --method jist"),
+        "jist model on descriptors": ([*match, "--model", jist_run[0]], "descriptors only"),
+        "missing model folder": ([*match, "--model", tmp_path / "absent"], "no such model folder"),
+        "unknown model format": ([*match, "--model", unknown], f"{unknown / 'config.json'}: unknown model format"),
+        "frame radius with positions": (["train", "jist", *images, *JIST_ARGS, "--radius", "1f", "--pos-radius", "1f"],
+                                        "has positions; give the radius in metres"),
+        "mixed radius units": (["train", "jist", *images, *JIST_ARGS, "--neg-radius", "3f"], "share one unit"),
+        "jist on descriptors": (["train", "jist", "-r", ref, "-q", qry, *JIST_ARGS], "holds descriptors only"),
+        "seqnet w longer than L": (["train", "seqnet", "-r", ref, "-q", qry, *SEQNET_ARGS, "--w", "5"],
+                                   "shorter than the temporal kernel width w=5"),
+    }
+
+
+CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model", "jist model, matching",
+         "jist model on descriptors", "missing model folder", "unknown model format", "frame radius with positions",
+         "mixed radius units", "jist on descriptors", "seqnet w longer than L"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_is_one_line_without_output(monkeypatch, capsys, tmp_path, route, world, seqnet_run, jist_run, case):
+    args, needle = bad_cases(route, world, seqnet_run, jist_run, tmp_path)[case]
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(monkeypatch, capsys, *args, "--out", out)
+    assert code == 2, stderr
+    assert stderr.startswith("seqvpr: error:") and stderr.count("\n") == 1 and needle in stderr, stderr
+    assert stdout == "" and not out.exists()
