@@ -26,6 +26,9 @@ ks = [1, 5]
 [training]
 epochs = 2
 lr = 0.01
+[seqnet]
+epochs = 2
+lr = 0.01
 {extra}
 [[dataset]]
 name = "demo"
@@ -57,6 +60,79 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
     assert code == 0 and again == stdout  # a re-run into the same folder reuses the trained model
 
 
+def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
+    from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+    from seqvpr.sequences.windows import SequenceSpec
+    from seqvpr.training.seqnet import load_seqnet
+
+    config = route / "bench_seqnet.toml"
+    config.write_text(config_text('["seqnet", "jist", "hvpr"]', lengths="[5]"))
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
+    assert code == 0, stderr
+    with open(tmp_path / "b" / "results.csv", newline="") as handle:
+        rows = {r["method"]: r for r in csv.DictReader(handle)}
+    assert rows["jist"]["error"].startswith("needs images") and rows["jist"]["R@1"] == ""
+    assert "| jist (L=5) | n/a | n/a |" in stdout
+    assert rows["seqnet"]["error"] == "" and rows["hvpr"]["error"] == ""
+    # oracle: the trained SeqNet, reloaded, scored through the library on the test split
+    from seqvpr.benchmark import load_splits, read_config
+    from seqvpr.data.groundtruth import ground_truth_within_radius
+
+    splits = load_splits(read_config(config).datasets[0])
+    model, _ = load_seqnet(tmp_path / "b" / "demo" / "seqnet")
+    result = retrieve_traversals(*splits.test, "seqnet", MatchSettings(SequenceSpec(5), k=20), model=model)
+    expected = evaluate_match(result, ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius), (1, 5))
+    assert float(rows["seqnet"]["R@1"]) == pytest.approx(expected.recall[1], abs=1e-4)
+    assert float(rows["seqnet"]["R@5"]) == pytest.approx(expected.recall[5], abs=1e-4)
+
+
+JIST_TABLE = """[jist]
+backbone = "efficientnet-lite0"
+weights = "imagenet"
+trainable_stages = ["stage7", "head"]
+width = 64
+height = 48
+epochs = 1
+refreshes = 1
+max_iterations = 2
+queries_per_refresh = 8
+negative_pool = 16
+batch_size = 2
+negatives = 2
+images_per_batch = 8
+cell_m = 10
+min_images = 2
+"""
+
+
+def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, capsys, tmp_path):
+    from seqvpr.benchmark import jist_settings, load_splits, read_config
+    from seqvpr.data.world import write_demo_world
+    from seqvpr.training.jist import evaluate_jist, load_jist
+
+    paths = write_demo_world(tmp_path / "world", frames=150, width=64, height=48, seed=0, query_condition="dusk")
+    config = tmp_path / "bench.toml"
+    text = config_text('["single", "jist"]', lengths="[5, 7]", extra=JIST_TABLE)
+    text = text.replace('"reference.npz"', f'"{paths["test_reference"]}"').replace('"query.npz"', f'"{paths["test_query"]}"')
+    config.write_text(text.replace('"0:150"', '"0:90"').replace('"150:200"', '"90:115"').replace('"200:300"', '"115:150"'))
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
+    assert code == 0, stderr
+    with open(tmp_path / "b" / "results.csv", newline="") as handle:
+        rows = {(r["method"], r["L"]): r for r in csv.DictReader(handle)}
+    assert rows[("jist", "5")]["error"] == "" and rows[("jist", "7")]["error"] == ""
+    parsed = read_config(config)
+    splits, (_, settings) = load_splits(parsed.datasets[0]), jist_settings(parsed)
+    model = load_jist(tmp_path / "b" / "demo" / "jist")
+    for length in (5, 7):  # oracle: JIST's own evaluation of the saved model on the test split
+        expected = evaluate_jist(model, *splits.test, seq_length=length, radius=10.0, ks=(1, 5),
+                                 width=settings.width, height=settings.height)
+        assert float(rows[("jist", str(length))]["R@1"]) == pytest.approx(expected.recall[1], abs=1e-4)
+    history = tmp_path / "b" / "demo" / "jist" / "history.csv"
+    stamp = history.stat().st_mtime_ns
+    code, again, _ = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
+    assert code == 0 and again == stdout and history.stat().st_mtime_ns == stamp  # reused, not retrained
+
+
 def test_config_errors_are_one_line(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(config_text('["single", "magic"]'))
@@ -68,3 +144,9 @@ def test_config_errors_are_one_line(tmp_path):
     bad.write_text(config_text('["single"]').replace('radius = "10m"\n', ""))
     raises_one_line("dataset 1 lacks radius", read_config, bad)
     raises_one_line("no such benchmark config", read_config, tmp_path / "missing.toml")
+    bad.write_text(config_text('["single"]', extra="[jist]\nbackbon = 'resnet18'\n"))
+    raises_one_line("[jist] has unknown keys backbon", read_config, bad)
+    bad.write_text(config_text('["single"]').replace("[seqnet]\nepochs = 2", "[seqnet]\nepoch = 2"))
+    raises_one_line("[seqnet] has unknown keys epoch", read_config, bad)
+    bad.write_text(config_text('["single"]').replace("ks = [1, 5]", "ks = [1, 5]\nhvpr_shortlist = 'netvlad'"))
+    raises_one_line("hvpr_shortlist 'netvlad' is not one of seqnet, seqgem", read_config, bad)

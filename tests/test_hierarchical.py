@@ -1,7 +1,6 @@
 """HVPR re-ranking: exact sequence distances over a shortlist, against the kernel and a plain-loop oracle."""
 
 import numpy as np
-import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st

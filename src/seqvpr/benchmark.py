@@ -6,14 +6,22 @@ test split at the config's sequence length, and the length-capable ones again at
 A method that fails is reported in its row and the others go on.
 
     [benchmark]
-    methods = ["single", "matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr"]
+    methods = ["single", "matching", "seqmatchnet", "smoothing", "delta", "seqnet", "seqgem", "jist", "hvpr"]
     seq_len = 5
     lengths = [5, 10, 20]
     ks = [1, 5, 20]
+    hvpr_shortlist = "seqnet"   # HVPR's shortlist: the trained SeqNet S_L, or "seqgem" (untrained)
 
     [training]            # SeqMatchNet settings (TrainSettings fields), optional
     epochs = 10
     lr = 0.01
+
+    [seqnet]              # SeqNet settings (SeqNetSettings fields), optional
+    epochs = 50
+
+    [jist]                # JIST model and run (JistConfig and JistTrainSettings fields, cell_m, min_images)
+    backbone = "efficientnet-lite0"
+    weights = "imagenet"
 
     [[dataset]]
     name = "nordland"
@@ -52,9 +60,15 @@ from seqvpr.pipeline import (
 )
 from seqvpr.sequences.windows import SequenceSpec
 
-METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr")
-LENGTH_METHODS = ("matching", "seqmatchnet", "smoothing", "delta", "seqgem", "hvpr")
+METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqnet", "seqgem", "jist", "hvpr")
+LENGTH_METHODS = METHODS[1:]
 HVPR_SHORTLIST = 20
+SHORTLISTS = ("seqnet", "seqgem")
+MonitorFactory = Callable[[str], Any]  # method name -> its training monitor
+
+
+class NotApplicable(SeqvprError):
+    """A method that cannot run on a dataset by its nature (JIST on descriptor files): ``n/a`` in the table."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +95,9 @@ class BenchmarkConfig:
     lengths: tuple[int, ...] = (5, 10, 20)
     ks: tuple[int, ...] = (1, 5, 20)
     training: dict[str, Any] = field(default_factory=dict)
+    seqnet: dict[str, Any] = field(default_factory=dict)
+    jist: dict[str, Any] = field(default_factory=dict)
+    hvpr_shortlist: str = "seqnet"
 
 
 @dataclass(frozen=True)
@@ -92,6 +109,7 @@ class Row:
     length: int
     evaluation: Evaluation | None
     error: str = ""
+    applicable: bool = True
 
 
 def read_config(path: str | Path) -> BenchmarkConfig:
@@ -128,19 +146,48 @@ def read_config(path: str | Path) -> BenchmarkConfig:
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise SeqvprError(f"{path}: unknown methods {', '.join(bad)} (choose from: {', '.join(METHODS)})")
-    training = dict(raw.get("training", {}))
-    from seqvpr.training.seqmatchnet import TrainSettings
-
-    allowed = {f.name for f in fields(TrainSettings)} - {"sequence"}
-    unknown = sorted(set(training) - allowed)
-    if unknown:
-        raise SeqvprError(f"{path}: [training] has unknown keys {', '.join(unknown)} (known: {', '.join(sorted(allowed))})")
-    if "ks" in training:
-        training["ks"] = tuple(training["ks"])
+    shortlist = str(settings.get("hvpr_shortlist", "seqnet"))
+    if shortlist not in SHORTLISTS:
+        raise SeqvprError(f"{path}: hvpr_shortlist {shortlist!r} is not one of {', '.join(SHORTLISTS)}")
     return BenchmarkConfig(
         tuple(specs), methods, int(settings.get("seq_len", 5)), tuple(int(v) for v in settings.get("lengths", (5, 10, 20))),
-        tuple(int(v) for v in settings.get("ks", (1, 5, 20))), training,
+        tuple(int(v) for v in settings.get("ks", (1, 5, 20))), _training_table(raw, "training", path),
+        _training_table(raw, "seqnet", path), _jist_table(raw, path), shortlist,
     )
+
+
+def _training_table(raw: dict, name: str, path: Path) -> dict[str, Any]:
+    """A ``[training]`` (SeqMatchNet) or ``[seqnet]`` table, checked against its settings' fields."""
+    from seqvpr.training.seqmatchnet import TrainSettings
+    from seqvpr.training.seqnet import SeqNetSettings
+
+    table = dict(raw.get(name, {}))
+    allowed = {f.name for f in fields(TrainSettings if name == "training" else SeqNetSettings)} - {"sequence"}
+    _check_keys(table, allowed, name, path)
+    if "ks" in table:
+        table["ks"] = tuple(table["ks"])
+    return table
+
+
+def _jist_table(raw: dict, path: Path) -> dict[str, Any]:
+    """The ``[jist]`` table: JistConfig and JistTrainSettings fields, plus the CosPlace cell's ``cell_m`` and
+    ``min_images``."""
+    from seqvpr.models.jist import JistConfig
+    from seqvpr.training.jist import JistTrainSettings
+
+    table = dict(raw.get("jist", {}))
+    allowed = ({f.name for f in fields(JistConfig)} | {f.name for f in fields(JistTrainSettings)} | {"cell_m", "min_images"})
+    _check_keys(table, allowed - {"seq_length", "grouping"}, "jist", path)
+    for key in ("ks", "trainable_stages"):
+        if key in table:
+            table[key] = tuple(table[key])
+    return table
+
+
+def _check_keys(table: dict, allowed: set[str], name: str, path: Path) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise SeqvprError(f"{path}: [{name}] has unknown keys {', '.join(unknown)} (known: {', '.join(sorted(allowed))})")
 
 
 @dataclass
@@ -166,27 +213,100 @@ def load_splits(spec: DatasetSpec, progress=None) -> Splits:
 
 
 class MethodRunner:
-    """Runs the methods on one dataset; trained models are made once and shared (SeqMatchNet also feeds HVPR)."""
+    """Runs the methods on one dataset; each trained model is made once and shared (SeqMatchNet and SeqNet also
+    feed HVPR), and a re-run into the same folder reuses the finished runs."""
 
-    def __init__(self, splits: Splits, config: BenchmarkConfig, out: Path, monitor=None) -> None:
-        self.splits, self.config, self.out, self.monitor = splits, config, out, monitor
-        self._transform = None
+    def __init__(self, splits: Splits, config: BenchmarkConfig, out: Path, monitors: MonitorFactory | None = None) -> None:
+        self.splits, self.config, self.out, self.monitors = splits, config, out, monitors
+        self._models: dict[str, Any] = {}
+
+    def monitor(self, method: str):
+        """The training monitor for ``method`` (None: silent)."""
+        return self.monitors(method) if self.monitors else None
+
+    def _training_data(self):
+        """Train and select splits with the positive, negative (4x) and validation radii of the config."""
+        from seqvpr.training.trainer import TrainingData
+
+        radius = self.splits.radius
+        return TrainingData(*self.splits.train, *self.splits.select, radius, Radius(4 * radius.value, radius.unit), radius)
+
+    def _once(self, name: str, make: Callable[[], Any]) -> Any:
+        if name not in self._models:
+            self._models[name] = make()
+        return self._models[name]
 
     def seqmatchnet_model(self):
         """SeqMatchNet trained on the train split at the config's length, best epoch on the select split."""
-        if self._transform is None:
+        def make():
             from seqvpr.models.seqmatchnet import TransformConfig
             from seqvpr.training.checkpoint import load_model
-            from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
+            from seqvpr.training.seqmatchnet import TrainSettings, train_seqmatchnet
 
-            radius = self.splits.radius
-            data = TrainingData(*self.splits.train, *self.splits.select, radius, Radius(4 * radius.value, radius.unit),
-                                radius)
+            data = self._training_data()
             settings = TrainSettings(**{**self.config.training, "sequence": SequenceSpec(self.config.seq_len)})
             result = train_seqmatchnet(data, TransformConfig(data.dim), settings, self.out / "seqmatchnet",
-                                       resume=True, monitor=self.monitor)  # a re-run continues or reuses the run
-            self._transform, _ = load_model(result.folder)
-        return self._transform
+                                       resume=True, monitor=self.monitor("seqmatchnet"))  # continues or reuses a run
+            return load_model(result.folder)[0]
+
+        return self._once("seqmatchnet", make)
+
+    def seqnet_model(self):
+        """SeqNet S_L (L = the config's length) trained on the train split, best epoch on the select split."""
+        def make():
+            from seqvpr.training.seqnet import SeqNetSettings, load_seqnet, train_seqnet
+
+            settings = SeqNetSettings(**{**self.config.seqnet, "sequence": SequenceSpec(self.config.seq_len)})
+            result = train_seqnet(self._training_data(), settings, self.out / "seqnet", resume=True,
+                                  monitor=self.monitor("seqnet"))
+            return load_seqnet(result.folder)[0]
+
+        return self._once("seqnet", make)
+
+    def jist_model(self):
+        """JIST trained on the train split's images (best epoch on the select split); frame-aligned datasets get
+        along-route positions in frames, so the radius and CosPlace cells count frames."""
+        def make():
+            from seqvpr.training import jist
+
+            if self.splits.train[0].image_paths is None or self.splits.train[1].image_paths is None:
+                raise NotApplicable("needs images (this dataset has descriptor files only)")
+            model_config, settings = jist_settings(self.config)
+            finished = jist.load_finished_jist(self.out / "jist", model_config, settings)
+            if finished is not None:
+                return finished
+            place = self._placed
+            radius = self.splits.radius.value
+            data = jist.JistData(*(place(t) for t in (*self.splits.train, *self.splits.select)),
+                                 positive_radius=radius, negative_radius=4 * radius, val_radius=radius)
+            return jist.train_jist(data, model_config, settings, self.out / "jist", monitor=self.monitor("jist")).model
+
+        return self._once("jist", make)
+
+    def _placed(self, traversal: Traversal) -> Traversal:
+        """Frame-aligned traversals get along-route positions (frames); positioned ones stay as they are."""
+        from seqvpr.training.jist import frame_positions
+
+        if self.splits.radius.unit == "frames":
+            return frame_positions(traversal)
+        return traversal
+
+    def jist_test_frames(self) -> tuple[Traversal, Traversal]:
+        """The test split described by the trained JIST encoder (computed once, pooled at every length)."""
+        def make():
+            from seqvpr.training.jist import describe_with_jist
+
+            model, (_, settings) = self.jist_model(), jist_settings(self.config)
+            return tuple(describe_with_jist(model, t, settings.width, settings.height, settings.device)
+                         for t in self.splits.test)
+
+        return self._once("jist-test", make)
+
+    def shortlist(self, reference: Traversal, query: Traversal, settings: MatchSettings) -> MatchResult:
+        """HVPR's first stage: top-K by the trained SeqNet, or by untrained SeqGeM."""
+        if self.config.hvpr_shortlist == "seqnet":
+            return retrieve_traversals(reference, query, "seqnet", settings, model=self.seqnet_model())
+        return retrieve_traversals(reference, query, "seqgem", settings)
 
     def run(self, method: str, length: int) -> MatchResult:
         """The method's top-K on the test split at sequence length ``length``."""
@@ -201,19 +321,40 @@ class MethodRunner:
             return match_traversals(transform_traversal(reference, model), transform_traversal(query, model), settings)
         if method in ("smoothing", "delta", "seqgem"):
             return retrieve_traversals(reference, query, method, settings)
+        if method == "seqnet":
+            return retrieve_traversals(reference, query, "seqnet", settings, model=self.seqnet_model())
+        if method == "jist":
+            model = self.jist_model()
+            return retrieve_traversals(*self.jist_test_frames(), "seqgem", settings, model=model.sequence_pool)
         if method == "hvpr":
             model = self.seqmatchnet_model()
-            shortlist = retrieve_traversals(reference, query, "seqgem", settings)
+            shortlist = self.shortlist(reference, query, settings)
             transformed = replace(shortlist, reference=transform_traversal(reference, model),
                                   query=transform_traversal(query, model))
             return rerank_match(transformed)
         raise SeqvprError(f"method {method!r} is not known")
 
 
+def jist_settings(config: BenchmarkConfig):
+    """The JistConfig (at the benchmark's length) and JistTrainSettings of the config's ``[jist]`` table."""
+    from seqvpr.models.jist import JistConfig
+    from seqvpr.training.cosplace import CellGrouping
+    from seqvpr.training.jist import JistTrainSettings
+
+    table = dict(config.jist)
+    grouping = CellGrouping(**{k: table.pop(k) for k in ("cell_m", "min_images") if k in table})
+    model_keys = {f.name for f in fields(JistConfig)}
+    model = JistConfig(**{k: v for k, v in table.items() if k in model_keys}, seq_length=config.seq_len)
+    settings = JistTrainSettings(**{k: v for k, v in table.items() if k not in model_keys}, grouping=grouping)
+    return model, settings
+
+
 def run_benchmark(
-    config: BenchmarkConfig, out: Path, *, progress=None, monitor=None, echo: Callable[[str], None] = lambda t: None
+    config: BenchmarkConfig, out: Path, *, progress=None, monitors: MonitorFactory | None = None,
+    echo: Callable[[str], None] = lambda t: None,
 ) -> list[Row]:
-    """Every method on every dataset (main length, then the length table); failures become rows, not exceptions."""
+    """Every method on every dataset (main length, then the length table); failures become rows, not exceptions.
+    ``monitors(method)`` gives each training run its progress monitor."""
     rows: list[Row] = []
     for spec in config.datasets:
         try:
@@ -222,7 +363,7 @@ def run_benchmark(
             rows += [Row(spec.name, m, config.seq_len, None, one_line(error)) for m in config.methods]
             echo(f"{spec.name}: failed to load: {one_line(error)}")
             continue
-        runner = MethodRunner(splits, config, out / spec.name, monitor)
+        runner = MethodRunner(splits, config, out / spec.name, monitors)
         gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
         plan = [(m, config.seq_len) for m in config.methods]
         plan += [(m, n) for n in config.lengths for m in config.methods if m in LENGTH_METHODS and n != config.seq_len]
@@ -231,6 +372,8 @@ def run_benchmark(
             try:
                 evaluation = evaluate_match(runner.run(method, length), gt, config.ks)
                 rows.append(Row(spec.name, method, length, evaluation))
+            except NotApplicable as error:
+                rows.append(Row(spec.name, method, length, None, str(error), applicable=False))
             except Exception as error:  # noqa: BLE001 - reported in the method's row
                 rows.append(Row(spec.name, method, length, None, one_line(error)))
                 echo(f"{spec.name}: {method} L={length} failed: {one_line(error)}")
@@ -306,10 +449,15 @@ def _cells(row: Row | None, ks: Sequence[int]) -> list[str]:
     if row is None:
         return ["–"] * len(ks)
     if row.evaluation is None:
-        return ["failed"] * len(ks)
+        return ["failed" if row.applicable else "n/a"] * len(ks)
     return [f"{row.evaluation.recall[k]:.3f}" for k in ks]
 
 
 def _failures(rows: Sequence[Row]) -> list[str]:
-    failed = [r for r in rows if r.error]
+    failed = [r for r in rows if r.error and (r.applicable or r.length == _main_length(rows, r))]
     return [""] + [f"- {r.dataset} / {r.method} L={r.length}: {r.error}" for r in failed] if failed else []
+
+
+def _main_length(rows: Sequence[Row], row: Row) -> int:
+    """The first length a method was run at on a dataset (the main one): n/a is said once, not per length."""
+    return next(r.length for r in rows if r.dataset == row.dataset and r.method == row.method)

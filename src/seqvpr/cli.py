@@ -574,11 +574,12 @@ Example:
 def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
     from seqvpr.benchmark import main_table, length_table, read_config, run_benchmark, write_results
-    from seqvpr.cli_training import TqdmMonitor
+    from seqvpr.cli_training import JistProgress, TqdmMonitor
 
     config = read_config(config_file)
     out = Path(out_dir)
-    rows = run_benchmark(config, out, progress=tqdm_progress, monitor=TqdmMonitor("seqmatchnet "),
+    monitors = lambda method: JistProgress(None, f"{method} ") if method == "jist" else TqdmMonitor(f"{method} ")  # noqa: E731
+    rows = run_benchmark(config, out, progress=tqdm_progress, monitors=monitors,
                          echo=lambda text: click.echo(text, err=True))
     csv_path, md_path = write_results(rows, config, out)
     click.echo(f"Methods at L={config.seq_len}:\n{main_table(rows, config)}\n")

@@ -300,15 +300,15 @@ JIST_STAGES = {"resnet18": ("layer4",), "resnet50": ("layer4",), "efficientnet-l
 class JistProgress:
     """A tqdm bar of iterations per epoch (with the running loss) and one line per epoch on stderr."""
 
-    def __init__(self, per_epoch: int | None) -> None:
-        self.per_epoch = per_epoch
+    def __init__(self, per_epoch: int | None, label: str = "") -> None:
+        self.per_epoch, self.label = per_epoch, label
         self.bar: tqdm | None = None
         self.totals: list[float] = []
 
     def iteration(self, epoch: int, losses: dict[str, float]) -> None:
         if self.bar is None:
             self.totals = []
-            self.bar = tqdm(total=self.per_epoch, desc=f"epoch {epoch}", unit="it", file=sys.stderr, leave=False,
+            self.bar = tqdm(total=self.per_epoch, desc=f"{self.label}epoch {epoch}", unit="it", file=sys.stderr, leave=False,
                             disable=None)
         self.totals.append(losses["total"])
         self.bar.update(1)
@@ -321,7 +321,7 @@ class JistProgress:
         recall = " ".join(f"R@{key.split('@')[1]} {value:.3f}" for key, value in record.items()
                           if key.startswith("recall@"))
         click.echo(
-            f"epoch {record['epoch']}: {record['iterations']} iterations, loss {record['loss']:.4f} (sequence "
+            f"{self.label}epoch {record['epoch']}: {record['iterations']} iterations, loss {record['loss']:.4f} (sequence "
             f"{record['sequence_loss']:.4f}, images {record['image_loss']:.4f}), {record['seconds']:.1f}s; "
             f"validation {recall}",
             err=True,

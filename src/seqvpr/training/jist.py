@@ -491,6 +491,23 @@ def load_jist(folder: str | Path, *, backbone: torch.nn.Module | None = None) ->
     return model.eval()
 
 
+def load_finished_jist(out_dir: str | Path, config: JistConfig, settings: JistTrainSettings) -> JistModel | None:
+    """The best model of a run in ``out_dir`` that finished every epoch with this config and these settings, or
+    None (no run, another run, or an unfinished one): lets a re-run skip training."""
+    import json
+
+    out_dir = Path(out_dir)
+    try:
+        meta = ckpt.read_json(out_dir / ckpt.CONFIG_FILE)
+        epochs = (out_dir / HISTORY_FILE).read_text(encoding="utf-8").count("\n") - 1
+    except (OSError, SeqvprError):
+        return None
+    same = json.loads(json.dumps({"config": asdict(config), "settings": asdict(settings)}))
+    if meta.get("format") != FORMAT or epochs != settings.epochs or {k: meta.get(k) for k in same} != same:
+        return None
+    return load_jist(out_dir)
+
+
 def _check_data(data: JistData) -> None:
     for name in ("train_reference", "train_query", "val_reference", "val_query"):
         check_images_exist(getattr(data, name), name)
