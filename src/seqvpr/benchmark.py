@@ -269,27 +269,18 @@ class MethodRunner:
         def make():
             from seqvpr.training import jist
 
-            if self.splits.train[0].image_paths is None or self.splits.train[1].image_paths is None:
+            if any(t.image_paths is None for t in self.splits.train):
                 raise NotApplicable("needs images (this dataset has descriptor files only)")
             model_config, settings = jist_settings(self.config)
             finished = jist.load_finished_jist(self.out / "jist", model_config, settings)
             if finished is not None:
                 return finished
-            place = self._placed
-            radius = self.splits.radius.value
-            data = jist.JistData(*(place(t) for t in (*self.splits.train, *self.splits.select)),
-                                 positive_radius=radius, negative_radius=4 * radius, val_radius=radius)
+            radius = self.splits.radius
+            data = jist.JistData(*(jist.jist_positions(t, radius) for t in (*self.splits.train, *self.splits.select)),
+                                 positive_radius=radius.value, negative_radius=4 * radius.value, val_radius=radius.value)
             return jist.train_jist(data, model_config, settings, self.out / "jist", monitor=self.monitor("jist")).model
 
         return self._once("jist", make)
-
-    def _placed(self, traversal: Traversal) -> Traversal:
-        """Frame-aligned traversals get along-route positions (frames); positioned ones stay as they are."""
-        from seqvpr.training.jist import frame_positions
-
-        if self.splits.radius.unit == "frames":
-            return frame_positions(traversal)
-        return traversal
 
     def jist_test_frames(self) -> tuple[Traversal, Traversal]:
         """The test split described by the trained JIST encoder (computed once, pooled at every length)."""

@@ -24,7 +24,7 @@ from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.ablation import ablation_markdown, run_ablation
 from seqvpr.training.cosplace import CellGrouping
-from seqvpr.training.jist import JistData, JistTrainSettings, frame_positions, train_jist
+from seqvpr.training.jist import JistData, JistTrainSettings, jist_positions, train_jist
 from seqvpr.training.seqmatchnet import EpochRecord, TrainingData, TrainSettings, train_seqmatchnet
 from seqvpr.training.seqnet import SeqNetSettings, train_seqnet
 
@@ -326,23 +326,6 @@ class JistProgress:
             f"validation {recall}",
             err=True,
         )
-
-
-def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
-    """A traversal JIST can train on at this radius unit: images with positions in metres, or, with a frame
-    radius, frame-aligned images placed along the route one unit per frame (``frame_positions``)."""
-    label = traversal.source or traversal.name
-    if traversal.image_paths is None:
-        raise SeqvprError(f"{label}: JIST trains from images, this traversal holds descriptors only")
-    if radius.unit == "m":
-        if traversal.positions is None:
-            raise SeqvprError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
-                              f"radius, e.g. --radius 1f")
-        return traversal
-    if traversal.positions is not None:
-        raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
-                          f"(a frame radius is for frame-aligned traversals without positions)")
-    return frame_positions(traversal)
 
 
 def jist_data(o: dict) -> JistData:

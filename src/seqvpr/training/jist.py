@@ -389,6 +389,23 @@ def frame_positions(traversal: Traversal, spacing: float = 1.0) -> Traversal:
                    headings=np.zeros(len(traversal)))
 
 
+def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
+    """A traversal JIST can train on at this radius unit: images with positions in metres, or, with a frame
+    radius, frame-aligned images placed along the route one unit per frame (``frame_positions``)."""
+    label = traversal.source or traversal.name
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{label}: JIST trains from images, this traversal holds descriptors only")
+    if radius.unit == "m":
+        if traversal.positions is None:
+            raise SeqvprError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
+                              f"radius, e.g. --radius 1f")
+        return traversal
+    if traversal.positions is not None:
+        raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
+                          f"(a frame radius is for frame-aligned traversals without positions)")
+    return frame_positions(traversal)
+
+
 def describe_with_jist(
     model: JistModel, traversal: Traversal, width: int, height: int, device: str = "cpu",
     store: ImageStore | None = None, batch: int = 32,
