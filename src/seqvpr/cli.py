@@ -16,7 +16,7 @@ from tqdm import tqdm
 from seqvpr.data.groundtruth import GroundTruth, parse_radius
 from seqvpr.data.sources import ground_truth_spec, load_traversal
 from seqvpr.data.traversal import Traversal, parse_frame_range
-from seqvpr.data.world import CONDITIONS as DEMO_CONDITIONS
+from seqvpr.synthetic.world import CONDITIONS as DEMO_CONDITIONS
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation, evaluate
 from seqvpr.evaluation.predictions import read_predictions, write_predictions
@@ -175,7 +175,7 @@ class TrainedModel:
 
 def model_kind(model_dir: str) -> str:
     """'seqmatchnet', 'seqnet' or 'jist', from the ``format`` in the folder's config.json."""
-    from seqvpr.training import checkpoint as ckpt
+    from seqvpr.models import files as ckpt
 
     folder = Path(model_dir)
     if not folder.is_dir():
@@ -191,10 +191,10 @@ def model_kind(model_dir: str) -> str:
 def load_trained_model(model_dir: str, kind: str, device: str = "cpu") -> TrainedModel:
     """The model of a ``seqvpr train`` folder of the given kind, with its L (and JIST's image size; its encoder
     is moved to ``device``, where it reads the images)."""
-    from seqvpr.training import checkpoint as ckpt
+    from seqvpr.models import files as ckpt
 
     if kind == "seqnet":
-        from seqvpr.training.seqnet import load_seqnet
+        from seqvpr.models.seqnet import load_seqnet
 
         seqnet, config = load_seqnet(model_dir)
         return TrainedModel(kind, seqnet, int(config.get("L") or seqnet.w))
@@ -208,7 +208,9 @@ def load_trained_model(model_dir: str, kind: str, device: str = "cpu") -> Traine
         meta = ckpt.read_json(Path(model_dir) / ckpt.CONFIG_FILE)
         width, height = meta.get("image_size") or (640, 480)
         return TrainedModel(kind, jist, int(meta["config"]["seq_length"]), (int(width), int(height)))
-    transform, config = ckpt.load_model(model_dir)
+    from seqvpr.models.seqmatchnet import load_seqmatchnet
+
+    transform, config = load_seqmatchnet(model_dir)
     return TrainedModel(kind, transform, int(config.get("sequence", {}).get("length", 1)))
 
 
@@ -492,7 +494,7 @@ def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) ->
     """Render a synthetic route world, describe it with EfficientNet-Lite0, match single images and sequences,
     train SeqMatchNet, and write an HTML report (OUT/report/index.html)."""
     from seqvpr.cli_training import TqdmMonitor
-    from seqvpr.demo import DemoSettings, recall_rows, run_demo
+    from seqvpr.experiments.demo import DemoSettings, recall_rows, run_demo
 
     settings = DemoSettings.quick() if quick else DemoSettings()
     changes = {"seed": seed, "condition": condition, "train": not no_train, "device": device}
@@ -573,7 +575,7 @@ Example:
               help="Folder for trained models, results.csv and results.md.")
 def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
-    from seqvpr.benchmark import main_table, length_table, read_config, run_benchmark, write_results
+    from seqvpr.experiments.benchmark import main_table, length_table, read_config, run_benchmark, write_results
     from seqvpr.cli_training import JistProgress, TqdmMonitor
 
     config = read_config(config_file)

@@ -22,7 +22,7 @@ from seqvpr.io import atomic_write
 from seqvpr.models.jist import JIST_BACKBONES, JistConfig
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training.ablation import ablation_markdown, run_ablation
+from seqvpr.experiments.ablation import ablation_markdown, run_ablation
 from seqvpr.training.cosplace import CellGrouping
 from seqvpr.training.jist import JistData, JistTrainSettings, jist_positions, train_jist
 from seqvpr.training.seqmatchnet import EpochRecord, TrainingData, TrainSettings, train_seqmatchnet

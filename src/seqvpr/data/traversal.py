@@ -181,6 +181,17 @@ def segments_from_gaps(
     return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)
 
 
+def frame_positions(traversal: Traversal, spacing: float = 1.0) -> Traversal:
+    """The traversal with along-route positions (``frame_index * spacing``, 0) and heading 0, for frame-aligned
+    datasets (Nordland): radii and position cells then count frames (times ``spacing``); unchanged when it has
+    positions."""
+    if traversal.positions is not None:
+        return traversal
+    east = traversal.frame_index.astype(np.float64) * float(spacing)
+    return replace(traversal, positions=np.stack([east, np.zeros_like(east)], axis=1),
+                   headings=np.zeros(len(traversal)))
+
+
 def parse_frame_range(text: str | None, what: str = "--frames") -> tuple[int | None, int | None]:
     """``START:STOP`` (either side may be empty) -> a half-open range of source frame indices; ``what`` names the
     option or field in the one-line error."""

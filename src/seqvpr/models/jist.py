@@ -11,20 +11,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
 
+from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
-from seqvpr.features.extraction import IMAGENET_MEAN, IMAGENET_STD
+from seqvpr.features.extraction import IMAGENET_MEAN, IMAGENET_STD, load_image
 from seqvpr.features.pooling import GeM
-from seqvpr.training.cosplace import CosFaceHead, cosface_loss
-from seqvpr.training.losses import triplet_hinge
+from seqvpr.models.files import CONFIG_FILE, load_weights_into, read_model_config, save_model_folder
 
 JIST_BACKBONES = ("resnet18", "resnet50", "efficientnet-lite0")
+#: the backbone stages trained when none are named: the last one (the reference's layer4)
+DEFAULT_STAGES = {"resnet18": ("layer4",), "resnet50": ("layer4",), "efficientnet-lite0": ("stage7", "head")}
+FORMAT = "seqvpr-jist"
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,7 @@ class JistConfig:
 
     ``trainable_stages`` names backbone stages: ``stem``, ``layer1``..``layer4`` for ResNets; ``stem``,
     ``stage1``..``stage7``, ``head`` for EfficientNet-Lite0; the top-level child names for an injected backbone.
+    None (or empty) is the backbone's default, ``DEFAULT_STAGES``: its last stage.
     ``weights``: None (random, for tests), a checkpoint path (torchvision or CosPlace keys; a CosPlace file also
     fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only).
     """
@@ -42,7 +47,7 @@ class JistConfig:
     backbone: str = "resnet18"
     weights: str | None = None
     out_dim: int = 512
-    trainable_stages: tuple[str, ...] = ("layer4",)
+    trainable_stages: tuple[str, ...] | None = None
     seq_length: int = 5
     triplet_weight: float = 1e4
     classification_weight: float = 1e2
@@ -55,7 +60,12 @@ class JistConfig:
     def __post_init__(self) -> None:
         if self.backbone not in JIST_BACKBONES:
             raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(JIST_BACKBONES)})")
-        if isinstance(self.trainable_stages, str) or not all(isinstance(s, str) for s in self.trainable_stages):
+        if isinstance(self.trainable_stages, str):
+            raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
+        if not self.trainable_stages:
+            object.__setattr__(self, "trainable_stages", DEFAULT_STAGES[self.backbone])
+        object.__setattr__(self, "trainable_stages", tuple(self.trainable_stages))
+        if not all(isinstance(s, str) for s in self.trainable_stages):
             raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
         for name in ("out_dim", "seq_length"):
             value = getattr(self, name)
@@ -263,85 +273,95 @@ def build_jist(
     return JistModel(encoder, sequence_pool).eval()
 
 
-def trainable_parameters(model: JistModel, config: JistConfig) -> list[nn.Parameter]:
-    """What the model optimiser updates: the configured backbone stages, the encoder head and the sequence pool's
-    parameters (those that require grad)."""
-    params: dict[int, nn.Parameter] = {}
-    for p in model.encoder.stage_parameters(config.trainable_stages):
-        params[id(p)] = p
-    for p in model.encoder.head_parameters():
-        params[id(p)] = p
-    for p in model.sequence_pool.parameters():
-        if p.requires_grad:
-            params[id(p)] = p
-    return list(params.values())
+# --- inference: images to frame descriptors ---------------------------------------------------------------------
 
 
-def optimizer_groups(
-    model: JistModel, classifiers: nn.Module | Iterable[nn.Module], config: JistConfig
-) -> list[dict]:
-    """Two Adam parameter groups: the model's trainable parameters at ``config.lr`` and the CosFace classifiers'
-    at ``config.classifier_lr`` (the reference uses two Adam optimisers; Adam state is per parameter, so one
-    optimiser with two groups takes the same steps)."""
-    if isinstance(classifiers, nn.Module):
-        classifiers = [classifiers]
-    heads: dict[int, nn.Parameter] = {}
-    for head in classifiers:
-        heads.update((id(p), p) for p in head.parameters())
-    return [
-        {"params": trainable_parameters(model, config), "lr": config.lr},
-        {"params": list(heads.values()), "lr": config.classifier_lr},
-    ]
+class ImageStore:
+    """Decoded images of one run at one size, as uint8 [3, H, W] CPU tensors, cached in memory when asked."""
+
+    def __init__(self, width: int, height: int, cache: bool = True) -> None:
+        self.width, self.height, self.cache = width, height, cache
+        self._images: dict[Path, torch.Tensor] = {}
+
+    def get(self, path: Path) -> torch.Tensor:
+        """One image as uint8 [3, H, W]."""
+        image = self._images.get(path)
+        if image is None:
+            image = (load_image(Path(path), self.width, self.height) * 255.0).round().to(torch.uint8)
+            if self.cache:
+                self._images[path] = image
+        return image
+
+    def batch(self, paths: Sequence[Path], device: str) -> torch.Tensor:
+        """Images [N, 3, H, W] in [0, 1] on ``device``."""
+        stacked = torch.stack([self.get(p) for p in paths])
+        return stacked.to(device).float().div_(255.0)
 
 
-def make_classifier(config: JistConfig, n_classes: int) -> CosFaceHead:
-    """One group's CosFace classifier over the model's frame descriptors, with the configured s and m."""
-    return CosFaceHead(config.out_dim, n_classes, s=config.cosface_s, m=config.cosface_m)
+@torch.no_grad()
+def encode_frames(
+    model: JistModel, store: ImageStore, paths: Sequence[Path], device: str, batch: int = 32
+) -> torch.Tensor:
+    """Frame descriptors [N, D] of the images (eval mode, no grad), each image encoded once."""
+    was_training = model.training
+    model.eval()
+    try:
+        parts = [model.frames(store.batch(paths[i : i + batch], device)) for i in range(0, len(paths), batch)]
+    finally:
+        model.train(was_training)
+    return torch.cat(parts).float()
 
 
-def euclidean(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Row-wise Euclidean distance with a finite gradient at zero distance."""
-    return (a - b).pow(2).sum(-1).clamp_min(1e-12).sqrt()
+def check_images_exist(traversal: Traversal, what: str) -> None:
+    """Fail with one line when the traversal has no images or one of them is missing."""
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{what}: JIST needs images, this traversal has descriptors only")
+    for path in traversal.image_paths:
+        if not Path(path).is_file():
+            raise SeqvprError(f"{what}: image {path} does not exist")
 
 
-def jist_losses(
-    model: JistModel,
-    head: CosFaceHead,
-    windows_q: torch.Tensor,
-    windows_p: torch.Tensor,
-    windows_n: torch.Tensor,
-    images: torch.Tensor,
-    labels: torch.Tensor,
-    config: JistConfig,
-) -> dict[str, torch.Tensor]:
-    """The joint objective of one step (digest section 3.7).
+def describe_with_jist(
+    model: JistModel, traversal: Traversal, width: int, height: int, device: str = "cpu",
+    store: ImageStore | None = None, batch: int = 32,
+) -> Traversal:
+    """The traversal with JIST frame descriptors (its encoder, images at ``width`` x ``height``); pooling them with
+    ``model.sequence_pool`` (``retrieve_traversals(..., "seqgem", model=model.sequence_pool)``) gives JIST's
+    sequence descriptors."""
+    check_images_exist(traversal, traversal.source or traversal.name)
+    store = store or ImageStore(width, height)
+    return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())
 
-    ``windows_q``/``windows_p``: [B, L, 3, H, W]; ``windows_n``: [B, K, L, 3, H, W] (K negatives per query; a
-    5-D tensor means K = 1). All B*(2+K) windows go through the model in one pass. "sequence" is the mean over
-    the B*K triplets of ``[|q-p| - |q-n| + margin]_+`` on sequence descriptors; "images" the CosFace
-    cross-entropy of the single ``images`` [M, 3, H', W'] with ``labels`` [M]; "total" is
-    ``triplet_weight * sequence + classification_weight * images``.
-    """
-    _check_windows(windows_q, "query windows")
-    if windows_p.shape != windows_q.shape:
-        raise SeqvprError(
-            f"positive windows must have the query windows' shape {tuple(windows_q.shape)}, got {tuple(windows_p.shape)}"
-        )
-    if windows_n.ndim == 5:
-        windows_n = windows_n.unsqueeze(1)
-    b = windows_q.shape[0]
-    if windows_n.ndim != 6 or windows_n.shape[0] != b or windows_n.shape[1] < 1 or windows_n.shape[2:] != windows_q.shape[1:]:
-        raise SeqvprError(
-            f"negative windows must be [{b}, K, {', '.join(map(str, windows_q.shape[1:]))}], "
-            f"got shape {tuple(windows_n.shape)}"
-        )
-    _check_images(images)
-    k = windows_n.shape[1]
-    descriptors = model(torch.cat([windows_q, windows_p, windows_n.flatten(0, 1)]))
-    q, p, n = descriptors[:b], descriptors[b : 2 * b], descriptors[2 * b :].view(b, k, -1)
-    d_ap = euclidean(q, p)[:, None].expand(b, k)
-    d_an = euclidean(q[:, None], n)
-    sequence = triplet_hinge(d_ap, d_an, config.margin)
-    image_loss = cosface_loss(head, model.frames(images), labels)
-    total = config.triplet_weight * sequence + config.classification_weight * image_loss
-    return {"sequence": sequence, "images": image_loss, "total": total}
+
+# --- model folder ------------------------------------------------------------------------------------------------
+
+
+def save_jist(folder: str | Path, model: JistModel, config: JistConfig, metadata: dict[str, Any]) -> Path:
+    """``model.safetensors`` and ``config.json`` (format, the JistConfig, the sequence pool, then ``metadata``:
+    image size, sequence length, training settings...), each written atomically."""
+    pool = model.sequence_pool
+    pool_meta = {"type": type(pool).__name__, "mode": getattr(pool, "mode", None), "eps": getattr(pool, "eps", None)}
+    return save_model_folder(folder, model, {
+        "format": FORMAT, "config": asdict(config), "sequence_pool": pool_meta, **metadata,
+    })
+
+
+def load_jist(folder: str | Path, *, backbone: nn.Module | None = None) -> JistModel:
+    """The JIST model saved by ``save_jist`` (eval mode); ``backbone`` re-injects a custom backbone."""
+    meta = read_model_config(folder, FORMAT, "JIST")
+    from seqvpr.sequences.descriptors import SeqGeM
+
+    try:
+        values = dict(meta["config"], weights=None)
+        config = JistConfig(**{**values, "trainable_stages": tuple(values.get("trainable_stages") or ())})
+    except (KeyError, TypeError) as error:
+        raise SeqvprError(f"{Path(folder) / CONFIG_FILE}: JIST config lacks a valid {error}") from None
+    pool_meta = meta.get("sequence_pool") or {}
+    pool = SeqGeM(mode=pool_meta.get("mode") or "clamp", eps=pool_meta.get("eps") or 1e-6)
+    return load_weights_into(build_jist(config, pool, backbone=backbone), folder)
+
+
+def jist_image_size(meta: dict[str, Any]) -> tuple[int, int]:
+    """The (width, height) a saved JIST model reads its images at (640 x 480 when the folder does not say)."""
+    width, height = meta.get("image_size") or (640, 480)
+    return int(width), int(height)

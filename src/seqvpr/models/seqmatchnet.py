@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import nn
 
 from seqvpr.errors import SeqvprError
+from seqvpr.models.files import CONFIG_FILE, load_weights_into, read_model_config, save_model_folder
 
 Init = Literal["reference", "identity"]
 
@@ -113,3 +115,22 @@ def apply_transform(
             batch = source[begin : begin + batch_size].to(device=device, dtype=torch.float32)
             out[begin : begin + batch_size] = model(batch).cpu().numpy()
     return out
+
+
+# --- model folder ------------------------------------------------------------------------------------------------
+
+FORMAT = "seqvpr-seqmatchnet"
+
+
+def save_seqmatchnet(folder: str | Path, model: FrameTransform, metadata: dict[str, Any]) -> Path:
+    """Write the transform's weights and config (plus ``metadata``: sequence length, training settings...)."""
+    return save_model_folder(folder, model, {"format": FORMAT, "transform": model.config.as_dict(), **metadata})
+
+
+def load_seqmatchnet(folder: str | Path) -> tuple[FrameTransform, dict[str, Any]]:
+    """The transform saved in ``folder`` (eval mode) and its config; a one-line error when something is wrong."""
+    config = read_model_config(folder, FORMAT, "SeqMatchNet")
+    if "transform" not in config:
+        raise SeqvprError(f"{Path(folder) / CONFIG_FILE}: not a seqvpr SeqMatchNet config (no 'transform')")
+    model = FrameTransform(TransformConfig.from_dict(config["transform"]))
+    return load_weights_into(model, folder), config

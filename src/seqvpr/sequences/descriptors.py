@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
+from seqvpr.sequences.windows import SequenceSpec, require_windows, window_frames, window_starts
 
 SEQUENCE_METHODS = ("smoothing", "delta", "concat", "seqnet", "seqgem")
 SEQGEM_MODES = ("clamp", "signed")
@@ -29,7 +29,7 @@ def window_stack(
     """Frame windows [n_windows, L, D] for the frames that have one (spec's alignment and boundary rule), and
     those frames' rows."""
     starts, rows = _window_starts(len(descriptors), segment_ids, spec)
-    frames = torch.as_tensor(_window_frames(starts[rows], spec.length), device=descriptors.device)
+    frames = torch.as_tensor(window_frames(starts[rows], spec.length), device=descriptors.device)
     return descriptors[frames.reshape(-1)].reshape(len(rows), spec.length, -1), rows
 
 
@@ -43,11 +43,6 @@ def _window_starts(n_frames: int, segment_ids: np.ndarray | None, spec: Sequence
     starts = window_starts(segments, spec.length, spec.offset, spec.boundary)
     require_windows(starts, spec.length, "sequence descriptors", segments)
     return starts, np.flatnonzero(starts >= 0)
-
-
-def _window_frames(starts: np.ndarray, length: int) -> np.ndarray:
-    """Frame rows [n, L] of the windows starting at ``starts``."""
-    return starts[:, None] + np.arange(length, dtype=np.int64)[None, :]
 
 
 def smoothing(windows: torch.Tensor) -> torch.Tensor:
@@ -191,7 +186,7 @@ def sequence_descriptors(
     try:
         with torch.no_grad():
             for begin in range(0, len(rows), batch_size):
-                frames = _window_frames(starts[begin : begin + batch_size], spec.length)
+                frames = window_frames(starts[begin : begin + batch_size], spec.length)
                 windows = _normalized_windows(source, frames, device)
                 out = pool(windows).float().cpu().numpy()
                 if vectors is None:

@@ -86,6 +86,11 @@ def window_starts(segment_ids: np.ndarray, span: int, offset: int, boundary: Bou
     return np.where(fits_segment, shifted, -1)
 
 
+def window_frames(starts: np.ndarray, length: int) -> np.ndarray:
+    """Frame rows [n, L] of the windows starting at ``starts`` (all >= 0)."""
+    return np.asarray(starts, dtype=np.int64)[:, None] + np.arange(length, dtype=np.int64)[None, :]
+
+
 def require_windows(starts: np.ndarray, span: int, what: str, segment_ids: np.ndarray) -> None:
     """Fail with a one-line message when no frame of a traversal has a window (L longer than every segment)."""
     if (starts >= 0).any():

@@ -1,52 +1,51 @@
-"""JIST training: a frame encoder + SeqGeM trained jointly on sequence triplets and CosPlace classification.
+"""JIST training: a frame encoder + SeqGeM trained jointly on sequence triplets and CosPlace classification,
+as a learner of the one training loop (``trainer.train_sequence_model``).
 
-Per iteration (digest section 3.7): one batch of mined sequence triplets (query window, nearest positive
-reference window, K hardest negatives outside the negative radius) and one class-balanced batch of single images
-from ONE CosPlace group, each group with its own CosFace head (created on first use). The loss is
-``jist_losses(...)["total"]``; one Adam optimiser with a model group (``config.lr``) and one group per head
-(``config.classifier_lr``). Mining is refreshed ``refreshes`` times per epoch (the reference's sub-epochs): the
-needed frames are encoded once (no grad), windows are pooled from those frame descriptors with ``model.pool``.
-After each epoch the model is validated on its own pair (frame descriptors once, pooled, faiss retrieval,
-Recall@K); the best epoch's weights are written to ``out_dir`` (``model.safetensors``, ``config.json``,
-``history.csv``), each file atomically.
+Per step (digest section 3.7): one batch of mined sequence triplets (query window, nearest positive reference
+window, K hardest negatives outside the negative radius) and one class-balanced batch of single images from ONE
+CosPlace group, each group with its own CosFace head (``JistLoss``, the loss's trainable parameters). The loss is
+``jist_losses(...)["total"]``; one Adam optimiser with a model group (``config.lr``) and a group for the heads
+(``config.classifier_lr``). An epoch has ``refreshes`` mining rounds (the reference's sub-epochs), each over
+``queries_per_refresh`` random trainable queries and a pool of ``negative_pool`` reference windows: the frames
+they use are encoded once (no grad) and pooled into windows with ``model.pool``. Validation is the pipeline's:
+``describe_with_jist`` then SeqGeM retrieval (``retrieve_traversals``) and Recall@K.
 """
 
 from __future__ import annotations
 
-import copy
-import csv
-import io
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
-from seqvpr.data.traversal import Traversal
+from seqvpr.data.groundtruth import GroundTruth, Radius
+from seqvpr.data.traversal import Traversal, frame_positions
 from seqvpr.errors import SeqvprError
-from seqvpr.evaluation.metrics import Evaluation, evaluate
-from seqvpr.features.extraction import load_image
-from seqvpr.io import atomic_write
-from seqvpr.models.jist import JistConfig, JistModel, build_jist, jist_losses, make_classifier, optimizer_groups
-from seqvpr.sequences.descriptors import SequenceDescriptors
-from seqvpr.sequences.retrieval import retrieve
-from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
-from seqvpr.training import checkpoint as ckpt
-from seqvpr.training.cosplace import CellGrouping, CosFaceHead, assign_classes, group_members
-
-FORMAT = "seqvpr-jist"
-HISTORY_FILE = "history.csv"
+from seqvpr.evaluation.metrics import Evaluation
+from seqvpr.models.files import MODEL_FILE, read_tensors
+from seqvpr.models.jist import (
+    ImageStore, JistConfig, JistModel, build_jist, check_images_exist, describe_with_jist, encode_frames, save_jist,
+)
+from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+from seqvpr.sequences.windows import SequenceSpec, window_frames
+from seqvpr.training.cosplace import CellGrouping, CosFaceHead, assign_classes, cosface_loss, group_members
+from seqvpr.training.losses import euclidean, triplet_hinge
+from seqvpr.training.mining import Triplet
+from seqvpr.training.trainer import (
+    SequenceLearner, SettingsRecord, Step, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
+    train_sequence_model,
+)
 
 
 @dataclass(frozen=True)
-class JistTrainSettings:
+class JistTrainSettings(SettingsRecord):
     """Schedule, batches, mining and runtime of a JIST run. Reference values (digest 3.2, 3.6, 3.7): 5 epochs x 10
     refreshes, 1000 queries / 3000 pool windows per refresh, 4 triplets x 5 negatives, 64 classification images,
-    groups rotated per epoch, AMP. ``max_iterations`` caps the iterations of one refresh (None: all triplets)."""
+    groups rotated per epoch, AMP. ``max_iterations`` caps the steps of one refresh (None: all triplets)."""
 
     epochs: int = 5
     refreshes: int = 10
@@ -81,92 +80,28 @@ class JistTrainSettings:
         if self.select_k not in self.ks:
             raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
 
-
-@dataclass(frozen=True)
-class JistData:
-    """Train and validation traversals (image paths + positions) and the radii of digest 3.5: positives within
-    ``positive_radius`` m, negatives outside ``negative_radius`` m, validation positives within ``val_radius`` m.
-    ``classification`` defaults to the train reference (positions and headings give the CosPlace classes)."""
-
-    train_reference: Traversal
-    train_query: Traversal
-    val_reference: Traversal
-    val_query: Traversal
-    positive_radius: float = 10.0
-    negative_radius: float = 25.0
-    val_radius: float = 25.0
-    classification: Traversal | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("train_reference", "train_query", "val_reference", "val_query", "classification"):
-            traversal = getattr(self, name)
-            if traversal is None:
-                continue
-            label = traversal.source or traversal.name
-            if traversal.image_paths is None:
-                raise SeqvprError(f"{name} ({label}): JIST training needs image paths")
-            if traversal.positions is None:
-                raise SeqvprError(f"{name} ({label}): JIST training needs positions (metres)")
-        if not (0 < self.positive_radius <= self.negative_radius) or self.val_radius <= 0:
-            raise SeqvprError(
-                f"radii must satisfy 0 < positive ({self.positive_radius}) <= negative ({self.negative_radius}) "
-                f"and val ({self.val_radius}) > 0"
-            )
-
-    @property
-    def images(self) -> Traversal:
-        """The traversal whose single images feed the classification branch."""
-        return self.classification if self.classification is not None else self.train_reference
+    def resume_key(self) -> dict[str, Any]:
+        """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""
+        return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images")}
 
 
-@dataclass(frozen=True)
-class ImageWindows:
-    """Windows of one traversal: frame rows [n_windows, L] and the frame each window belongs to (its row)."""
-
-    frames: np.ndarray
-    rows: np.ndarray
-
-    def paths(self, traversal: Traversal) -> list[tuple[Path, ...]]:
-        """The image paths of every window."""
-        return [tuple(traversal.image_paths[i] for i in window) for window in self.frames]
-
-
-@dataclass(frozen=True)
-class Triplet:
-    """Window indices (into ImageWindows) of one query, its positive and its K negatives."""
-
-    query: int
-    positive: int
-    negatives: tuple[int, ...]
-
-
-@dataclass
-class JistResult:
-    """The best model, its epoch and validation recall, the per-epoch history and every iteration's losses."""
-
-    model: JistModel
-    best_epoch: int
-    best_recall: dict[int, float]
-    history: list[dict[str, Any]]
-    iteration_losses: list[dict[str, float]]
-    out_dir: Path
-
-
-class JistMonitor(Protocol):
-    """Progress callbacks (None: silent)."""
-
-    def iteration(self, epoch: int, losses: dict[str, float]) -> None: ...
-
-    def epoch(self, record: dict[str, Any]) -> None: ...
-
-
-def image_windows(traversal: Traversal, spec: SequenceSpec) -> ImageWindows:
-    """Windows of the traversal's frames under the core window rules (never across a segment break)."""
-    starts = window_starts(np.asarray(traversal.segment_ids), spec.length, spec.offset, spec.boundary)
-    require_windows(starts, spec.length, traversal.source or traversal.name, traversal.segment_ids)
-    rows = np.flatnonzero(starts >= 0)
-    frames = starts[rows][:, None] + np.arange(spec.length, dtype=np.int64)[None, :]
-    return ImageWindows(frames, rows)
+def train_jist(
+    data: TrainingData,
+    config: JistConfig,
+    settings: JistTrainSettings,
+    out_dir: str | Path,
+    *,
+    resume: bool = False,
+    monitor: TrainingMonitor | None = None,
+    backbone_factory: Callable[[], nn.Module] | None = None,
+    classification: Traversal | None = None,
+) -> TrainResult:
+    """Train JIST jointly (see the module docstring); the best epoch by validation R@select_k goes to ``out_dir``
+    (``models.jist.load_jist`` reads it), with ``history.csv`` and the resumable state. ``classification`` is the
+    traversal whose single images feed the CosPlace branch (default: the training reference); ``backbone_factory``
+    builds an injected backbone (tests). Runs with the same seed are identical on CPU."""
+    learner = JistLearner(config, settings, backbone_factory, classification)
+    return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 
 
 def training_spec(length: int) -> SequenceSpec:
@@ -174,57 +109,144 @@ def training_spec(length: int) -> SequenceSpec:
     return SequenceSpec(length, "centered", "drop")
 
 
-class ImageStore:
-    """Decoded images of one run at one size, as uint8 [3, H, W] CPU tensors, cached in memory when asked."""
-
-    def __init__(self, width: int, height: int, cache: bool = True) -> None:
-        self.width, self.height, self.cache = width, height, cache
-        self._images: dict[Path, torch.Tensor] = {}
-
-    def get(self, path: Path) -> torch.Tensor:
-        """One image as uint8 [3, H, W]."""
-        image = self._images.get(path)
-        if image is None:
-            image = (load_image(Path(path), self.width, self.height) * 255.0).round().to(torch.uint8)
-            if self.cache:
-                self._images[path] = image
-        return image
-
-    def batch(self, paths: Sequence[Path], device: str) -> torch.Tensor:
-        """Images [N, 3, H, W] in [0, 1] on ``device``."""
-        stacked = torch.stack([self.get(p) for p in paths])
-        return stacked.to(device).float().div_(255.0)
+def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
+    """A traversal JIST can train on at this radius unit: images with positions in metres, or, with a frame
+    radius, frame-aligned images placed along the route one unit per frame (``frame_positions``)."""
+    label = traversal.source or traversal.name
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{label}: JIST trains from images, this traversal holds descriptors only")
+    if radius.unit == "m":
+        if traversal.positions is None:
+            raise SeqvprError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
+                              f"radius, e.g. --radius 1f")
+        return traversal
+    if traversal.positions is not None:
+        raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
+                          f"(a frame radius is for frame-aligned traversals without positions)")
+    return frame_positions(traversal)
 
 
-def check_images_exist(traversal: Traversal, what: str) -> None:
-    """Fail with one line before training when an image of the traversal is missing."""
-    for path in traversal.image_paths:
-        if not Path(path).is_file():
-            raise SeqvprError(f"{what}: image {path} does not exist")
+# --- the loss: sequence triplets + CosFace classification per group ----------------------------------------------
 
 
-@torch.no_grad()
-def encode_frames(
-    model: JistModel, store: ImageStore, paths: Sequence[Path], device: str, batch: int = 32
-) -> torch.Tensor:
-    """Frame descriptors [N, D] of the images (eval mode, no grad), each image encoded once."""
-    was_training = model.training
-    model.eval()
-    try:
-        parts = [model.frames(store.batch(paths[i : i + batch], device)) for i in range(0, len(paths), batch)]
-    finally:
-        model.train(was_training)
-    return torch.cat(parts).float()
+class JistLoss(nn.Module):
+    """The loss's trainable part: one CosFace classifier per CosPlace group (created in group order, right after
+    the model, from the seeded generator)."""
+
+    def __init__(self, config: JistConfig, classes_per_group: dict[int, int]) -> None:
+        super().__init__()
+        self.heads = nn.ModuleDict({
+            str(group): CosFaceHead(config.out_dim, n, s=config.cosface_s, m=config.cosface_m)
+            for group, n in sorted(classes_per_group.items())
+        })
+
+    def head(self, group: int) -> CosFaceHead:
+        return self.heads[str(group)]
 
 
-@torch.no_grad()
+def jist_losses(
+    model: JistModel,
+    head: CosFaceHead,
+    windows_q: torch.Tensor,
+    windows_p: torch.Tensor,
+    windows_n: torch.Tensor,
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    config: JistConfig,
+) -> dict[str, torch.Tensor]:
+    """The joint objective of one step (digest section 3.7).
+
+    ``windows_q``/``windows_p``: [B, L, 3, H, W]; ``windows_n``: [B, K, L, 3, H, W] (K negatives per query; a
+    5-D tensor means K = 1). All B*(2+K) windows go through the model in one pass. "sequence" is the mean over
+    the B*K triplets of ``[|q-p| - |q-n| + margin]_+`` on sequence descriptors; "images" the CosFace
+    cross-entropy of the single ``images`` [M, 3, H', W'] with ``labels`` [M]; "total" is
+    ``triplet_weight * sequence + classification_weight * images``.
+    """
+    windows_n = _check_triplet_windows(windows_q, windows_p, windows_n)
+    if images.ndim != 4 or images.shape[1] != 3 or images.shape[0] < 1:
+        raise SeqvprError(f"images must be [B, 3, H, W] with B >= 1, got shape {tuple(images.shape)}")
+    b, k = windows_q.shape[0], windows_n.shape[1]
+    descriptors = model(torch.cat([windows_q, windows_p, windows_n.flatten(0, 1)]))
+    q, p, n = descriptors[:b], descriptors[b : 2 * b], descriptors[2 * b :].view(b, k, -1)
+    sequence = triplet_hinge(euclidean(q, p)[:, None].expand(b, k), euclidean(q[:, None], n), config.margin)
+    image_loss = cosface_loss(head, model.frames(images), labels)
+    total = config.triplet_weight * sequence + config.classification_weight * image_loss
+    return {"sequence": sequence, "images": image_loss, "total": total}
+
+
+def _check_triplet_windows(windows_q: torch.Tensor, windows_p: torch.Tensor, windows_n: torch.Tensor) -> torch.Tensor:
+    """The negative windows as [B, K, L, 3, H, W], after checking all three shapes agree."""
+    if windows_q.ndim != 5 or windows_q.shape[2] != 3 or windows_q.shape[0] < 1 or windows_q.shape[1] < 1:
+        raise SeqvprError(f"query windows must be [B, L, 3, H, W] with B, L >= 1, got shape {tuple(windows_q.shape)}")
+    if windows_p.shape != windows_q.shape:
+        raise SeqvprError(
+            f"positive windows must have the query windows' shape {tuple(windows_q.shape)}, got {tuple(windows_p.shape)}"
+        )
+    if windows_n.ndim == 5:
+        windows_n = windows_n.unsqueeze(1)
+    b = windows_q.shape[0]
+    if windows_n.ndim != 6 or windows_n.shape[0] != b or windows_n.shape[1] < 1 or windows_n.shape[2:] != windows_q.shape[1:]:
+        raise SeqvprError(
+            f"negative windows must be [{b}, K, {', '.join(map(str, windows_q.shape[1:]))}], "
+            f"got shape {tuple(windows_n.shape)}"
+        )
+    return windows_n
+
+
+def trainable_parameters(model: JistModel, config: JistConfig) -> list[nn.Parameter]:
+    """What the model's optimiser group updates: the configured backbone stages, the encoder head and the sequence
+    pool's parameters (those that require grad)."""
+    params: dict[int, nn.Parameter] = {}
+    for p in model.encoder.stage_parameters(config.trainable_stages):
+        params[id(p)] = p
+    for p in model.encoder.head_parameters():
+        params[id(p)] = p
+    for p in model.sequence_pool.parameters():
+        if p.requires_grad:
+            params[id(p)] = p
+    return list(params.values())
+
+
+# --- mining ----------------------------------------------------------------------------------------------------
+
+
+def select_triplets(
+    query_desc: torch.Tensor,
+    reference_desc: torch.Tensor,
+    positives: Sequence[np.ndarray],
+    non_negatives: Sequence[np.ndarray],
+    pool: np.ndarray,
+    negatives: int,
+) -> list[tuple[int, int, np.ndarray, float, np.ndarray]]:
+    """Per query: the positive (among ``positives[q]``) nearest in descriptor space and the ``negatives`` nearest
+    pool rows that are not in ``non_negatives[q]`` (digest 3.6); queries lacking either are skipped.
+    Returns (query position, positive row, negative rows, their distances) with rows of ``reference_desc``."""
+    out = []
+    pool = np.asarray(pool, dtype=np.int64)
+    pool_desc = reference_desc[torch.as_tensor(pool, device=reference_desc.device)]
+    for q, (pos, near) in enumerate(zip(positives, non_negatives)):
+        if len(pos) == 0:
+            continue
+        candidates = ~np.isin(pool, near)
+        if candidates.sum() < negatives:
+            continue
+        d_pos = torch.cdist(query_desc[q : q + 1], reference_desc[torch.as_tensor(pos, device=reference_desc.device)])[0]
+        best = int(torch.argmin(d_pos))
+        d_neg = torch.cdist(query_desc[q : q + 1], pool_desc)[0].double().cpu().numpy()
+        d_neg[~candidates] = np.inf
+        order = np.argsort(d_neg, kind="stable")[:negatives]
+        out.append((q, int(pos[best]), pool[order], float(d_pos[best]), d_neg[order]))
+    return out
+
+
 def pool_windows(model: JistModel, frame_descriptors: torch.Tensor, frames: np.ndarray) -> torch.Tensor:
     """Sequence descriptors [n_windows, D] pooled from frame descriptors [N, D] (rows ``frames`` [n, L])."""
     index = torch.as_tensor(frames, device=frame_descriptors.device)
     was_training = model.training
     model.eval()
     try:
-        return model.pool(frame_descriptors[index.reshape(-1)].view(*frames.shape, -1)).float()
+        with torch.no_grad():
+            return model.pool(frame_descriptors[index.reshape(-1)].view(*frames.shape, -1)).float()
     finally:
         model.train(was_training)
 
@@ -236,71 +258,6 @@ def window_descriptors(
     used, inverse = np.unique(frames.reshape(-1), return_inverse=True)
     descriptors = encode_frames(model, store, [traversal.image_paths[i] for i in used], device, batch)
     return pool_windows(model, descriptors, inverse.reshape(frames.shape))
-
-
-def select_triplets(
-    query_desc: torch.Tensor,
-    reference_desc: torch.Tensor,
-    positives: Sequence[np.ndarray],
-    non_negatives: Sequence[np.ndarray],
-    pool: np.ndarray,
-    negatives: int,
-) -> list[tuple[int, int, tuple[int, ...]]]:
-    """Per query: the positive (among ``positives[q]``) nearest in descriptor space and the ``negatives`` nearest
-    pool windows that are not in ``non_negatives[q]`` (digest 3.6); queries lacking either are skipped.
-    Returns (query position, reference window, negative windows) with window indices into ``reference_desc``."""
-    out = []
-    pool = np.asarray(pool, dtype=np.int64)
-    pool_desc = reference_desc[torch.as_tensor(pool, device=reference_desc.device)]
-    for q, (pos, near) in enumerate(zip(positives, non_negatives)):
-        if len(pos) == 0:
-            continue
-        candidates = ~np.isin(pool, near)
-        if candidates.sum() < negatives:
-            continue
-        d_pos = torch.cdist(query_desc[q : q + 1], reference_desc[torch.as_tensor(pos, device=reference_desc.device)])[0]
-        best = int(pos[int(torch.argmin(d_pos))])
-        d_neg = torch.cdist(query_desc[q : q + 1], pool_desc)[0].double().cpu().numpy()
-        d_neg[~candidates] = np.inf
-        order = np.argsort(d_neg, kind="stable")[:negatives]
-        out.append((q, best, tuple(int(pool[i]) for i in order)))
-    return out
-
-
-def mine_triplets(
-    model: JistModel,
-    data: JistData,
-    query_windows: ImageWindows,
-    reference_windows: ImageWindows,
-    settings: JistTrainSettings,
-    rng: np.random.Generator,
-    store: ImageStore,
-) -> list[Triplet]:
-    """One refresh of digest 3.6: sample query windows that have positives and a pool of reference windows, encode
-    the frames they (and all the queries' positives) use once, pool windows, then ``select_triplets``. Window
-    positions are their own (anchor) frame's positions. Seeded by ``rng``."""
-    anchors_ref = data.train_reference.select(reference_windows.rows)
-    anchors_qry = data.train_query.select(query_windows.rows)
-    near = ground_truth_within_radius(anchors_qry, anchors_ref, Radius(float(data.positive_radius), "m"))
-    not_negative = ground_truth_within_radius(anchors_qry, anchors_ref, Radius(float(data.negative_radius), "m"))
-    eligible = np.flatnonzero(near.has_positive())
-    if len(eligible) == 0:
-        raise SeqvprError(f"no training query window has a reference window within {data.positive_radius:g} m")
-    queries = np.sort(rng.choice(eligible, size=min(settings.queries_per_refresh, len(eligible)), replace=False))
-    n_ref = len(reference_windows.rows)
-    pool = np.sort(rng.choice(n_ref, size=min(settings.negative_pool, n_ref), replace=False))
-    positives = [near.positives_of(int(q)) for q in queries]
-    non_negatives = [not_negative.positives_of(int(q)) for q in queries]
-    needed = np.unique(np.concatenate([pool, *positives]))
-    ref_desc = torch.zeros(n_ref, model.dim, device=settings.device)
-    ref_desc[torch.as_tensor(needed, device=settings.device)] = window_descriptors(
-        model, store, data.train_reference, reference_windows.frames[needed], settings.device, settings.infer_batch
-    )
-    q_desc = window_descriptors(
-        model, store, data.train_query, query_windows.frames[queries], settings.device, settings.infer_batch
-    )
-    chosen = select_triplets(q_desc, ref_desc, positives, non_negatives, pool, settings.negatives)
-    return [Triplet(int(queries[q]), p, n) for q, p, n in chosen]
 
 
 def classification_batch(
@@ -331,297 +288,128 @@ def window_batch(store: ImageStore, traversal: Traversal, frames: np.ndarray, de
     return images.view(*frames.shape, *images.shape[1:])
 
 
-def triplet_tensors(
-    store: ImageStore, data: JistData, qw: ImageWindows, rw: ImageWindows, batch: Sequence[Triplet], device: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Query [B, L, ...], positive [B, L, ...] and negative [B, K, L, ...] window images of a triplet batch."""
-    q = window_batch(store, data.train_query, qw.frames[[t.query for t in batch]], device)
-    p = window_batch(store, data.train_reference, rw.frames[[t.positive for t in batch]], device)
-    n = window_batch(store, data.train_reference, rw.frames[np.array([t.negatives for t in batch])], device)
-    return q, p, n
+# --- the learner ---------------------------------------------------------------------------------------------------
 
 
-def evaluate_jist(
-    model: JistModel,
-    reference: Traversal,
-    query: Traversal,
-    *,
-    seq_length: int,
-    radius: float = 25.0,
-    ks: Sequence[int] = (1, 5, 10),
-    shuffle_frames: bool = False,
-    store: ImageStore | None = None,
-    width: int = 640,
-    height: int = 480,
-    device: str = "cpu",
-    seed: int = 0,
-) -> Evaluation:
-    """Recall@K of sequence retrieval: frame descriptors of each traversal computed once, pooled into windows of
-    ``seq_length`` (any length, not only the trained one), optionally with the frame order shuffled inside every
-    window (seeded), faiss L2 top-K, positives within ``radius`` m of the query window's frame."""
-    store = store or ImageStore(width, height)
-    spec = training_spec(seq_length)
-    generator = torch.Generator().manual_seed(seed)
-    described = []
-    for traversal in (reference, query):
-        windows = image_windows(traversal, spec)
-        frames = windows.frames
-        if shuffle_frames:
-            order = torch.argsort(torch.rand(frames.shape, generator=generator), dim=1).numpy()
-            frames = np.take_along_axis(frames, order, axis=1)
-        descriptors = encode_frames(model, store, list(traversal.image_paths), device)
-        vectors = pool_windows(model, descriptors, frames).cpu().numpy().astype(np.float32)
-        described.append(SequenceDescriptors(vectors, windows.rows, len(traversal)))
-    top = retrieve(described[1], described[0], max(ks))
-    gt = ground_truth_within_radius(query, reference, Radius(float(radius), "m"))
-    return evaluate(top.indices, top.distances, top.has_window, gt, tuple(ks))
+class JistLearner(SequenceLearner):
+    """JIST as a learner of the one training loop: image windows, mined in its own sequence-descriptor space."""
 
+    config_key = "jist"
 
-def frame_positions(traversal: Traversal, spacing: float = 1.0) -> Traversal:
-    """The traversal with along-route positions (``frame_index * spacing``, 0) and heading 0, for frame-aligned
-    datasets (Nordland): JIST's radii and CosPlace cells are then counted in frames (times ``spacing``)."""
-    from dataclasses import replace
+    def __init__(
+        self, config: JistConfig, settings: JistTrainSettings,
+        backbone_factory: Callable[[], nn.Module] | None = None, classification: Traversal | None = None,
+    ) -> None:
+        self.jist, self.spec = config, training_spec(config.seq_length)
+        self.backbone_factory, self.classification = backbone_factory, classification
+        self.store = ImageStore(settings.width, settings.height, settings.cache_images)
 
-    if traversal.positions is not None:
-        return traversal
-    east = traversal.frame_index.astype(np.float64) * float(spacing)
-    return replace(traversal, positions=np.stack([east, np.zeros_like(east)], axis=1),
-                   headings=np.zeros(len(traversal)))
+    def config(self) -> dict[str, Any]:
+        return asdict(self.jist)
 
+    def check_data(self, data: TrainingData) -> None:
+        for name, traversal in data.traversals().items():
+            check_images_exist(traversal, name)
+        images = self.classification or data.reference
+        if images.positions is None:
+            raise SeqvprError(f"{images.source or 'classification'}: JIST training needs positions (metres, or "
+                              f"frames placed along the route by jist_positions)")
+        check_images_exist(images, "classification")
 
-def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
-    """A traversal JIST can train on at this radius unit: images with positions in metres, or, with a frame
-    radius, frame-aligned images placed along the route one unit per frame (``frame_positions``)."""
-    label = traversal.source or traversal.name
-    if traversal.image_paths is None:
-        raise SeqvprError(f"{label}: JIST trains from images, this traversal holds descriptors only")
-    if radius.unit == "m":
-        if traversal.positions is None:
-            raise SeqvprError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
-                              f"radius, e.g. --radius 1f")
-        return traversal
-    if traversal.positions is not None:
-        raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
-                          f"(a frame radius is for frame-aligned traversals without positions)")
-    return frame_positions(traversal)
+    def prepare(self, context: TrainingContext, settings: JistTrainSettings) -> None:
+        self.context, self._settings = context, settings
+        images = self.classification or context.data.reference
+        self.class_ids, self.group_ids = assign_classes(images.positions, images.headings, settings.grouping)
+        self.groups = used_groups(self.group_ids)
+        self.reference_rows = np.flatnonzero(context.reference_starts >= 0)
 
+    def build_model(self, settings: JistTrainSettings) -> JistModel:
+        return build_jist(self.jist, backbone=self.backbone_factory() if self.backbone_factory else None)
 
-def describe_with_jist(
-    model: JistModel, traversal: Traversal, width: int, height: int, device: str = "cpu",
-    store: ImageStore | None = None, batch: int = 32,
-) -> Traversal:
-    """The traversal with JIST frame descriptors (its encoder, images at ``width`` x ``height``); pooling them with
-    ``model.sequence_pool`` (e.g. ``retrieve_traversals(..., "seqgem", model=model.sequence_pool)``) gives JIST's
-    sequence descriptors."""
-    if traversal.image_paths is None:
-        raise SeqvprError(f"{traversal.source or traversal.name}: JIST needs images, this traversal has descriptors only")
-    check_images_exist(traversal, traversal.source or traversal.name)
-    store = store or ImageStore(width, height)
-    return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())
+    def build_loss(self, settings: JistTrainSettings) -> JistLoss:
+        classes = {g: group_members(self.class_ids, self.group_ids, g)[2] for g in self.groups}
+        return JistLoss(self.jist, classes)
 
+    def build_optimizer(self, model: JistModel, loss: JistLoss, settings: JistTrainSettings):
+        """One Adam with two groups (the reference's two Adam optimisers take the same steps)."""
+        return torch.optim.Adam([
+            {"params": trainable_parameters(model, self.jist), "lr": self.jist.lr},
+            {"params": list(loss.parameters()), "lr": self.jist.classifier_lr},
+        ]), None
 
-def _autocast(settings: JistTrainSettings):
-    """Mixed precision on CUDA only when asked; a no-op context elsewhere."""
-    enabled = settings.amp and str(settings.device).startswith("cuda")
-    return torch.autocast("cuda", dtype=torch.float16, enabled=enabled) if enabled else torch.autocast("cpu", enabled=False)
+    def rounds(self, trainable: np.ndarray, rng: np.random.Generator, settings: JistTrainSettings) -> list[np.ndarray]:
+        size = min(settings.queries_per_refresh, len(trainable))
+        return [np.sort(rng.choice(trainable, size=size, replace=False)) for _ in range(settings.refreshes)]
 
+    def mine(self, model: JistModel, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
+        """One refresh (digest 3.6): a pool of reference windows, the frames they and the queries' positives use
+        encoded once, windows pooled, then ``select_triplets``."""
+        context, settings = self.context, self._settings
+        with_window = np.zeros(len(context.reference_starts), dtype=bool)
+        with_window[self.reference_rows] = True
+        pool = np.sort(rng.choice(self.reference_rows, size=min(settings.negative_pool, len(self.reference_rows)),
+                                  replace=False))
+        positives = [p[with_window[p]] for p in (context.positives.positives_of(int(q)) for q in queries)]
+        non_negatives = [context.near.positives_of(int(q)) for q in queries]
+        needed = np.unique(np.concatenate([pool, *positives]))
+        reference = torch.zeros(len(with_window), self.jist.out_dim, device=context.device)
+        reference[torch.as_tensor(needed, device=context.device)] = self._windows(model, "reference", needed)
+        chosen = select_triplets(self._windows(model, "query", queries), reference, positives, non_negatives, pool,
+                                 settings.negatives)
+        return [Triplet(int(queries[q]), p, n, d_p, d_n) for q, p, n, d_p, d_n in chosen]
 
-def _group_of(groups: list[int], epoch: int, iteration: int, settings: JistTrainSettings) -> int:
-    """The group of this iteration: rotated per iteration, or per epoch as the reference (digest 3.7)."""
-    step = iteration if settings.group_per == "iteration" else epoch
-    return groups[step % len(groups)]
+    def _windows(self, model: JistModel, side: str, rows: np.ndarray) -> torch.Tensor:
+        starts = getattr(self.context, f"{side}_starts")[rows]
+        traversal = getattr(self.context.data, side)
+        return window_descriptors(model, self.store, traversal, window_frames(starts, self.spec.length),
+                                  str(self.context.device), self._settings.infer_batch)
 
+    def batches(self, triplets: list[Triplet], settings: JistTrainSettings) -> list[list[Triplet]]:
+        """Full batches only, at most ``max_iterations`` of them; a round with none is an error."""
+        count = len(triplets) // settings.batch_size
+        if settings.max_iterations is not None:
+            count = min(count, settings.max_iterations)
+        if count == 0:
+            raise SeqvprError(f"only {len(triplets)} triplets were mined, fewer than one batch of {settings.batch_size}")
+        return [triplets[b * settings.batch_size : (b + 1) * settings.batch_size] for b in range(count)]
 
-def _head_for(
-    heads: dict[int, CosFaceHead], group: int, n_classes: int, config: JistConfig,
-    optimizer: torch.optim.Optimizer, device: str,
-) -> CosFaceHead:
-    """The group's CosFace head, created (and added to the optimiser at the classifier lr) on first use."""
-    if group not in heads:
-        heads[group] = make_classifier(config, n_classes).to(device)
-        optimizer.add_param_group({"params": list(heads[group].parameters()), "lr": config.classifier_lr})
-    return heads[group]
+    def batch_loss(
+        self, model: JistModel, loss: JistLoss, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
+        settings: JistTrainSettings,
+    ) -> dict[str, torch.Tensor]:
+        """The joint loss of one step: the batch's windows and a classification batch of this step's group."""
+        group = self.groups[(step.index if settings.group_per == "iteration" else step.epoch - 1) % len(self.groups)]
+        rows, labels, _ = classification_batch(self.class_ids, self.group_ids, group, settings.images_per_batch, rng)
+        images = self.classification or self.context.data.reference
+        device = str(self.context.device)
+        tensors = self._triplet_images(batch) + (self.store.batch([images.image_paths[i] for i in rows], device),)
+        return jist_losses(model, loss.head(group), *tensors, torch.as_tensor(labels, device=device), self.jist)
 
+    def _triplet_images(self, batch: Sequence[Triplet]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Query [B, L, ...], positive [B, L, ...] and negative [B, K, L, ...] window images of a triplet batch."""
+        context, length, device = self.context, self.spec.length, str(self.context.device)
+        query_starts = context.query_starts[[t.query for t in batch]]
+        positive_starts = context.reference_starts[[t.positive for t in batch]]
+        negative_starts = context.reference_starts[np.array([t.negatives for t in batch])]
+        negatives = window_frames(negative_starts.reshape(-1), length).reshape(*negative_starts.shape, length)
+        return (window_batch(self.store, context.data.query, window_frames(query_starts, length), device),
+                window_batch(self.store, context.data.reference, window_frames(positive_starts, length), device),
+                window_batch(self.store, context.data.reference, negatives, device))
 
-def train_step(
-    model: JistModel, head: CosFaceHead, tensors: tuple[torch.Tensor, ...], labels: torch.Tensor,
-    config: JistConfig, optimizer: torch.optim.Optimizer, scaler: torch.amp.GradScaler | None,
-    settings: JistTrainSettings,
-) -> dict[str, float]:
-    """One joint step: ``jist_losses`` total, backward, one optimiser step for the model and the head."""
-    optimizer.zero_grad(set_to_none=True)
-    with _autocast(settings):
-        losses = jist_losses(model, head, *tensors, labels, config)
-    if scaler is not None:
-        scaler.scale(losses["total"]).backward()
-        scaler.step(optimizer)
-        scaler.update()
-    else:
-        losses["total"].backward()
-        optimizer.step()
-    return {name: float(value.detach()) for name, value in losses.items()}
+    def mixed_precision(self, settings: JistTrainSettings) -> bool:
+        return settings.amp and str(settings.device).startswith("cuda")
 
+    def validate(self, model: JistModel, data: TrainingData, gt: GroundTruth, settings: JistTrainSettings) -> Evaluation:
+        """The pipeline's JIST evaluation: frame descriptors once, SeqGeM windows, faiss top-K, Recall@K."""
+        describe = lambda t: describe_with_jist(model, t, settings.width, settings.height, settings.device,  # noqa: E731
+                                                self.store, settings.infer_batch)
+        match = MatchSettings(self.spec, k=max(settings.ks), device=settings.device)
+        result = retrieve_traversals(describe(data.val_reference), describe(data.val_query), "seqgem", match,
+                                     model=model.sequence_pool)
+        return evaluate_match(result, gt, settings.ks)
 
-def _history_csv(history: list[dict[str, Any]]) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(history[0]))
-    writer.writeheader()
-    writer.writerows(history)
-    return buffer.getvalue()
+    def save_model(self, folder: Path, model: JistModel, metadata: dict[str, Any]) -> None:
+        save_jist(folder, model, self.jist, {"image_size": [self.store.width, self.store.height], **metadata})
 
-
-def save_jist(
-    out_dir: Path, model: JistModel, config: JistConfig, settings: JistTrainSettings, extra: dict[str, Any]
-) -> None:
-    """Write ``model.safetensors`` and ``config.json`` (config, settings, pool, ``extra``), each atomically."""
-    pool = model.sequence_pool
-    meta = {
-        "format": FORMAT,
-        "config": asdict(config),
-        "settings": asdict(settings),
-        "sequence_pool": {"type": type(pool).__name__, "mode": getattr(pool, "mode", None), "eps": getattr(pool, "eps", None)},
-        **extra,
-    }
-    ckpt.save_tensors(out_dir / ckpt.MODEL_FILE, model.state_dict())
-    ckpt.save_json(out_dir / ckpt.CONFIG_FILE, meta)
-
-
-def load_jist(folder: str | Path, *, backbone: torch.nn.Module | None = None) -> JistModel:
-    """The JIST model saved by ``train_jist`` (eval mode); ``backbone`` re-injects a custom backbone."""
-    folder = Path(folder)
-    meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
-    if meta.get("format") != FORMAT:
-        raise SeqvprError(f"{folder}: not a JIST model folder (format {meta.get('format')!r})")
-    values = dict(meta["config"], weights=None)
-    values["trainable_stages"] = tuple(values["trainable_stages"])
-    config = JistConfig(**values)
-    from seqvpr.sequences.descriptors import SeqGeM
-
-    pool_meta = meta.get("sequence_pool") or {}
-    pool = SeqGeM(mode=pool_meta.get("mode") or "clamp", eps=pool_meta.get("eps") or 1e-6)
-    model = build_jist(config, pool, backbone=backbone)
-    state = ckpt.read_tensors(folder / ckpt.MODEL_FILE)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as error:
-        raise SeqvprError(f"{folder}: weights do not fit the saved config ({str(error).splitlines()[0]})") from None
-    return model.eval()
-
-
-def load_finished_jist(out_dir: str | Path, config: JistConfig, settings: JistTrainSettings) -> JistModel | None:
-    """The best model of a run in ``out_dir`` that finished every epoch with this config and these settings, or
-    None (no run, another run, or an unfinished one): lets a re-run skip training."""
-    import json
-
-    out_dir = Path(out_dir)
-    try:
-        meta = ckpt.read_json(out_dir / ckpt.CONFIG_FILE)
-        epochs = (out_dir / HISTORY_FILE).read_text(encoding="utf-8").count("\n") - 1
-    except (OSError, SeqvprError):
-        return None
-    same = json.loads(json.dumps({"config": asdict(config), "settings": asdict(settings)}))
-    if meta.get("format") != FORMAT or epochs != settings.epochs or {k: meta.get(k) for k in same} != same:
-        return None
-    return load_jist(out_dir)
-
-
-def _check_data(data: JistData) -> None:
-    for name in ("train_reference", "train_query", "val_reference", "val_query"):
-        check_images_exist(getattr(data, name), name)
-    if data.classification is not None:
-        check_images_exist(data.classification, "classification")
-
-
-def train_jist(
-    data: JistData,
-    config: JistConfig,
-    settings: JistTrainSettings,
-    out_dir: str | Path,
-    *,
-    monitor: JistMonitor | None = None,
-    backbone_factory: Callable[[], torch.nn.Module] | None = None,
-) -> JistResult:
-    """Train JIST jointly (see the module docstring); keeps and writes the best epoch by validation R@select_k.
-    ``backbone_factory`` builds an injected backbone (tests); the model is built after seeding, so runs with
-    the same seed are identical on CPU."""
-    _check_data(data)
-    out_dir = Path(out_dir)
-    device = settings.device
-    torch.manual_seed(settings.seed)
-    model = build_jist(config, backbone=backbone_factory() if backbone_factory else None).to(device)
-    store = ImageStore(settings.width, settings.height, settings.cache_images)
-    spec = training_spec(config.seq_length)
-    qw, rw = image_windows(data.train_query, spec), image_windows(data.train_reference, spec)
-    images = data.images
-    class_ids, group_ids = assign_classes(images.positions, images.headings, settings.grouping)
-    groups = used_groups(group_ids)
-    optimizer = torch.optim.Adam(optimizer_groups(model, [], config)[:1])
-    use_amp = settings.amp and str(device).startswith("cuda")
-    scaler = torch.amp.GradScaler("cuda") if use_amp else None
-    heads: dict[int, CosFaceHead] = {}
-    history: list[dict[str, Any]] = []
-    losses_log: list[dict[str, float]] = []
-    best_state, best_epoch, best_recall = None, -1, {}
-    iteration = 0
-    for epoch in range(settings.epochs):
-        started = time.perf_counter()
-        rng = np.random.default_rng([settings.seed, epoch])
-        epoch_losses: list[dict[str, float]] = []
-        for _ in range(settings.refreshes):
-            triplets = mine_triplets(model, data, qw, rw, settings, rng, store)
-            n_batches = len(triplets) // settings.batch_size
-            if settings.max_iterations is not None:
-                n_batches = min(n_batches, settings.max_iterations)
-            if n_batches == 0:
-                raise SeqvprError(
-                    f"only {len(triplets)} triplets were mined, fewer than one batch of {settings.batch_size}"
-                )
-            model.train()
-            for b in range(n_batches):
-                batch = triplets[b * settings.batch_size : (b + 1) * settings.batch_size]
-                group = _group_of(groups, epoch, iteration, settings)
-                rows, labels, n_classes = classification_batch(
-                    class_ids, group_ids, group, settings.images_per_batch, rng
-                )
-                head = _head_for(heads, group, n_classes, config, optimizer, device)
-                head.train()
-                tensors = (
-                    *triplet_tensors(store, data, qw, rw, batch, device),
-                    store.batch([images.image_paths[i] for i in rows], device),
-                )
-                label_tensor = torch.as_tensor(labels, device=device)
-                losses = train_step(model, head, tensors, label_tensor, config, optimizer, scaler, settings)
-                losses_log.append(losses)
-                epoch_losses.append(losses)
-                iteration += 1
-                if monitor is not None:
-                    monitor.iteration(epoch, losses)
-        model.eval()
-        evaluation = evaluate_jist(
-            model, data.val_reference, data.val_query, seq_length=config.seq_length, radius=data.val_radius,
-            ks=settings.ks, store=store, device=device,
-        )
-        record = {
-            "epoch": epoch,
-            "iterations": len(epoch_losses),
-            "loss": float(np.mean([l["total"] for l in epoch_losses])),
-            "sequence_loss": float(np.mean([l["sequence"] for l in epoch_losses])),
-            "image_loss": float(np.mean([l["images"] for l in epoch_losses])),
-            **{f"recall@{k}": float(v) for k, v in evaluation.recall.items()},
-            "seconds": round(time.perf_counter() - started, 3),
-        }
-        history.append(record)
-        if monitor is not None:
-            monitor.epoch(record)
-        if best_state is None or evaluation.recall[settings.select_k] > best_recall[settings.select_k]:
-            best_state = copy.deepcopy(model.state_dict())
-            best_epoch, best_recall = epoch, dict(evaluation.recall)
-            save_jist(out_dir, model, config, settings, {
-                "best_epoch": best_epoch,
-                "validation_recall": {str(k): v for k, v in best_recall.items()},
-                "image_size": [settings.width, settings.height],
-            })
-        with atomic_write(out_dir / HISTORY_FILE) as handle:
-            handle.write(_history_csv(history))
-    model.load_state_dict(best_state)
-    return JistResult(model.eval(), best_epoch, best_recall, history, losses_log, out_dir)
+    def load_weights(self, folder: Path) -> dict[str, torch.Tensor]:
+        return read_tensors(Path(folder) / MODEL_FILE)

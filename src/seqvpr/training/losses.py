@@ -23,6 +23,11 @@ def window_part(method: SequenceMethod, length: int, offset: int) -> slice | Non
     raise SeqvprError(f"sequence method must be 'seqmatch' or 'single', got {method!r}")
 
 
+def euclidean(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Row-wise Euclidean distance with a clamped sqrt (finite gradient at distance 0)."""
+    return (a - b).pow(2).sum(-1).clamp_min(eps).sqrt()
+
+
 def triplet_hinge(d_ap: torch.Tensor, d_an: torch.Tensor, margin: float = DEFAULT_MARGIN) -> torch.Tensor:
     """mean over triplets of max(d_ap - d_an + margin, 0), on non-squared distances as in the reference."""
     return torch.relu(d_ap - d_an + margin).mean()

@@ -22,18 +22,19 @@ from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
+from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqmatchnet, save_seqmatchnet
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals, transform_traversal
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training import checkpoint as ckpt
 from seqvpr.training.losses import DEFAULT_MARGIN, SequenceMethod, sequence_triplet_loss, window_part
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
+from seqvpr.training.frames import DescriptorLearner
 from seqvpr.training.trainer import (
-    SettingsRecord,
     EpochRecord,
+    SettingsRecord,
+    Step,
     SilentMonitor,
+    TrainingContext,
     TrainingData,
-    TrainingFrames,
     TrainingMonitor,
     TrainResult,
     check_optimizer_settings,
@@ -97,17 +98,18 @@ def train_seqmatchnet(
     transform = transform or TransformConfig(data.dim)
     if transform.in_dim != data.dim:
         raise SeqvprError(f"transform expects {transform.in_dim}-D input but the descriptors are {data.dim}-D")
-    return train_sequence_model(data, SeqMatchNetLearner(transform), settings, out_dir, resume=resume, monitor=monitor)
+    learner = SeqMatchNetLearner(transform, settings.sequence)
+    return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 
 
-class SeqMatchNetLearner:
-    """SeqMatchNet as a ``SequenceLearner``: a per-frame transform; mining and loss use the sequence distance of
-    the transformed frames (``settings.mining`` / ``settings.loss``: all frames or the centre frame only)."""
+class SeqMatchNetLearner(DescriptorLearner):
+    """SeqMatchNet as a learner: a per-frame transform; mining and loss use the sequence distance of the
+    transformed frames (``settings.mining`` / ``settings.loss``: all frames or the centre frame only)."""
 
     config_key = "transform"
 
-    def __init__(self, transform: TransformConfig) -> None:
-        self.transform = transform
+    def __init__(self, transform: TransformConfig, spec: SequenceSpec) -> None:
+        self.transform, self.spec = transform, spec
 
     def config(self) -> dict[str, Any]:
         return self.transform.as_dict()
@@ -115,43 +117,42 @@ class SeqMatchNetLearner:
     def build_model(self, settings: TrainSettings) -> FrameTransform:
         return FrameTransform(self.transform, seed=settings.seed)
 
-    def input_frames(self, descriptors: np.ndarray, device: torch.device) -> torch.Tensor:
-        return torch.as_tensor(np.ascontiguousarray(descriptors), dtype=torch.float32, device=device)
+    def mining_kernel(self, context: TrainingContext, settings: TrainSettings) -> DistanceRows:
+        return mining_kernel(settings.mining, self.spec, context.data.reference.segment_ids)
 
-    def mining_kernel(self, data: TrainingData, frames: TrainingFrames, settings: TrainSettings) -> DistanceRows:
-        return mining_kernel(settings.mining, settings.sequence, data.reference.segment_ids)
-
-    def mining_features(self, model: FrameTransform, frames: TrainingFrames) -> tuple[torch.Tensor, torch.Tensor]:
+    def mining_features(self, model: FrameTransform) -> tuple[torch.Tensor, torch.Tensor]:
         """Every training frame through the current model."""
-        return model(frames.query), model(frames.reference)
+        return model(self.frames.query), model(self.frames.reference)
 
     def batch_loss(
-        self, model: FrameTransform, frames: TrainingFrames, batch: Sequence[Triplet], settings: TrainSettings
-    ) -> torch.Tensor:
-        device = frames.device
+        self, model: FrameTransform, loss: None, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
+        settings: TrainSettings,
+    ) -> dict[str, torch.Tensor]:
+        frames = self.frames
         q_frames = frames.query_windows([t.query for t in batch])
         negatives = np.concatenate([t.negatives for t in batch])
         r_frames = frames.reference_windows(np.concatenate([[t.positive for t in batch], negatives]).astype(np.int64))
-        owner = torch.as_tensor(np.repeat(np.arange(len(batch)), [len(t.negatives) for t in batch]), device=device)
+        owner = torch.as_tensor(np.repeat(np.arange(len(batch)), [len(t.negatives) for t in batch]), device=frames.device)
         unique, inverse = torch.unique(r_frames, return_inverse=True)
         q_windows = model(frames.query[q_frames.reshape(-1)]).view(*q_frames.shape, -1)
         r_windows = model(frames.reference[unique])[inverse]
-        spec = settings.sequence
-        return sequence_triplet_loss(
+        spec = self.spec
+        total = sequence_triplet_loss(
             q_windows, r_windows[: len(batch)], r_windows[len(batch) :], owner, settings.margin,
             window_part(settings.loss, spec.length, spec.offset),
         )
+        return {"total": total}
 
     def validate(self, model: FrameTransform, data: TrainingData, gt: GroundTruth, settings: TrainSettings) -> Evaluation:
         return evaluate_transform(
-            model, data.val_reference, data.val_query, gt, settings.sequence, settings.ks, settings.device,
+            model, data.val_reference, data.val_query, gt, self.spec, settings.ks, settings.device,
         )
 
     def save_model(self, folder: Path, model: FrameTransform, metadata: dict[str, Any]) -> None:
-        ckpt.save_model(folder, model, metadata)
+        save_seqmatchnet(folder, model, metadata)
 
     def load_weights(self, folder: Path) -> dict[str, torch.Tensor]:
-        model, _ = ckpt.load_model(folder)
+        model, _ = load_seqmatchnet(folder)
         return model.state_dict()
 
 

@@ -13,7 +13,7 @@ The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter 
 * loss ``seqnet_triplet_loss``: the triplet hinge on Euclidean distances of SeqNet descriptors, the mean over
   every (query, positive, negative) of the batch;
 * validation: ``retrieve_traversals(..., "seqnet", model=...)`` (faiss flat index) + ``evaluate_match``;
-* model folder: ``model.safetensors`` + ``config.json`` (``"format": "seqvpr-seqnet"``), read by ``load_seqnet``.
+* model folder: ``models.seqnet.save_seqnet`` / ``load_seqnet``.
 """
 
 from __future__ import annotations
@@ -34,20 +34,21 @@ from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training import checkpoint as ckpt
-from seqvpr.training.losses import DEFAULT_MARGIN, triplet_hinge
+from seqvpr.models.seqnet import load_seqnet, save_seqnet
+from seqvpr.training.losses import DEFAULT_MARGIN, euclidean, triplet_hinge
 from seqvpr.training.mining import DistanceRows, Triplet
+from seqvpr.training.frames import DescriptorLearner
 from seqvpr.training.trainer import (
     SettingsRecord,
+    Step,
+    TrainingContext,
     TrainingData,
-    TrainingFrames,
     TrainingMonitor,
     TrainResult,
     check_optimizer_settings,
     train_sequence_model,
 )
 
-FORMAT = "seqvpr-seqnet"
 FEATURE_BATCH = 4096  # windows per forward pass when computing mining features
 
 
@@ -119,7 +120,7 @@ def train_seqnet(
     """Train a SeqNet on ``data``'s descriptors; the best model by validation R@``select_k`` goes to ``out_dir``
     (``model.safetensors`` + ``config.json``, read by ``load_seqnet``), with ``history.csv`` and the resumable
     state of the last finished epoch (``resume=True`` continues it, or starts over when there is none)."""
-    learner = SeqNetLearner(data.dim, settings.out_dim or data.dim, settings.w)
+    learner = SeqNetLearner(data.dim, settings.out_dim or data.dim, settings.w, settings.sequence)
     return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 
 
@@ -167,11 +168,6 @@ def seqnet_rows(query_starts: np.ndarray, reference_starts: np.ndarray) -> Dista
     return rows
 
 
-def euclidean(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Row-wise Euclidean distance with a clamped sqrt (finite gradient at distance 0)."""
-    return ((a - b) ** 2).sum(-1).clamp_min(eps).sqrt()
-
-
 def seqnet_triplet_loss(
     query: torch.Tensor,
     positive: torch.Tensor,
@@ -188,13 +184,13 @@ def seqnet_triplet_loss(
 # --- the adapter -------------------------------------------------------------------------------------------------
 
 
-class SeqNetLearner:
-    """SeqNet as a ``SequenceLearner`` of ``trainer.train_sequence_model``."""
+class SeqNetLearner(DescriptorLearner):
+    """SeqNet as a learner of ``trainer.train_sequence_model``."""
 
     config_key = "seqnet"
 
-    def __init__(self, in_dim: int, out_dim: int, w: int) -> None:
-        self.in_dim, self.out_dim, self.w = in_dim, out_dim, w
+    def __init__(self, in_dim: int, out_dim: int, w: int, spec: SequenceSpec) -> None:
+        self.in_dim, self.out_dim, self.w, self.spec = in_dim, out_dim, w, spec
 
     def config(self) -> dict[str, Any]:
         return {"in_dim": self.in_dim, "out_dim": self.out_dim, "w": self.w}
@@ -204,30 +200,31 @@ class SeqNetLearner:
 
     def input_frames(self, descriptors: np.ndarray, device: torch.device) -> torch.Tensor:
         """L2-normalised frames, as ``sequence_descriptors`` feeds SeqNet at test time."""
-        return F.normalize(torch.as_tensor(np.ascontiguousarray(descriptors), dtype=torch.float32, device=device), dim=1)
+        return F.normalize(super().input_frames(descriptors, device), dim=1)
 
-    def mining_kernel(self, data: TrainingData, frames: TrainingFrames, settings: SeqNetSettings) -> DistanceRows:
-        return seqnet_rows(frames.query_starts, frames.reference_starts)
+    def mining_kernel(self, context: TrainingContext, settings: SeqNetSettings) -> DistanceRows:
+        return seqnet_rows(context.query_starts, context.reference_starts)
 
-    def mining_features(self, model: SeqNet, frames: TrainingFrames) -> tuple[torch.Tensor, torch.Tensor]:
-        length = len(frames.window)
+    def mining_features(self, model: SeqNet) -> tuple[torch.Tensor, torch.Tensor]:
+        frames, length = self.frames, self.spec.length
         return (frame_window_descriptors(model, frames.query, frames.query_starts, length),
                 frame_window_descriptors(model, frames.reference, frames.reference_starts, length))
 
     def batch_loss(
-        self, model: SeqNet, frames: TrainingFrames, batch: Sequence[Triplet], settings: SeqNetSettings
-    ) -> torch.Tensor:
-        length = settings.sequence.length
+        self, model: SeqNet, loss: None, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
+        settings: SeqNetSettings,
+    ) -> dict[str, torch.Tensor]:
+        frames, length = self.frames, self.spec.length
         queries = np.asarray([t.query for t in batch], dtype=np.int64)
         references = np.concatenate([[t.positive for t in batch], *[t.negatives for t in batch]]).astype(np.int64)
         owner = torch.as_tensor(np.repeat(np.arange(len(batch)), [len(t.negatives) for t in batch]),
                                 device=frames.device)
         q = window_descriptors(model, frames.query, frames.query_starts[queries], length)
         r = window_descriptors(model, frames.reference, frames.reference_starts[references], length)
-        return seqnet_triplet_loss(q, r[: len(batch)], r[len(batch) :], owner, settings.margin)
+        return {"total": seqnet_triplet_loss(q, r[: len(batch)], r[len(batch) :], owner, settings.margin)}
 
     def validate(self, model: SeqNet, data: TrainingData, gt: GroundTruth, settings: SeqNetSettings) -> Evaluation:
-        match = MatchSettings(settings.sequence, k=max(settings.ks), device=settings.device)
+        match = MatchSettings(self.spec, k=max(settings.ks), device=settings.device)
         result = retrieve_traversals(data.val_reference, data.val_query, "seqnet", match, model=model)
         return evaluate_match(result, gt, settings.ks)
 
@@ -237,40 +234,3 @@ class SeqNetLearner:
     def load_weights(self, folder: Path) -> dict[str, torch.Tensor]:
         model, _ = load_seqnet(folder)
         return model.state_dict()
-
-
-# --- model folder ------------------------------------------------------------------------------------------------
-
-
-def save_seqnet(folder: str | Path, model: SeqNet, metadata: dict[str, Any] | None = None) -> Path:
-    """``model.safetensors`` + ``config.json`` (format, in_dim, out_dim, w, L, then ``metadata``), written
-    atomically."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    metadata = dict(metadata or {})
-    length = metadata.get("sequence", {}).get("length")
-    ckpt.save_tensors(folder / ckpt.MODEL_FILE, model.state_dict())
-    ckpt.save_json(folder / ckpt.CONFIG_FILE, {
-        "format": FORMAT, "in_dim": model.in_dim, "out_dim": model.out_dim, "w": model.w, "L": length, **metadata,
-    })
-    return folder
-
-
-def load_seqnet(folder: str | Path) -> tuple[SeqNet, dict[str, Any]]:
-    """The SeqNet saved in ``folder`` (in eval mode) and its config; one-line errors when missing or wrong."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise SeqvprError(f"{folder}: no such model folder (expected {ckpt.MODEL_FILE} and {ckpt.CONFIG_FILE} inside)")
-    config = ckpt.read_json(folder / ckpt.CONFIG_FILE)
-    if config.get("format") != FORMAT:
-        raise SeqvprError(f"{folder / ckpt.CONFIG_FILE}: not a seqvpr SeqNet config (format {config.get('format')!r})")
-    try:
-        model = SeqNet(int(config["in_dim"]), int(config["out_dim"]), int(config["w"]))
-    except (KeyError, TypeError, ValueError) as error:
-        raise SeqvprError(f"{folder / ckpt.CONFIG_FILE}: SeqNet config lacks a valid {error}") from None
-    weights = ckpt.read_tensors(folder / ckpt.MODEL_FILE)
-    try:
-        model.load_state_dict(weights, strict=True)
-    except RuntimeError as error:
-        raise SeqvprError(f"{folder / ckpt.MODEL_FILE}: weights do not fit the config ({str(error).splitlines()[0]})") from None
-    return model.eval(), config

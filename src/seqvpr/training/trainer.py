@@ -1,28 +1,25 @@
-"""The model-agnostic sequence training loop, shared by SeqMatchNet and SeqNet (one adapter each).
+"""The one training loop, shared by SeqMatchNet, SeqNet and JIST (one ``SequenceLearner`` adapter each).
 
-One epoch visits the trainable queries (a window and a positive) in a seeded random order, in chunks of
-``refresh_every`` queries. Before each chunk the adapter computes mining features of every training frame with the
-current model (no gradients) and the injected ``SequenceMiner`` ranks all reference windows with the adapter's
-``DistanceRows`` kernel. Batches of mined triplets go through the adapter's loss, one optimiser step each
-(SGD or Adam, StepLR per epoch). After each epoch the adapter validates the model on its own split; the best
-epoch by validation Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable state
-(model, optimizer, scheduler, miner cache, history), committed by an atomically written pointer
-(``train_state.json``), so a killed run resumed with the same settings reaches the same weights.
+An epoch draws its query rounds from a seeded generator (``learner.rounds``; by default the trainable queries in a
+random order, in chunks of ``refresh_every``). Before each round the learner mines triplets with the current model
+(``learner.mine``, no gradients); batches of them go through ``learner.batch_loss``, one optimiser step each.
+After each epoch the learner validates the model on its own split; the best epoch by validation
+Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable state (model, optimizer,
+scheduler, the learner's own state such as a miner cache, trainable loss parameters, history), committed by an
+atomically written pointer (``train_state.json``), so a killed run resumed with the same settings reaches the
+same weights.
 
-What differs between models lives behind ``SequenceLearner``: building the model, its input frames, the mining
-features and kernel, the loss of a batch of triplets, validation, and the model folder + its config.
+What differs between models lives behind ``SequenceLearner``: building the model (and a loss with parameters),
+the optimiser, mining, the loss of a batch, validation, and the model folder.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
+import contextlib
 import math
-import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -34,20 +31,22 @@ from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_rad
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.io import atomic_write
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
-from seqvpr.training import checkpoint as ckpt
-from seqvpr.training.mining import DistanceRows, MiningConfig, SequenceMiner, Triplet
+from seqvpr.training.history import EpochRecord, write_history
+from seqvpr.training.mining import Triplet
+from seqvpr.training.resume import RunState, check_same, jsonable
+
+__all__ = [
+    "EpochRecord", "LoopSettings", "SequenceLearner", "SettingsRecord", "SilentMonitor", "Step", "TrainingContext",
+    "TrainingData", "TrainingMonitor", "TrainResult", "check_optimizer_settings", "train_sequence_model",
+]
 
 
 class SettingsRecord:
     """What every training-settings dataclass shares: a JSON-ready dict, and the part a resume must match."""
 
     def as_dict(self) -> dict[str, Any]:
-        values = asdict(self)  # type: ignore[call-overload]
-        values["ks"] = list(self.ks)  # type: ignore[attr-defined]
-        values["sequence"]["velocities"] = list(self.sequence.velocities)  # type: ignore[attr-defined]
-        return values
+        return jsonable(asdict(self))  # type: ignore[call-overload]
 
     def resume_key(self) -> dict[str, Any]:
         """What must not change when a run is resumed (everything but the number of epochs and the device)."""
@@ -56,7 +55,9 @@ class SettingsRecord:
 
 @dataclass(frozen=True)
 class TrainingData:
-    """Training and validation traversals with their radii (positives, negatives, validation ground truth)."""
+    """Training and validation traversals with their radii (positives, negatives, validation ground truth).
+    Descriptor models need descriptors on all four, JIST needs images; traversals that carry descriptors must
+    agree on their size."""
 
     reference: Traversal
     query: Traversal
@@ -67,18 +68,7 @@ class TrainingData:
     val_radius: Radius
 
     def __post_init__(self) -> None:
-        for name in ("reference", "query", "val_reference", "val_query"):
-            traversal = getattr(self, name)
-            if traversal.descriptors is None:
-                raise SeqvprError(f"{traversal.source or name}: training needs descriptors (describe the images first)")
-        dim = self.reference.descriptors.shape[1]
-        for name in ("query", "val_reference", "val_query"):
-            other = getattr(self, name)
-            if other.descriptors.shape[1] != dim:
-                raise SeqvprError(
-                    f"descriptor dimensions differ: {self.reference.source or 'reference'} has {dim}, "
-                    f"{other.source or name} ({name.replace('_', ' ')}) has {other.descriptors.shape[1]}"
-                )
+        self._check_dimensions()
         if self.negative_radius.unit != self.positive_radius.unit:
             raise SeqvprError("positive and negative radii must have the same unit (both m or both f)")
         if self.negative_radius.value < self.positive_radius.value:
@@ -86,25 +76,30 @@ class TrainingData:
                 f"negative radius {self.negative_radius} is smaller than the positive radius {self.positive_radius}"
             )
 
+    def traversals(self) -> dict[str, Traversal]:
+        return {name: getattr(self, name) for name in ("reference", "query", "val_reference", "val_query")}
+
+    def _check_dimensions(self) -> None:
+        described = {name: t for name, t in self.traversals().items() if t.descriptors is not None}
+        dims = {name: t.descriptors.shape[1] for name, t in described.items()}
+        if len(set(dims.values())) > 1:
+            first, *others = described
+            odd = next(name for name in others if dims[name] != dims[first])
+            raise SeqvprError(
+                f"descriptor dimensions differ: {described[first].source or first} has {dims[first]}, "
+                f"{described[odd].source or odd} ({odd.replace('_', ' ')}) has {dims[odd]}"
+            )
+
+    def require_descriptors(self) -> None:
+        """Fail with one line unless all four traversals carry descriptors."""
+        for name, traversal in self.traversals().items():
+            if traversal.descriptors is None:
+                raise SeqvprError(f"{traversal.source or name}: training needs descriptors (describe the images first)")
+
     @property
     def dim(self) -> int:
+        self.require_descriptors()
         return int(self.reference.descriptors.shape[1])
-
-
-@dataclass
-class EpochRecord:
-    """What one epoch did: loss, triplets, skipped queries, time split, validation recall."""
-
-    epoch: int
-    loss: float
-    triplets: int
-    queries_used: int
-    queries_skipped: int
-    lr: float
-    epoch_seconds: float
-    mining_seconds: float
-    features_seconds: float
-    recall: dict[int, float]
 
 
 @dataclass(frozen=True)
@@ -142,21 +137,10 @@ class SilentMonitor:
 
 
 class LoopSettings(Protocol):
-    """The fields of a (frozen dataclass) settings object the loop reads; each model's settings class has them."""
+    """The fields of a (frozen dataclass) settings object the loop itself reads."""
 
-    sequence: SequenceSpec
-    margin: float
-    negatives: int
-    negative_pool: int | None
-    refresh_every: int | None  # None: mine once per epoch
     batch_size: int
     epochs: int
-    optimizer: str
-    lr: float
-    momentum: float
-    weight_decay: float
-    lr_step: int
-    lr_gamma: float
     select_k: int
     ks: tuple[int, ...]
     seed: int
@@ -168,67 +152,106 @@ class LoopSettings(Protocol):
 
 
 @dataclass(frozen=True)
-class TrainingFrames:
-    """The training frames on the device as the adapter prepared them, with every frame's window start (-1: none)."""
+class Step:
+    """Where an optimiser step is: its epoch (1-based) and its index among all steps of the run (0-based)."""
 
-    query: torch.Tensor
-    reference: torch.Tensor
+    epoch: int
+    index: int
+
+
+@dataclass(frozen=True)
+class TrainingContext:
+    """What the loop derives from the data once, for the learner: window starts of the training traversals under
+    the learner's spec (-1: no window), positives and non-negatives (within the negative radius), the device."""
+
+    data: TrainingData
+    spec: SequenceSpec
     query_starts: np.ndarray
     reference_starts: np.ndarray
-    window: torch.Tensor  # arange(L) on the device
+    positives: GroundTruth
+    near: GroundTruth
     device: torch.device
 
-    def query_windows(self, rows: np.ndarray) -> torch.Tensor:
-        """Frame rows [n, L] of the windows of query rows ``rows``."""
-        return torch.as_tensor(self.query_starts[rows], device=self.device)[:, None] + self.window
 
-    def reference_windows(self, rows: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(self.reference_starts[rows], device=self.device)[:, None] + self.window
-
-
-class SequenceLearner(Protocol):
-    """The model-specific parts of a sequence training run (SeqMatchNet, SeqNet)."""
+class SequenceLearner:
+    """The model-specific parts of a training run. Subclasses set ``config_key`` and ``spec`` and implement the
+    methods that raise ``NotImplementedError``; the others are the defaults SeqMatchNet and SeqNet use."""
 
     #: key of the model config in ``train_state.json`` (checked on resume)
-    config_key: str
+    config_key: str = "model"
+    #: the training windows
+    spec: SequenceSpec = SequenceSpec(1)
+    #: seconds of the current epoch's mining spent computing features with the model (the loop resets it)
+    features_seconds: float = 0.0
 
     def config(self) -> dict[str, Any]:
         """The model config that must match when a run is resumed (JSON-able)."""
-        ...
+        raise NotImplementedError
+
+    def check_data(self, data: TrainingData) -> None:
+        """Fail with one line when the data lacks what this model trains from."""
+
+    def prepare(self, context: TrainingContext, settings: LoopSettings) -> None:
+        """Set up what mining and the loss need (frames on the device, the miner)."""
 
     def build_model(self, settings: LoopSettings) -> nn.Module:
         """A fresh model (called right after ``torch.manual_seed(settings.seed)``; the loop moves it to the device)."""
-        ...
+        raise NotImplementedError
 
-    def input_frames(self, descriptors: np.ndarray, device: torch.device) -> torch.Tensor:
-        """A traversal's frame descriptors as the model's training input on ``device``."""
-        ...
+    def build_loss(self, settings: LoopSettings) -> nn.Module | None:
+        """A loss with trainable parameters (built right after the model), or None."""
+        return None
 
-    def mining_kernel(self, data: TrainingData, frames: TrainingFrames, settings: LoopSettings) -> DistanceRows:
-        """The miner's kernel over ``mining_features`` outputs."""
-        ...
+    def build_optimizer(
+        self, model: nn.Module, loss: nn.Module | None, settings: LoopSettings
+    ) -> tuple[torch.optim.Optimizer, Any]:
+        """The optimiser and its per-epoch scheduler (or None): SGD or Adam with StepLR, from the settings."""
+        return sgd_or_adam(model, settings)
 
-    def mining_features(self, model: nn.Module, frames: TrainingFrames) -> tuple[torch.Tensor, torch.Tensor]:
-        """Query and reference features for the kernel (called in eval mode under ``torch.no_grad``)."""
-        ...
+    def rounds(self, trainable: np.ndarray, rng: np.random.Generator, settings: LoopSettings) -> list[np.ndarray]:
+        """The query rows of each mining round of one epoch: a random order in chunks of ``refresh_every``."""
+        order = rng.permutation(trainable)
+        refresh = getattr(settings, "refresh_every", None) or max(len(order), 1)
+        return [order[begin : begin + refresh] for begin in range(0, len(order), refresh)]
+
+    def mine(self, model: nn.Module, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
+        """Triplets for ``queries`` with the current model (called in eval mode under ``torch.no_grad``)."""
+        raise NotImplementedError
+
+    def batches(self, triplets: list[Triplet], settings: LoopSettings) -> list[list[Triplet]]:
+        """The round's triplets in optimiser batches of ``batch_size`` (the last one may be smaller)."""
+        size = settings.batch_size
+        return [triplets[begin : begin + size] for begin in range(0, len(triplets), size)]
 
     def batch_loss(
-        self, model: nn.Module, frames: TrainingFrames, batch: Sequence[Triplet], settings: LoopSettings
-    ) -> torch.Tensor:
-        """The differentiable loss of a batch of mined triplet groups (model in train mode)."""
-        ...
+        self, model: nn.Module, loss: nn.Module | None, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
+        settings: LoopSettings,
+    ) -> dict[str, torch.Tensor]:
+        """The differentiable loss of a batch (``"total"``, plus named parts) at optimiser step ``step``."""
+        raise NotImplementedError
+
+    def mixed_precision(self, settings: LoopSettings) -> bool:
+        """Whether steps run under CUDA autocast with a gradient scaler."""
+        return False
 
     def validate(self, model: nn.Module, data: TrainingData, gt: GroundTruth, settings: LoopSettings) -> Evaluation:
         """Recall@``settings.ks`` on the validation traversals."""
-        ...
+        raise NotImplementedError
 
     def save_model(self, folder: Path, model: nn.Module, metadata: dict[str, Any]) -> None:
         """Write the model folder (weights + config with ``metadata``)."""
-        ...
+        raise NotImplementedError
 
     def load_weights(self, folder: Path) -> dict[str, torch.Tensor]:
         """The state dict saved by ``save_model`` in ``folder``."""
-        ...
+        raise NotImplementedError
+
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        """The learner's own resumable state (e.g. a miner's negative cache)."""
+        return {}
+
+    def load_state_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
+        pass
 
 
 def train_sequence_model(
@@ -244,38 +267,47 @@ def train_sequence_model(
 
     ``out_dir`` then holds the model folder files, ``history.csv``, and the resumable state of the last finished
     epoch. ``resume`` continues from that state (a run killed before its first state starts over, so
-    ``resume=True`` is always safe to pass).
+    ``resume=True`` is always safe to pass). Epoch 0 is the untrained model; ties keep the earlier epoch.
     """
     out = Path(out_dir)
     monitor = monitor or SilentMonitor()
     run = _Run(data, learner, settings)
-    settings = run.settings
     monitor.start_run(data, len(run.trainable))
-    history: list[EpochRecord] = []
-    best_epoch, best_recall = 0, {}
-    if resume and (out / ckpt.STATE_JSON).is_file():
-        history, best_epoch, best_recall = run.restore(out)
-    elif (out / ckpt.STATE_JSON).exists():
+    if resume and run.state.exists(out):
+        history, best_epoch, best_recall = run.state.restore(out)
+    elif run.state.exists(out):
         raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
-    if not history:
-        record = run.validate_record(0)
-        history, best_epoch, best_recall = [record], 0, record.recall
-        run.save_best(out, 0, best_recall)
-        run.save_state(out, history, best_epoch, best_recall)
-        monitor.end_epoch(record)
-    for epoch in range(len(history), settings.epochs + 1):
-        record = run.train_epoch(epoch, monitor)
+    else:
+        history = [run.validate_record(0)]
+        best_epoch, best_recall = 0, history[0].recall
+        run.state.save_best(out, 0, best_recall)
+        run.state.save(out, history, best_epoch, best_recall)
+        monitor.end_epoch(history[0])
+    select = run.settings.select_k
+    for epoch in range(len(history), run.settings.epochs + 1):
+        record = run.train_epoch(epoch, sum(r.steps for r in history), monitor)
         history.append(record)
-        if record.recall[settings.select_k] > best_recall[settings.select_k]:
+        if record.recall[select] > best_recall[select]:
             best_epoch, best_recall = epoch, record.recall
-            run.save_best(out, epoch, best_recall)
-        run.save_state(out, history, best_epoch, best_recall)
+            run.state.save_best(out, epoch, best_recall)
+        run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(record)
     return TrainResult(out, best_epoch, best_recall, history)
 
 
-def check_optimizer_settings(settings: LoopSettings) -> None:
-    """The loop's own checks of a settings object (each settings class calls this from ``__post_init__``)."""
+def sgd_or_adam(model: nn.Module, settings: Any) -> tuple[torch.optim.Optimizer, Any]:
+    """SGD (with momentum) or Adam over the model's parameters, and StepLR every ``lr_step`` epochs."""
+    if settings.optimizer == "sgd":
+        optimizer = torch.optim.SGD(
+            model.parameters(), lr=settings.lr, momentum=settings.momentum, weight_decay=settings.weight_decay
+        )
+    else:
+        optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    return optimizer, torch.optim.lr_scheduler.StepLR(optimizer, settings.lr_step, settings.lr_gamma)
+
+
+def check_optimizer_settings(settings: Any) -> None:
+    """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``)."""
     for name in ("refresh_every", "batch_size", "lr_step", "select_k"):
         if getattr(settings, name) is not None and getattr(settings, name) < 1:
             raise SeqvprError(f"{name} must be >= 1, got {getattr(settings, name)}")
@@ -287,202 +319,125 @@ def check_optimizer_settings(settings: LoopSettings) -> None:
         raise SeqvprError(f"learning rate must be a positive number, got {settings.lr}")
 
 
+def training_context(data: TrainingData, spec: SequenceSpec, device: torch.device) -> TrainingContext:
+    """Window starts (every traversal must have some windows), positives and non-negatives of the training pair."""
+    for name, traversal in data.traversals().items():
+        starts = window_starts(traversal.segment_ids, spec.length, spec.offset, spec.boundary)
+        require_windows(starts, spec.length, f"{traversal.source or name} ({name.replace('_', ' ')})",
+                        traversal.segment_ids)
+    return TrainingContext(
+        data, spec,
+        window_starts(data.query.segment_ids, spec.length, spec.offset, spec.boundary),
+        window_starts(data.reference.segment_ids, spec.length, spec.offset, spec.boundary),
+        ground_truth_within_radius(data.query, data.reference, data.positive_radius),
+        ground_truth_within_radius(data.query, data.reference, data.negative_radius),
+        device,
+    )
+
+
+@dataclass
+class _Epoch:
+    """Running totals of one epoch."""
+
+    losses: list[float] = field(default_factory=list)
+    parts: dict[str, list[float]] = field(default_factory=dict)
+    triplets: int = 0
+    used: int = 0
+    steps: int = 0
+    mining_seconds: float = 0.0
+
+
 class _Run:
-    """The state of one training run: data on the device, model, optimizer, scheduler, miner."""
+    """One training run: the learner prepared on the data, the model, its optimiser and the run's state files."""
 
     def __init__(self, data: TrainingData, learner: SequenceLearner, settings: LoopSettings) -> None:
         if settings.select_k not in settings.ks:
+            from dataclasses import replace
+
             settings = replace(settings, ks=tuple(sorted({*settings.ks, settings.select_k})))  # type: ignore[type-var]
+        learner.check_data(data)
         self.data, self.learner, self.settings = data, learner, settings
-        spec = settings.sequence
-        device = torch.device(settings.device)
-        self.device = device
-        for name in ("query", "reference", "val_query", "val_reference"):
-            traversal = getattr(data, name)
-            starts = window_starts(traversal.segment_ids, spec.length, spec.offset, spec.boundary)
-            require_windows(starts, spec.length, f"{traversal.source or name} ({name.replace('_', ' ')})",
-                            traversal.segment_ids)
-        self.frames = TrainingFrames(
-            learner.input_frames(data.query.descriptors, device),
-            learner.input_frames(data.reference.descriptors, device),
-            window_starts(data.query.segment_ids, spec.length, spec.offset, spec.boundary),
-            window_starts(data.reference.segment_ids, spec.length, spec.offset, spec.boundary),
-            torch.arange(spec.length, device=device),
-            device,
-        )
-        positives = ground_truth_within_radius(data.query, data.reference, data.positive_radius)
-        near = ground_truth_within_radius(data.query, data.reference, data.negative_radius)
-        self.trainable = np.flatnonzero((self.frames.query_starts >= 0) & positives.has_positive())
+        self.device = torch.device(settings.device)
+        context = training_context(data, learner.spec, self.device)
+        self.trainable = np.flatnonzero((context.query_starts >= 0) & context.positives.has_positive())
         if len(self.trainable) == 0:
             raise SeqvprError(
-                f"no training query has both a window of {spec.length} frames and a positive within "
+                f"no training query has both a window of {learner.spec.length} frames and a positive within "
                 f"{data.positive_radius}"
             )
-        kernel = learner.mining_kernel(data, self.frames, settings)
-        mining = MiningConfig(settings.negatives, settings.negative_pool, settings.margin)
-        self.miner = SequenceMiner(kernel, self.frames.query_starts, positives, near, mining)
+        learner.prepare(context, settings)
         self.val_gt = ground_truth_within_radius(data.val_query, data.val_reference, data.val_radius)
         torch.manual_seed(settings.seed)
-        self.model = learner.build_model(settings).to(device)
-        self.optimizer = _optimizer(self.model, settings)
-        self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, settings.lr_step, settings.lr_gamma)
+        self.model = learner.build_model(settings).to(self.device)
+        self.loss = learner.build_loss(settings)
+        if self.loss is not None:
+            self.loss = self.loss.to(self.device)
+        self.optimizer, self.scheduler = learner.build_optimizer(self.model, self.loss, settings)
+        self.scaler = torch.amp.GradScaler("cuda") if learner.mixed_precision(settings) else None
+        self.state = RunState(self)
 
-    # --- one epoch -----------------------------------------------------------------------------------------
-    def train_epoch(self, epoch: int, monitor: TrainingMonitor) -> EpochRecord:
-        settings = self.settings
+    def train_epoch(self, epoch: int, first_step: int, monitor: TrainingMonitor) -> EpochRecord:
         started = time.perf_counter()
-        rng = np.random.default_rng([settings.seed, epoch])
-        order = rng.permutation(self.trainable)
-        monitor.start_epoch(epoch, settings.epochs, len(order))
-        losses: list[float] = []
-        triplet_count = used = 0
-        mining_s = features_s = 0.0
+        rng = np.random.default_rng([self.settings.seed, epoch])
+        rounds = self.learner.rounds(self.trainable, rng, self.settings)
+        monitor.start_epoch(epoch, self.settings.epochs, sum(len(r) for r in rounds))
         lr = self.optimizer.param_groups[0]["lr"]
-        refresh = settings.refresh_every or max(len(order), 1)
-        for begin in range(0, len(order), refresh):
-            chunk = order[begin : begin + refresh]
+        totals = _Epoch()
+        self.learner.features_seconds = 0.0
+        for queries in rounds:
             tick = time.perf_counter()
-            query_feat, reference_feat = self._features()
-            features_s += time.perf_counter() - tick
-            tick = time.perf_counter()
-            triplets = self.miner.mine(query_feat, reference_feat, chunk, rng)
-            mining_s += time.perf_counter() - tick
-            used += len(triplets)
-            for batch_begin in range(0, len(triplets), settings.batch_size):
-                batch = triplets[batch_begin : batch_begin + settings.batch_size]
-                loss = self._step(batch)
-                losses.append(loss)
-                triplet_count += sum(len(t.negatives) for t in batch)
-                monitor.advance(len(batch), loss)
-            monitor.advance(len(chunk) - len(triplets), None)
-        self.scheduler.step()
-        record = self.validate_record(epoch)
-        record.loss = float(np.mean(losses)) if losses else 0.0
-        record.triplets, record.queries_used = triplet_count, used
-        record.queries_skipped = len(order) - used
-        record.lr, record.mining_seconds, record.features_seconds = lr, mining_s, features_s
-        record.epoch_seconds = time.perf_counter() - started
-        return record
+            triplets = self._mine(queries, rng)
+            totals.mining_seconds += time.perf_counter() - tick
+            totals.used += len(triplets)
+            for batch in self.learner.batches(triplets, self.settings):
+                self._step(batch, Step(epoch, first_step + totals.steps), rng, totals)
+                totals.triplets += sum(len(t.negatives) for t in batch)
+                monitor.advance(len(batch), totals.losses[-1])
+            monitor.advance(len(queries) - len(triplets), None)
+        if self.scheduler is not None:
+            self.scheduler.step()
+        return self._record(epoch, lr, totals, sum(len(r) for r in rounds), time.perf_counter() - started)
 
-    def _features(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mining features of every training frame with the current model (no gradients)."""
+    def _mine(self, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
         self.model.eval()
         with torch.no_grad():
-            return self.learner.mining_features(self.model, self.frames)
+            return self.learner.mine(self.model, queries, rng)
 
-    def _step(self, batch: Sequence[Triplet]) -> float:
-        """One optimiser step on a batch of mined triplet groups; returns the loss."""
+    def _step(self, batch: Sequence[Triplet], step: Step, rng: np.random.Generator, totals: _Epoch) -> None:
+        """One optimiser step on a batch of mined triplets (under autocast with a scaler when asked)."""
         self.model.train()
-        loss = self.learner.batch_loss(self.model, self.frames, batch, self.settings)
+        if self.loss is not None:
+            self.loss.train()
+        autocast = torch.autocast("cuda", dtype=torch.float16) if self.scaler else contextlib.nullcontext()
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        return float(loss.detach())
+        with autocast:
+            parts = self.learner.batch_loss(self.model, self.loss, batch, step, rng, self.settings)
+        total = parts["total"]
+        if self.scaler is not None:
+            self.scaler.scale(total).backward()
+            self.scaler.step(self.optimizer)
+            self.scaler.update()
+        else:
+            total.backward()
+            self.optimizer.step()
+        totals.losses.append(float(total.detach()))
+        for name, value in parts.items():
+            if name != "total":
+                totals.parts.setdefault(name, []).append(float(value.detach()))
+        totals.steps += 1
 
-    # --- validation ----------------------------------------------------------------------------------------
+    def _record(self, epoch: int, lr: float, totals: _Epoch, queries: int, seconds: float) -> EpochRecord:
+        record = self.validate_record(epoch)
+        record.loss = float(np.mean(totals.losses)) if totals.losses else 0.0
+        record.triplets, record.queries_used, record.queries_skipped = totals.triplets, totals.used, queries - totals.used
+        record.features_seconds = self.learner.features_seconds
+        record.lr, record.mining_seconds = lr, totals.mining_seconds - record.features_seconds
+        record.steps = totals.steps
+        record.parts = {name: float(np.mean(values)) for name, values in totals.parts.items()}
+        record.epoch_seconds = seconds
+        return record
+
     def validate_record(self, epoch: int) -> EpochRecord:
+        self.model.eval()
         evaluation = self.learner.validate(self.model, self.data, self.val_gt, self.settings)
         return EpochRecord(epoch, 0.0, 0, 0, 0, self.optimizer.param_groups[0]["lr"], 0.0, 0.0, 0.0, evaluation.recall)
-
-    # --- checkpoints ---------------------------------------------------------------------------------------
-    def metadata(self, epoch: int, recall: dict[int, float]) -> dict[str, Any]:
-        spec = self.settings.sequence
-        return {
-            "sequence": {"length": spec.length, "align": spec.align, "boundary": spec.boundary},
-            "epoch": epoch,
-            "validation_recall": {str(k): v for k, v in recall.items()},
-            "training": self.settings.as_dict(),
-            "data": {
-                "reference": self.data.reference.source, "query": self.data.query.source,
-                "val_reference": self.data.val_reference.source, "val_query": self.data.val_query.source,
-                "positive_radius": str(self.data.positive_radius), "negative_radius": str(self.data.negative_radius),
-                "val_radius": str(self.data.val_radius),
-            },
-        }
-
-    def save_best(self, out: Path, epoch: int, recall: dict[int, float]) -> None:
-        self.learner.save_model(out, self.model, self.metadata(epoch, recall))
-
-    def save_state(self, out: Path, history: list[EpochRecord], best_epoch: int, best_recall: dict[int, float]) -> None:
-        """A complete state folder for this epoch, then the pointer to it (the commit), then old folders go."""
-        epoch = history[-1].epoch
-        folder = out / "state" / f"epoch_{epoch:04d}"
-        self.learner.save_model(folder, self.model, self.metadata(epoch, history[-1].recall))
-        tensors, rest = ckpt.flatten_optimizer(self.optimizer.state_dict())
-        tensors["miner.cache"] = torch.as_tensor(self.miner.cache_array(len(self.data.query)))
-        ckpt.save_tensors(folder / ckpt.STATE_FILE, tensors)
-        write_history(out / "history.csv", history)
-        ckpt.save_json(out / ckpt.STATE_JSON, {
-            "state_dir": str(folder.relative_to(out)),
-            "settings": self.settings.resume_key(),
-            self.learner.config_key: self.learner.config(),
-            "optimizer": rest,
-            "scheduler": self.scheduler.state_dict(),
-            "best_epoch": best_epoch,
-            "best_recall": {str(k): v for k, v in best_recall.items()},
-            "history": [asdict(r) for r in history],
-        })
-        for old in (out / "state").iterdir():
-            if old != folder:
-                shutil.rmtree(old, ignore_errors=True)
-
-    def restore(self, out: Path) -> tuple[list[EpochRecord], int, dict[int, float]]:
-        """Load the last finished epoch's state; the run's settings must match the saved ones."""
-        state = ckpt.read_json(out / ckpt.STATE_JSON)
-        check_same(state["settings"], self.settings.resume_key(), out / ckpt.STATE_JSON)
-        key = self.learner.config_key
-        if key not in state:
-            raise SeqvprError(f"{out / ckpt.STATE_JSON}: not a state of this kind of run (no {key!r} entry)")
-        check_same(state[key], self.learner.config(), out / ckpt.STATE_JSON)
-        folder = out / state["state_dir"]
-        self.model.load_state_dict(self.learner.load_weights(folder))
-        tensors = ckpt.read_tensors(folder / ckpt.STATE_FILE)
-        self.optimizer.load_state_dict(ckpt.unflatten_optimizer(tensors, state["optimizer"]))
-        self.scheduler.load_state_dict(state["scheduler"])
-        self.miner.load_cache(tensors["miner.cache"].numpy())
-        history = [_record_from_dict(r) for r in state["history"]]
-        best = {int(k): float(v) for k, v in state["best_recall"].items()}
-        return history, int(state["best_epoch"]), best
-
-
-def _optimizer(model: nn.Module, settings: LoopSettings) -> torch.optim.Optimizer:
-    if settings.optimizer == "sgd":
-        return torch.optim.SGD(
-            model.parameters(), lr=settings.lr, momentum=settings.momentum, weight_decay=settings.weight_decay
-        )
-    return torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
-
-
-def check_same(saved: dict, current: dict, path: Path) -> None:
-    """Resuming with other settings would not continue the same run: name the first differing field."""
-    current = _jsonable(current)
-    for key in sorted(set(saved) | set(current)):
-        if saved.get(key) != current.get(key):
-            raise SeqvprError(
-                f"{path}: cannot resume with {key}={current.get(key)!r}; the run was started with {saved.get(key)!r}"
-            )
-
-
-def _jsonable(values: dict) -> dict:
-    return json.loads(json.dumps(values, default=str))
-
-
-def _record_from_dict(values: dict) -> EpochRecord:
-    values = dict(values)
-    values["recall"] = {int(k): float(v) for k, v in values["recall"].items()}
-    return EpochRecord(**values)
-
-
-def write_history(path: Path, history: list[EpochRecord]) -> None:
-    """One CSV row per epoch (epoch 0 is the untrained model)."""
-    ks = sorted(history[0].recall)
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(["epoch", "loss", "triplets", "queries_used", "queries_skipped", "lr", "epoch_s", "mining_s",
-                     "features_s", *[f"val_R@{k}" for k in ks]])
-    for r in history:
-        writer.writerow([r.epoch, f"{r.loss:.6f}", r.triplets, r.queries_used, r.queries_skipped, f"{r.lr:.3g}",
-                         f"{r.epoch_seconds:.3f}", f"{r.mining_seconds:.3f}", f"{r.features_seconds:.3f}",
-                         *[f"{r.recall[k]:.4f}" for k in ks]])
-    with atomic_write(path) as handle:
-        handle.write(buffer.getvalue())

@@ -14,8 +14,8 @@ from seqvpr.cli import cli
 from seqvpr.cli_training import jist_data, train_jist_command, train_seqmatchnet_command, train_seqnet_command
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
 from seqvpr.data.sources import load_traversal, save_traversal_npz
-from seqvpr.data.synthetic import generate_route
-from seqvpr.data.world import write_demo_world
+from seqvpr.synthetic.routes import generate_route
+from seqvpr.synthetic.world import write_demo_world
 from seqvpr.pipeline import MatchSettings, evaluate_match, rerank_match, retrieve_traversals
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.jist import JistTrainSettings, evaluate_jist, load_jist

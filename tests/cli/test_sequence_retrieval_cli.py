@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from seqvpr.data.synthetic import write_demo_route
+from seqvpr.synthetic.routes import write_demo_route
 from tests.helpers import run_cli
 
 

@@ -29,7 +29,7 @@ from seqvpr.pipeline import (
     match_traversals,
     transform_traversal,
 )
-from seqvpr.report import DistanceView, MethodResult, QueryExample, write_report
+from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
 
 TRAVERSALS = ("train_reference", "train_query", "test_reference", "test_query")
@@ -80,7 +80,7 @@ class DemoResult:
 
 def render_world(out: Path, settings: DemoSettings, progress: ProgressFactory | None = None) -> dict[str, Path]:
     """The four image folders (train/test route x reference/query) of the seeded world, under ``out``."""
-    from seqvpr.data.world import write_demo_world
+    from seqvpr.synthetic.world import write_demo_world
 
     return write_demo_world(out, frames=settings.frames, width=settings.width, height=settings.height,
                             seed=settings.seed, query_condition=settings.condition, progress_factory=progress)
@@ -109,7 +109,7 @@ def match_and_score(
 
 def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Path, monitor=None):
     """SeqMatchNet on the training route (first 75 % of frames train, the rest validate); returns the best model."""
-    from seqvpr.training.checkpoint import load_model
+    from seqvpr.models.seqmatchnet import load_seqmatchnet as load_model
     from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
 
     reference, query = world["train_reference"], world["train_query"]

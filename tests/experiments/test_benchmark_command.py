@@ -4,8 +4,8 @@ import csv
 
 import pytest
 
-from seqvpr.benchmark import read_config
-from seqvpr.data.synthetic import write_demo_route
+from seqvpr.experiments.benchmark import read_config
+from seqvpr.synthetic.routes import write_demo_route
 from tests.helpers import raises_one_line, run_cli
 
 
@@ -75,7 +75,7 @@ def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(mo
     assert "| jist (L=5) | n/a | n/a |" in stdout
     assert rows["seqnet"]["error"] == "" and rows["hvpr"]["error"] == ""
     # oracle: the trained SeqNet, reloaded, scored through the library on the test split
-    from seqvpr.benchmark import load_splits, read_config
+    from seqvpr.experiments.benchmark import load_splits, read_config
     from seqvpr.data.groundtruth import ground_truth_within_radius
 
     splits = load_splits(read_config(config).datasets[0])
@@ -106,8 +106,8 @@ min_images = 2
 
 
 def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, capsys, tmp_path):
-    from seqvpr.benchmark import jist_settings, load_splits, read_config
-    from seqvpr.data.world import write_demo_world
+    from seqvpr.experiments.benchmark import jist_settings, load_splits, read_config
+    from seqvpr.synthetic.world import write_demo_world
     from seqvpr.training.jist import evaluate_jist, load_jist
 
     paths = write_demo_world(tmp_path / "world", frames=150, width=64, height=48, seed=0, query_condition="dusk")

@@ -16,7 +16,8 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals
-from seqvpr.training import checkpoint as ckpt
+from seqvpr.models.seqmatchnet import load_seqmatchnet
+from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import (
     TrainingData,
     TrainingMonitor,
@@ -75,10 +76,10 @@ def run_ablation(
         variant = replace(settings, loss=loss, mining=mining)
         result = train_seqmatchnet(
             data, transform, variant, folder,
-            resume=(folder / ckpt.STATE_JSON).is_file(),
+            resume=(folder / STATE_JSON).is_file(),
             monitor=monitor(name) if monitor else None,
         )
-        model, _ = ckpt.load_model(folder)
+        model, _ = load_seqmatchnet(folder)
         test = evaluate_transform(model, test_reference, test_query, test_gt, spec, settings.ks, settings.device)
         rows.append(AblationRow(f"{loss}/{mining}", loss, mining, test, result))
     return rows

@@ -13,7 +13,7 @@ from PIL import Image
 
 from seqvpr import report
 from seqvpr.errors import SeqvprError
-from seqvpr.report import DistanceView, MethodResult, QueryExample, write_report
+from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 
 
 class PageParser(HTMLParser):

@@ -123,7 +123,7 @@ def test_description_file_with_ground_truth_table(monkeypatch, capsys, tmp_path,
 
 
 def test_traversal_npz_keeps_positions_for_metric_radius(monkeypatch, capsys, tmp_path):
-    from seqvpr.data.synthetic import write_demo_route
+    from seqvpr.synthetic.routes import write_demo_route
 
     ref, qry = write_demo_route(tmp_path, n_frames=200, seed=3)
     code, stdout, _ = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "10m", "-L", "5", "--json", "--out", tmp_path / "o")

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.data.loaders.image_folder import load_image_folder
-from seqvpr.data.world import (
+from seqvpr.synthetic.world import (
     CONDITIONS,
     DRIVE_LANE,
     Drive,

@@ -240,7 +240,7 @@ class MethodRunner:
         """SeqMatchNet trained on the train split at the config's length, best epoch on the select split."""
         def make():
             from seqvpr.models.seqmatchnet import TransformConfig
-            from seqvpr.training.checkpoint import load_model
+            from seqvpr.models.seqmatchnet import load_seqmatchnet as load_model
             from seqvpr.training.seqmatchnet import TrainSettings, train_seqmatchnet
 
             data = self._training_data()

@@ -10,7 +10,9 @@ from seqvpr.data.groundtruth import Radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, apply_transform
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training import checkpoint as ckpt
+from seqvpr.models import files as ckpt
+from seqvpr.models.seqmatchnet import load_seqmatchnet, save_seqmatchnet
+from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
 from tests.helpers import raises_one_line, run_cli
 
@@ -64,8 +66,8 @@ def test_resume_after_kill_gives_the_same_weights(tmp_path):
 
     train_seqmatchnet(data, TransformConfig(16), replace(SMALL, epochs=1), tmp_path / "killed")
     resumed = train_seqmatchnet(data, TransformConfig(16), SMALL, tmp_path / "killed", resume=True)
-    state_whole = ckpt.read_json(tmp_path / "whole" / ckpt.STATE_JSON)
-    state_resumed = ckpt.read_json(tmp_path / "killed" / ckpt.STATE_JSON)
+    state_whole = ckpt.read_json(tmp_path / "whole" / STATE_JSON)
+    state_resumed = ckpt.read_json(tmp_path / "killed" / STATE_JSON)
     last_whole = weights(tmp_path / "whole" / state_whole["state_dir"])
     last_resumed = weights(tmp_path / "killed" / state_resumed["state_dir"])
     for key in last_whole:
@@ -100,22 +102,22 @@ def test_resume_refuses_other_settings_a_second_run_and_starts_over_without_stat
 def test_saved_model_applies_identically_after_reload(tmp_path):
     model = FrameTransform(TransformConfig(12, out_dim=7, hidden=(9,)), seed=3)
     x = np.random.default_rng(0).normal(size=(30, 12)).astype(np.float32)
-    ckpt.save_model(tmp_path / "m", model, {"sequence": {"length": 5}})
-    loaded, config = ckpt.load_model(tmp_path / "m")
+    save_seqmatchnet(tmp_path / "m", model, {"sequence": {"length": 5}})
+    loaded, config = load_seqmatchnet(tmp_path / "m")
     assert np.array_equal(apply_transform(model, x), apply_transform(loaded, x))
     assert config["sequence"]["length"] == 5 and config["transform"]["out_dim"] == 7
 
 
 def test_model_loading_errors_are_one_line(tmp_path):
-    raises_one_line("no such model folder", ckpt.load_model, tmp_path / "absent")
-    ckpt.save_model(tmp_path / "m", FrameTransform(TransformConfig(4)), {})
+    raises_one_line("no such model folder", load_seqmatchnet, tmp_path / "absent")
+    save_seqmatchnet(tmp_path / "m", FrameTransform(TransformConfig(4)), {})
     (tmp_path / "m" / ckpt.MODEL_FILE).write_bytes(b"garbage")
-    raises_one_line("not a readable safetensors file", ckpt.load_model, tmp_path / "m")
+    raises_one_line("not a readable safetensors file", load_seqmatchnet, tmp_path / "m")
     config = json.loads((tmp_path / "m" / ckpt.CONFIG_FILE).read_text())
-    ckpt.save_model(tmp_path / "m2", FrameTransform(TransformConfig(4)), {})
+    save_seqmatchnet(tmp_path / "m2", FrameTransform(TransformConfig(4)), {})
     config["transform"]["in_dim"] = 5
     (tmp_path / "m2" / ckpt.CONFIG_FILE).write_text(json.dumps(config))
-    raises_one_line("do not fit the config", ckpt.load_model, tmp_path / "m2")
+    raises_one_line("do not fit the config", load_seqmatchnet, tmp_path / "m2")
 
 
 def test_transform_rejects_other_dimensions():
@@ -163,7 +165,7 @@ def test_cli_train_then_match_with_the_model(monkeypatch, capsys, tmp_path, file
 def test_cli_match_with_the_model_equals_matching_transformed_descriptors(monkeypatch, capsys, tmp_path, files):
     ref, qry = files
     model = FrameTransform(TransformConfig(16), seed=5)
-    ckpt.save_model(tmp_path / "m", model, {"sequence": {"length": 3}})
+    save_seqmatchnet(tmp_path / "m", model, {"sequence": {"length": 3}})
     for name, path in (("ref_t", ref), ("qry_t", qry)):
         np.save(tmp_path / f"{name}.npy", apply_transform(model, np.load(path)))
     args = ["--radius", "1f", "-L", "3", "--json"]
@@ -222,7 +224,7 @@ def test_cli_train_names_the_file_of_other_dimension(monkeypatch, capsys, tmp_pa
 
 def test_cli_match_model_of_other_dimension(monkeypatch, capsys, tmp_path, files):
     ref, qry = files
-    ckpt.save_model(tmp_path / "m", FrameTransform(TransformConfig(8)), {})
+    save_seqmatchnet(tmp_path / "m", FrameTransform(TransformConfig(8)), {})
     code, _, err = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "1f", "--model",
                        tmp_path / "m", "--out", tmp_path / "out")
     assert code == 2 and "expects 8-D descriptors" in err and err.count("\n") == 1

@@ -7,17 +7,18 @@ import pytest
 import torch
 
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
-from seqvpr.data.synthetic import generate_route
+from seqvpr.synthetic.routes import generate_route
 from seqvpr.data.traversal import Traversal
 from seqvpr.sequences.descriptors import SeqNet, sequence_descriptors
 from seqvpr.sequences.windows import SequenceSpec, window_starts
-from seqvpr.training import checkpoint as ckpt
+from seqvpr.models import files as ckpt
+from seqvpr.models.seqmatchnet import save_seqmatchnet
+from seqvpr.models.seqnet import load_seqnet, save_seqnet
+from seqvpr.training.state import STATE_JSON
 from seqvpr.training.mining import MiningConfig, SequenceMiner
 from seqvpr.training.seqnet import (
     SeqNetSettings,
     frame_window_descriptors,
-    load_seqnet,
-    save_seqnet,
     seqnet_rows,
     seqnet_triplet_loss,
     train_seqnet,
@@ -138,7 +139,7 @@ def test_short_training_lowers_the_loss_and_improves_validation_recall(tmp_path)
 
 
 def last_state_weights(folder):
-    state = ckpt.read_json(folder / ckpt.STATE_JSON)
+    state = ckpt.read_json(folder / STATE_JSON)
     return ckpt.read_tensors(folder / state["state_dir"] / ckpt.MODEL_FILE)
 
 
@@ -153,7 +154,7 @@ def test_resume_after_kill_gives_the_same_weights(tmp_path):
         assert torch.equal(a[key], b[key]), key
     assert [r.loss for r in whole.history] == [r.loss for r in resumed.history]
     assert whole.best_epoch == resumed.best_epoch
-    state = ckpt.read_json(tmp_path / "killed" / ckpt.STATE_JSON)
+    state = ckpt.read_json(tmp_path / "killed" / STATE_JSON)
     assert state["seqnet"] == {"in_dim": 32, "out_dim": 16, "w": 2}
     raises_one_line("cannot resume with w=3", train_seqnet, data, replace(SMALL, w=3), tmp_path / "killed",
                     resume=True)
@@ -199,7 +200,7 @@ def test_bad_input_is_one_line(tmp_path):
     raises_one_line("not a readable safetensors file", load_seqnet, tmp_path / "m")
     from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
 
-    ckpt.save_model(tmp_path / "smn", FrameTransform(TransformConfig(4)), {})
+    save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(4)), {})
     raises_one_line("not a seqvpr SeqNet config", load_seqnet, tmp_path / "smn")
     data = route_data()
     raises_one_line("longer than every segment", train_seqnet, data, replace(SMALL, sequence=SequenceSpec(150)),

@@ -1,0 +1,1 @@
+"""Runners that string the library together: the benchmark, the SeqMatchNet ablation and the demo."""

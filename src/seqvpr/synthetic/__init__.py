@@ -1,0 +1,1 @@
+"""The rendered route world and synthetic route fixtures (the demo and the tests use them)."""
