@@ -91,88 +91,84 @@ def shifted_sums(d: torch.Tensor, length: int) -> torch.Tensor:
     return acc
 
 
-
-
 def fmt(times: list[float]) -> tuple[str, str]:
+    """Median and minimum of ``times`` in milliseconds, formatted for the table's columns."""
     return f"{1e3 * statistics.median(times):9.2f}", f"{1e3 * min(times):9.2f}"
 
 
-def main(argv: list[str] | None = None) -> int:
+LABELS = {
+    "kernel": "(a) seqvpr kernel, inplace=True (fused)",
+    "strided": "(a') seqvpr, inplace=False (torch strided)",
+    "conv2d": "(b) conv2d identity kernel / L",
+    "shifted": "(d) shifted sums (L-1 adds)",
+    "clone": "(c) copy: d.clone()",
+    "copy_": "(c) copy: buf.copy_(d) (preallocated)",
+}
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """The command line: matrix size, repetitions, threads, window lengths and seed."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", type=int, default=4000, help="matrix side (default 4000)")
     parser.add_argument("--repeats", type=int, default=7, help="timed repetitions per operation (default 7)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch and numba threads (default: all cores)")
     parser.add_argument("--lengths", type=int, nargs="+", default=[5, 20], help="window lengths (default 5 20)")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
-    torch.set_num_threads(args.threads)
-    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    n = args.size
-    d = make_matrix(n, args.seed)
-    buf = torch.empty_like(d)
 
+def print_setup(d: torch.Tensor, repeats: int) -> None:
+    """The machine, library versions and thread counts, and the matrix measured, so a run can be compared."""
+    n = d.shape[0]
     print(f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs); torch {torch.__version__} threads={torch.get_num_threads()}; "
           f"numba {numba.__version__} threads={numba.get_num_threads()}")
-    print(f"matrix: {n} x {n} float32 ({d.numel() * 4 / 2**20:.0f} MiB), repeats={args.repeats} (warm-up first)\n")
+    print(f"matrix: {n} x {n} float32 ({d.numel() * 4 / 2**20:.0f} MiB), repeats={repeats} (warm-up first)\n")
 
-    copy_clone = timed(lambda: d.clone(), args.repeats)
-    copy_into = timed(lambda: buf.copy_(d), args.repeats)
 
-    per_length: dict[str, dict[int, list[float]]] = {
-        "kernel": {},
-        "strided": {},
-        "conv2d": {},
-        "shifted": {},
-        "clone": {},
-        "copy_": {},
+def kernel_matches_conv2d(d: torch.Tensor, length: int) -> bool:
+    """Check once that the in-place kernel equals conv2d on the interior (and +inf outside); print the verdict."""
+    n = d.shape[0]
+    spec = SequenceSpec(length)
+    a = spec.offset
+    n1 = n - length + 1
+    fused = sequence_distance_matrix(d.clone(), spec, inplace=True)
+    reference = conv2d_means(d, length)
+    interior = fused[a : a + n1, a : a + n1]
+    ok = torch.allclose(interior, reference, rtol=1e-5, atol=1e-5)
+    err = (interior.double() - reference.double()).abs().max().item()
+    outside_inf = bool(torch.isinf(fused[:a]).all()) and bool(torch.isinf(fused[a + n1 :]).all())
+    print(f"L={length:2d}: kernel == conv2d on interior: {ok} (max abs diff {err:.2e}); border rows +inf: {outside_inf}")
+    return ok
+
+
+def time_length(d: torch.Tensor, buf: torch.Tensor, length: int, repeats: int) -> dict[str, list[float]]:
+    """Times of the kernel (in place on a fresh copy, and strided), conv2d and shifted sums for one window length."""
+    spec = SequenceSpec(length)
+    return {
+        "kernel": timed(
+            lambda: sequence_distance_matrix(buf, spec, inplace=True), repeats, setup=lambda: buf.copy_(d), warmup=2
+        ),
+        "strided": timed(lambda: sequence_distance_matrix(d, spec, inplace=False), repeats),
+        "conv2d": timed(lambda: conv2d_means(d, length), repeats),
+        "shifted": timed(lambda: shifted_sums(d, length), repeats),
     }
-    for length in args.lengths:
-        spec = SequenceSpec(length)
-        a = spec.offset
-        n1 = n - length + 1
 
-        # correctness, once: kernel (in place) == conv2d on the interior
-        work = d.clone()
-        fused = sequence_distance_matrix(work, spec, inplace=True)
-        reference = conv2d_means(d, length)
-        interior = fused[a : a + n1, a : a + n1]
-        ok = torch.allclose(interior, reference, rtol=1e-5, atol=1e-5)
-        err = (interior.double() - reference.double()).abs().max().item()
-        outside_inf = bool(torch.isinf(fused[:a]).all()) and bool(torch.isinf(fused[a + n1 :]).all())
-        print(f"L={length:2d}: kernel == conv2d on interior: {ok} (max abs diff {err:.2e}); border rows +inf: {outside_inf}")
-        if not ok:
-            print("ERROR: kernel and conv2d disagree", file=sys.stderr)
-            return 1
-        del work, fused, reference, interior
 
-        per_length["kernel"][length] = timed(
-            lambda: sequence_distance_matrix(buf, spec, inplace=True), args.repeats, setup=lambda: buf.copy_(d), warmup=2
-        )
-        per_length["strided"][length] = timed(lambda: sequence_distance_matrix(d, spec, inplace=False), args.repeats)
-        per_length["conv2d"][length] = timed(lambda: conv2d_means(d, length), args.repeats)
-        per_length["shifted"][length] = timed(lambda: shifted_sums(d, length), args.repeats)
-        per_length["clone"][length] = copy_clone
-        per_length["copy_"][length] = copy_into
-
-    labels = {
-        "kernel": "(a) seqvpr kernel, inplace=True (fused)",
-        "strided": "(a') seqvpr, inplace=False (torch strided)",
-        "conv2d": "(b) conv2d identity kernel / L",
-        "shifted": "(d) shifted sums (L-1 adds)",
-        "clone": "(c) copy: d.clone()",
-        "copy_": "(c) copy: buf.copy_(d) (preallocated)",
-    }
-    header = f"{'operation':44s}" + "".join(f" | L={L:<2d} median ms |    min ms" for L in args.lengths)
+def print_table(per_length: dict[str, dict[int, list[float]]], lengths: list[int]) -> None:
+    """The table of median and minimum milliseconds per operation and window length, with repetition counts."""
+    header = f"{'operation':44s}" + "".join(f" | L={L:<2d} median ms |    min ms" for L in lengths)
     print("\n" + header)
     print("-" * len(header))
-    for key, label in labels.items():
-        cells = "".join(" | {:>15s} | {:>9s}".format(*fmt(per_length[key][L])) for L in args.lengths)
-        reps = "/".join(str(len(per_length[key][L])) for L in args.lengths)
+    for key, label in LABELS.items():
+        cells = "".join(" | {:>15s} | {:>9s}".format(*fmt(per_length[key][L])) for L in lengths)
+        reps = "/".join(str(len(per_length[key][L])) for L in lengths)
         print(f"{label:44s}{cells}   (n={reps})")
 
+
+def print_ratios(per_length: dict[str, dict[int, list[float]]], lengths: list[int]) -> None:
+    """Median ratios per window length against the targets (conv2d >= 50x slower, <= 3x a preallocated copy)."""
     print("\nratios (medians):")
-    for length in args.lengths:
+    for length in lengths:
         med = {key: statistics.median(per_length[key][length]) for key in per_length}
         conv_ratio = med["conv2d"] / med["kernel"]
         into_ratio = med["kernel"] / med["copy_"]
@@ -183,6 +179,31 @@ def main(argv: list[str] | None = None) -> int:
             f"  kernel / clone = {clone_ratio:4.2f}x;  strided / kernel = {med['strided'] / med['kernel']:5.1f}x;"
             f"  shifted / kernel = {med['shifted'] / med['kernel']:4.1f}x"
         )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Time every operation for each window length and print the table and ratios; 1 if kernel and conv2d disagree."""
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    d = make_matrix(args.size, args.seed)
+    buf = torch.empty_like(d)
+    print_setup(d, args.repeats)
+
+    copy_clone = timed(lambda: d.clone(), args.repeats)
+    copy_into = timed(lambda: buf.copy_(d), args.repeats)
+    per_length: dict[str, dict[int, list[float]]] = {key: {} for key in LABELS}
+    for length in args.lengths:
+        if not kernel_matches_conv2d(d, length):
+            print("ERROR: kernel and conv2d disagree", file=sys.stderr)
+            return 1
+        for key, times in time_length(d, buf, length, args.repeats).items():
+            per_length[key][length] = times
+        per_length["clone"][length] = copy_clone
+        per_length["copy_"][length] = copy_into
+
+    print_table(per_length, args.lengths)
+    print_ratios(per_length, args.lengths)
     return 0
 
 

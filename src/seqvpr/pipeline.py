@@ -100,6 +100,32 @@ def describe(
     return kept.with_descriptors(extraction.descriptors)
 
 
+def dropped_frames(original: Traversal, kept: Traversal) -> list[str]:
+    """Names of the frames of ``original`` that ``kept`` lacks (images ``describe(skip_bad=True)`` dropped)."""
+    present = set(int(i) for i in kept.frame_index)
+    names = original.frame_names()
+    return [names[row] for row, i in enumerate(original.frame_index) if int(i) not in present]
+
+
+def describe_pair(
+    reference: Traversal,
+    query: Traversal,
+    descriptor: str = "patchnorm",
+    config: PatchNormConfig = PatchNormConfig(),
+    progress: ProgressFactory | None = None,
+    **extraction,
+) -> tuple[Traversal, Traversal]:
+    """Both traversals with descriptors (``describe``'s options); a NetVLAD head is initialised once, on the
+    reference images (the query's when only it has images), and shared by both."""
+    extractor = extraction.get("extractor")
+    if descriptor != "patchnorm" and extractor is not None and extractor.pooling == "netvlad":
+        images = reference.image_paths if reference.image_paths is not None else query.image_paths
+        if images is not None:
+            extraction["model"] = netvlad_extractor(extractor, images, extraction.get("device", "cpu"), progress)
+    return (describe(reference, descriptor, config, progress, **extraction),
+            describe(query, descriptor, config, progress, **extraction))
+
+
 def netvlad_extractor(
     config: ExtractorConfig,
     images: Sequence[Path],
@@ -249,6 +275,21 @@ def ground_truth(
         else:
             raise SeqvprError("frame-aligned traversals need a frame radius, e.g. --radius 2f (or a --ground-truth file)")
     return ground_truth_within_radius(query, reference, radius)
+
+
+def resolve_ground_truth(
+    reference: Traversal, query: Traversal, radius: str | None = None, file: str | Path | None = None,
+    description: str | Path | None = None,
+) -> GroundTruth:
+    """Ground truth from a file, a radius (``25m``, ``2f``), or else the ``[ground_truth]`` table of a description
+    file (``dataset.toml``) the reference came from."""
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.sources import ground_truth_spec
+
+    spec = ground_truth_spec(description) if description is not None else None
+    if file is None and radius is None and spec is not None:
+        return ground_truth(reference, query, spec.radius, spec.file)
+    return ground_truth(reference, query, parse_radius(radius) if radius else None, file)
 
 
 def evaluate_match(

@@ -11,16 +11,19 @@ import pytest
 from click.testing import CliRunner
 
 from seqvpr.cli import cli
-from seqvpr.cli_training import jist_data, train_jist_command, train_seqmatchnet_command, train_seqnet_command
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.cli.train import train_jist_command, train_seqmatchnet_command, train_seqnet_command
+from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
+from seqvpr.training.data import training_data, training_pairs
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.synthetic.routes import generate_route
 from seqvpr.synthetic.world import write_demo_world
 from seqvpr.pipeline import MatchSettings, evaluate_match, rerank_match, retrieve_traversals
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training.jist import JistTrainSettings, evaluate_jist, load_jist
+from seqvpr.models.jist import describe_with_jist, load_jist
+from seqvpr.training.settings import JistTrainSettings
 from seqvpr.training.seqmatchnet import TrainSettings
-from seqvpr.training.seqnet import SeqNetSettings, load_seqnet
+from seqvpr.models.seqnet import load_seqnet
+from seqvpr.training.settings import SeqNetSettings
 from tests.helpers import run_cli
 
 SEQNET_ARGS = ["--train-frames", "0:90", "--val-frames", "90:120", "--radius", "5m", "--neg-radius", "20m", "-L", "4",
@@ -135,14 +138,14 @@ def test_match_with_a_seqnet_model_equals_the_library(route, seqnet_run, tmp_pat
 
 def test_train_jist_writes_a_loadable_model(jist_run):
     out, stdout, stderr = jist_run
-    assert stdout.startswith("best epoch 0: validation R@1") and f"model: {out}" in stdout
-    assert "epoch 0: 2 iterations, loss" in stderr and "validation R@1" in stderr
+    assert stdout.startswith("best epoch") and "validation R@1" in stdout and f"model: {out}" in stdout
+    assert "epoch 1: loss" in stderr and "images" in stderr and "sequence" in stderr and "validation R@1" in stderr
     model = load_jist(out)
     config = json.loads((out / "config.json").read_text())
     assert config["image_size"] == [64, 48] and config["config"]["seq_length"] == 3
     assert config["config"]["trainable_stages"] == ["stage7", "head"]  # efficientnet-lite0's default
-    assert (config["settings"]["grouping"]["cell_m"], config["settings"]["max_iterations"]) == (20.0, 2)
-    assert model.dim == 32 and len((out / "history.csv").read_text().splitlines()) == 2
+    assert (config["training"]["grouping"]["cell_m"], config["training"]["max_iterations"]) == (20.0, 2)
+    assert model.dim == 32 and len((out / "history.csv").read_text().splitlines()) == 3  # header, epochs 0 and 1
 
 
 def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
@@ -151,7 +154,10 @@ def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
                        "--model", out, "--k", "1,5,10", "--json", "--out", tmp_path / "m")
     result = json.loads(stdout)
     ref, qry = load_traversal(world["test_reference"], "reference"), load_traversal(world["test_query"], "query")
-    expected = evaluate_jist(load_jist(out), ref, qry, seq_length=3, radius=25.0, ks=KS, width=64, height=48)
+    model = load_jist(out)  # oracle: the model's frames, pooled by its SeqGeM, searched exactly
+    ref, qry = (describe_with_jist(model, t, 64, 48) for t in (ref, qry))
+    found = retrieve_traversals(ref, qry, "seqgem", MatchSettings(SequenceSpec(3), k=10), model=model.sequence_pool)
+    expected = evaluate_match(found, ground_truth_within_radius(qry, ref, Radius(25.0, "m")), KS)
     assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
     assert result["queries_evaluated"] == expected.queries_evaluated
     settings = result["settings"]
@@ -166,13 +172,13 @@ def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_pat
         folders[key].mkdir()
         for image in sorted(world[key].glob("*.jpg")):
             shutil.copy(image, folders[key] / image.name)
-    options = {"reference": str(folders["train_reference"]), "query": str(folders["train_query"]), "frames": None,
-               "train_frames": "0:30", "val_frames": "30:40", "val_reference": None, "val_query": None,
-               "radius": "1f", "pos_radius": None, "neg_radius": None}
-    data = jist_data(options)
-    assert (data.positive_radius, data.negative_radius, data.val_radius) == (1.0, 2.5, 1.0)
+    train, validation, _ = training_pairs(str(folders["train_reference"]), str(folders["train_query"]), "0:30",
+                                          "30:40", lambda r, q: (r, q))
+    data = training_data("jist", train, validation, parse_radius("1f"))
+    one = parse_radius("1f")
+    assert (data.positive_radius, data.negative_radius, data.val_radius) == (one, Radius(2.5, one.unit), one)
     np.testing.assert_array_equal(data.val_query.positions[:, 0], np.arange(30, 40))
-    np.testing.assert_array_equal(data.train_reference.positions[:, 0], np.arange(30))
+    np.testing.assert_array_equal(data.reference.positions[:, 0], np.arange(30))
 
 
 # --- one-line errors, no output -------------------------------------------------------------------------------------

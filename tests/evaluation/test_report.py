@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from seqvpr import report
+from seqvpr.evaluation import report
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 

@@ -63,7 +63,7 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
 def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
     from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
     from seqvpr.sequences.windows import SequenceSpec
-    from seqvpr.training.seqnet import load_seqnet
+    from seqvpr.models.seqnet import load_seqnet
 
     config = route / "bench_seqnet.toml"
     config.write_text(config_text('["seqnet", "jist", "hvpr"]', lengths="[5]"))
@@ -106,9 +106,13 @@ min_images = 2
 
 
 def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, capsys, tmp_path):
-    from seqvpr.experiments.benchmark import jist_settings, load_splits, read_config
+    from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+    from seqvpr.experiments.benchmark import load_splits, read_config
+    from seqvpr.models.jist import describe_with_jist, load_jist
+    from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+    from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.synthetic.world import write_demo_world
-    from seqvpr.training.jist import evaluate_jist, load_jist
+    from seqvpr.training.jist import jist_setup
 
     paths = write_demo_world(tmp_path / "world", frames=150, width=64, height=48, seed=0, query_condition="dusk")
     config = tmp_path / "bench.toml"
@@ -121,11 +125,14 @@ def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, caps
         rows = {(r["method"], r["L"]): r for r in csv.DictReader(handle)}
     assert rows[("jist", "5")]["error"] == "" and rows[("jist", "7")]["error"] == ""
     parsed = read_config(config)
-    splits, (_, settings) = load_splits(parsed.datasets[0]), jist_settings(parsed)
+    splits, (_, settings) = load_splits(parsed.datasets[0]), jist_setup(parsed.jist, parsed.seq_len)
     model = load_jist(tmp_path / "b" / "demo" / "jist")
-    for length in (5, 7):  # oracle: JIST's own evaluation of the saved model on the test split
-        expected = evaluate_jist(model, *splits.test, seq_length=length, radius=10.0, ks=(1, 5),
-                                 width=settings.width, height=settings.height)
+    reference, query = (describe_with_jist(model, t, settings.width, settings.height) for t in splits.test)
+    gt = ground_truth_within_radius(query, reference, Radius(10.0, "m"))
+    for length in (5, 7):  # oracle: the saved model's frames pooled by its SeqGeM on the test split
+        found = retrieve_traversals(reference, query, "seqgem", MatchSettings(SequenceSpec(length), k=5),
+                                    model=model.sequence_pool)
+        expected = evaluate_match(found, gt, (1, 5))
         assert float(rows[("jist", str(length))]["R@1"]) == pytest.approx(expected.recall[1], abs=1e-4)
     history = tmp_path / "b" / "demo" / "jist" / "history.csv"
     stamp = history.stat().st_mtime_ns

@@ -1,12 +1,10 @@
 """JIST's model: the per-backbone trainable stages, frozen stages and BatchNorm, the forward pass, CosPlace heads."""
 
-import numpy as np
-import pytest
 import torch
 from torch import nn
 
 from seqvpr.features.backbones import ResNet
-from seqvpr.models.jist import DEFAULT_STAGES, JistConfig, build_jist
+from seqvpr.models.jist import DEFAULT_STAGES, JistConfig, build_jist, trainable_parameters
 from tests.helpers import raises_one_line
 from tests.jist_fixtures import MeanPool, TinyBackbone, random_images, tiny_model
 

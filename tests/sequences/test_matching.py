@@ -35,11 +35,11 @@ def oracle_matrix(q, r, spec, q_seg, r_seg):
     return np.minimum.reduce(mats)
 
 
-def assert_same(fast, slow, tol):
+def assert_same(fast, slow, tol, atol=None):
     fast = np.asarray(fast, dtype=np.float64)
     assert (np.isinf(fast) == np.isinf(slow)).all()
     finite = np.isfinite(slow)
-    np.testing.assert_allclose(fast[finite], slow[finite], rtol=tol, atol=tol)
+    np.testing.assert_allclose(fast[finite], slow[finite], rtol=tol, atol=tol if atol is None else atol)
 
 
 @settings(max_examples=150, deadline=None)
@@ -48,7 +48,9 @@ def test_matrix_matches_loop(problem, inplace, dtype):
     q, r, spec, q_seg, r_seg = problem
     d = frame_distances(torch.tensor(q, dtype=dtype), torch.tensor(r, dtype=dtype))
     fast = sequence_distance_matrix(d, spec, q_seg, r_seg, inplace=inplace)
-    assert_same(fast.numpy(), oracle_matrix(q, r, spec, q_seg, r_seg), 1e-4 if dtype == torch.float32 else 1e-9)
+    # float32: sqrt(2 - 2 dot) turns the GEMM's ~1e-7 rounding of a near-1 dot into up to ~sqrt(4e-7) = 6e-4 near 0
+    single = dtype == torch.float32
+    assert_same(fast.numpy(), oracle_matrix(q, r, spec, q_seg, r_seg), 1e-4 if single else 1e-9, 1e-3 if single else None)
 
 
 @settings(max_examples=100, deadline=None)

@@ -9,7 +9,8 @@ from torch import nn
 
 from seqvpr.models.jist import JistConfig, build_jist
 from seqvpr.training.cosplace import CellGrouping, CosFaceHead, assign_classes, cosface_loss, group_members
-from seqvpr.training.jist import JistLearner, JistLoss, JistTrainSettings, jist_losses, trainable_parameters
+from seqvpr.models.jist import trainable_parameters
+from seqvpr.training.jist import JistLearner, JistLoss, JistTrainSettings, jist_losses
 from tests.helpers import raises_one_line
 from tests.jist_fixtures import MeanPool, random_images, tiny_model
 

@@ -15,7 +15,6 @@ from torch import nn
 from seqvpr.data.groundtruth import Radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import frame_positions
-from seqvpr.errors import SeqvprError
 from seqvpr.models.files import MODEL_FILE, read_json, read_tensors
 from seqvpr.models.jist import ImageStore, JistConfig, build_jist, describe_with_jist, load_jist
 from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals

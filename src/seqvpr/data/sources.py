@@ -60,6 +60,14 @@ def load_traversal(source: str | Path, role: Role) -> Traversal:
     raise SeqvprError(f"{path}: not a descriptor file (.npy/.npz/.mat), dbStruct (.db), folder or description (.toml)")
 
 
+def load_pair(reference: str | Path, query: str | Path, frames: str | None = None) -> tuple[Traversal, Traversal]:
+    """The reference and query traversals two sources name, both cut to the frames ``START:STOP`` when given."""
+    from seqvpr.data.traversal import slice_frame_range
+
+    ref, qry = load_traversal(reference, "reference"), load_traversal(query, "query")
+    return slice_frame_range(ref, frames), slice_frame_range(qry, frames)
+
+
 def ground_truth_spec(source: str | Path) -> GroundTruthSpec | None:
     """The ``[ground_truth]`` table of a description file, if the source is one and has it."""
     path, _ = split_variable(str(source))

@@ -204,3 +204,23 @@ def parse_frame_range(text: str | None, what: str = "--frames") -> tuple[int | N
         return (int(start) if start else None), (int(stop) if stop else None)
     except ValueError:
         raise SeqvprError(f"{what} {text!r}: expected START:STOP, e.g. 17:2000") from None
+
+
+def slice_frame_range(traversal: Traversal, text: str | None, what: str = "--frames") -> Traversal:
+    """The frames ``START:STOP`` (source frame indices) of a traversal; errors name ``what``."""
+    start, stop = parse_frame_range(text, what)
+    if start is None and stop is None:
+        return traversal
+    try:
+        return traversal.slice_frames(start, stop)
+    except SeqvprError as error:
+        raise SeqvprError(f"{what} {text}: {error}") from None
+
+
+def check_disjoint(a: str, b: str, names: tuple[str, str]) -> None:
+    """Two frame ranges of the same traversals must not overlap (validation is neither train nor test)."""
+    (a0, a1), (b0, b1) = parse_frame_range(a, names[0]), parse_frame_range(b, names[1])
+    lo = max(a0 if a0 is not None else -10**18, b0 if b0 is not None else -10**18)
+    hi = min(a1 if a1 is not None else 10**18, b1 if b1 is not None else 10**18)
+    if lo < hi:
+        raise SeqvprError(f"{names[0]} {a} and {names[1]} {b} overlap on the same traversals; use disjoint ranges")

@@ -8,13 +8,21 @@ Queries without a window are not written. The file is written atomically.
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
+from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 from seqvpr.io import atomic_write
+
+if TYPE_CHECKING:
+    from seqvpr.pipeline import MatchResult
 
 COLUMNS = ("query", "query_name", "references", "distances", "correct")
 
@@ -84,3 +92,42 @@ def read_predictions(path: str | Path) -> PredictionsFile:
         references[i, : len(r)] = r
         distances[i, : len(d)] = d
     return PredictionsFile(np.array(queries, dtype=np.int64), references, distances)
+
+
+def save_match_predictions(path: str | Path, result: MatchResult, gt: GroundTruth) -> None:
+    """A match result's predictions CSV in source frame indices, for the queries that have a window."""
+    top = result.topk
+    rows = np.flatnonzero(top.has_window)
+    ref_frames = result.reference.frame_index
+    refs = np.where(top.indices[rows] >= 0, ref_frames[np.maximum(top.indices[rows], 0)], -1)
+    names = result.query.frame_names()
+    correct = gt.contains(rows, top.indices[rows, 0])
+    write_predictions(path, result.query.frame_index[rows], [names[i] for i in rows], refs, top.distances[rows],
+                      correct, gt.has_positive()[rows])
+
+
+def evaluate_predictions(
+    path: str | Path, reference: Traversal, query: Traversal, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS,
+    no_positive: NoPositivePolicy = "exclude",
+) -> Evaluation:
+    """Recall@K and PR of a predictions CSV against ground truth between the two traversals it indexes."""
+    table = read_predictions(path)
+    q_rows = _rows_of(query.frame_index, table.query, path, "query")
+    r_rows = _rows_of(reference.frame_index, table.references, path, "reference")
+    indices = np.full((len(query), table.references.shape[1]), -1, dtype=np.int64)
+    distances = np.full(indices.shape, np.inf)
+    indices[q_rows], distances[q_rows] = r_rows, table.distances
+    has_window = np.zeros(len(query), dtype=bool)
+    has_window[q_rows] = True
+    return evaluate(indices, distances, has_window, gt, ks, no_positive)
+
+
+def _rows_of(frame_index: np.ndarray, wanted: np.ndarray, path: str | Path, what: str) -> np.ndarray:
+    """Rows of a traversal holding the given source frame indices (-1 stays -1); unknown indices are an error."""
+    lookup = {int(f): row for row, f in enumerate(frame_index)}
+    flat = wanted.ravel()
+    rows = np.array([lookup.get(int(f), -2) if f >= 0 else -1 for f in flat], dtype=np.int64)
+    if (rows == -2).any():
+        missing = int(flat[np.flatnonzero(rows == -2)[0]])
+        raise SeqvprError(f"{path}: {what} frame {missing} is not in the {what} traversal")
+    return rows.reshape(wanted.shape)

@@ -1,8 +1,8 @@
 """A static, self-contained HTML report: recall table, distance matrices, Recall@K and PR curves, example matches.
 
-The folder opens offline: plots are PNGs drawn with matplotlib's Agg canvas (no display needed), example images are
-copied in as small thumbnails, and ``index.html`` uses inline CSS and relative links only. The folder is built under
-a temporary sibling name and renamed into place, so an interrupted run never leaves half a report.
+The folder opens offline: plots are PNGs (drawn by ``seqvpr.evaluation.plots``), example images are copied in as
+small thumbnails, and ``index.html`` uses inline CSS and relative links only. The folder is built under a temporary
+sibling name and renamed into place, so an interrupted run never leaves half a report.
 """
 
 from __future__ import annotations
@@ -10,32 +10,37 @@ from __future__ import annotations
 import csv
 import html
 import math
-import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from matplotlib import colormaps
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
-from matplotlib.patches import Patch
-from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
+from seqvpr.evaluation.plots import (  # noqa: F401  (re-exported: tests and callers use them from here)
+    CORRECT_COLOUR,
+    DPI,
+    GT_COLOUR,
+    MAX_DRAWN,
+    METHOD_COLOURS,
+    NO_WINDOW_COLOUR,
+    WRONG_COLOUR,
+    block_reduce,
+    block_steps,
+    colour_limits,
+    drawable_distances,
+    method_colours,
+    new_figure,
+    plot_distance_view,
+    plot_pr_curves,
+    plot_recall_at_k,
+    save_figure,
+)
 from seqvpr.io import atomic_folder
 
-DPI = 100
-MAX_DRAWN = 1000  # largest number of rows / columns of a distance matrix that is drawn as is
 THUMB_SIZE = (240, 180)  # bounding box of example thumbnails, in pixels
 EXAMPLES_DIR = "examples"
-CORRECT_COLOUR = "#2ca02c"
-WRONG_COLOUR = "#d62728"
-GT_COLOUR = "#1f9bff"
-NO_WINDOW_COLOUR = "#d9d9d9"
-METHOD_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
 
 
 @dataclass(frozen=True)
@@ -97,182 +102,6 @@ def check_example(example: QueryExample) -> None:
             f"example {example.query_label!r}: {n} match images but {len(example.match_labels)} labels "
             f"and {len(example.match_correct)} verdicts"
         )
-
-
-# ----------------------------------------------------------------------------------------------- plots
-
-
-def method_colours(methods: Sequence[MethodResult]) -> dict[str, str]:
-    """One colour per method name, in order, so a method looks the same in every plot and in the table."""
-    return {m.name: METHOD_COLOURS[i % len(METHOD_COLOURS)] for i, m in enumerate(methods)}
-
-
-def new_figure(width: float, height: float) -> Figure:
-    """A figure on an Agg canvas (never a display) with constrained layout, at the report's dpi."""
-    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def save_figure(fig: Figure, path: Path) -> None:
-    """Write ``fig`` as a PNG at the report's dpi."""
-    fig.savefig(path, format="png", dpi=DPI, facecolor="white")
-
-
-def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
-    """Recall@K against K, one line per method; log-x once K reaches 10 so the small Ks stay readable."""
-    fig = new_figure(5.6, 4.2)
-    ax = fig.add_subplot()
-    k_max = 1
-    for m in methods:
-        ks = sorted(k for k, v in m.recall_at_k.items() if v is not None and math.isfinite(v))
-        if not ks:
-            continue
-        k_max = max(k_max, ks[-1])
-        marker = "o" if len(ks) <= 12 else None
-        ax.plot(ks, [m.recall_at_k[k] for k in ks], label=m.name, color=colours[m.name], lw=2, marker=marker, ms=4)
-    if k_max >= 10:
-        ax.set_xscale("log")
-        ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= k_max]
-        ax.xaxis.set_major_locator(FixedLocator(ticks))
-        ax.xaxis.set_major_formatter(ScalarFormatter())
-        ax.xaxis.set_minor_locator(NullLocator())
-    ax.set_xlim(0.9 if k_max >= 10 else 0.5, k_max * 1.1 if k_max >= 10 else k_max + 0.5)
-    ax.set_ylim(0.0, 1.02)
-    ax.set_xlabel("K")
-    ax.set_ylabel("recall")
-    ax.set_title("Recall@K")
-    ax.grid(True, which="major", alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right", frameon=True)
-    save_figure(fig, path)
-
-
-def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
-    """Precision against recall of the top-1 match over all distance thresholds, one line per method."""
-    fig = new_figure(5.6, 4.2)
-    ax = fig.add_subplot()
-    for m in methods:
-        recall, precision = np.asarray(m.recall, float), np.asarray(m.precision, float)
-        label = f"{m.name} (AUC {m.pr_auc:.3f})"
-        if len(recall):
-            # Start at recall 0 with the first precision so the curve reaches the y-axis.
-            ax.plot(np.r_[0.0, recall], np.r_[precision[0], precision], label=label, color=colours[m.name], lw=2)
-        else:
-            ax.plot([], [], label=label, color=colours[m.name], lw=2)
-    ax.set_xlim(0.0, 1.0)
-    ax.set_ylim(0.0, 1.02)
-    ax.set_xlabel("recall")
-    ax.set_ylabel("precision")
-    ax.set_title("Precision–recall (top-1 match)")
-    ax.grid(True, alpha=0.3)
-    if methods:
-        ax.legend(loc="lower left", frameon=True)
-    save_figure(fig, path)
-
-
-def block_steps(shape: tuple[int, int], limit: int = MAX_DRAWN) -> tuple[int, int]:
-    """Rows and columns per drawn cell so that neither side of the drawn matrix exceeds ``limit``."""
-    return max(1, math.ceil(shape[0] / limit)), max(1, math.ceil(shape[1] / limit))
-
-
-def block_reduce(a: np.ndarray, steps: tuple[int, int], fill, reduce) -> np.ndarray:
-    """Reduce ``a`` over blocks of ``steps`` cells (edges padded with ``fill``), e.g. min keeps a thin valley."""
-    sq, sr = steps
-    if sq == 1 and sr == 1:
-        return a
-    q, r = a.shape
-    padded = np.full((math.ceil(q / sq) * sq, math.ceil(r / sr) * sr), fill, dtype=a.dtype)
-    padded[:q, :r] = a
-    return reduce(padded.reshape(padded.shape[0] // sq, sq, padded.shape[1] // sr, sr), axis=(1, 3))
-
-
-def drawable_distances(distances: np.ndarray, steps: tuple[int, int]) -> np.ndarray:
-    """Block-minimum of the finite distances (NaN where a block has none), so the low-distance band survives."""
-    d = np.where(np.isfinite(distances), distances, np.inf).astype(np.float32, copy=False)
-    small = block_reduce(d, steps, np.inf, np.min)
-    return np.where(np.isfinite(small), small, np.nan)
-
-
-def colour_limits(drawn: np.ndarray) -> tuple[float, float]:
-    """Robust colour range (1st to 99th percentile of finite values), so a few outliers don't wash it out."""
-    finite = drawn[np.isfinite(drawn)]
-    if finite.size == 0:
-        return 0.0, 1.0
-    lo, hi = np.percentile(finite, [1, 99])
-    return (float(lo), float(hi)) if hi > lo else (float(lo) - 0.5, float(lo) + 0.5)
-
-
-def plot_distance_view(view: DistanceView, path: Path) -> None:
-    """The distance matrix (query rows down, reference columns across), GT band outline and the top-1 path."""
-    distances = np.asarray(view.distances, dtype=float)
-    positives = np.asarray(view.positives, dtype=bool)
-    top1, correct = np.asarray(view.top1, dtype=np.int64), np.asarray(view.correct, dtype=bool)
-    n_q, n_r = distances.shape
-    steps = block_steps((n_q, n_r))
-    drawn = drawable_distances(distances, steps)
-    pos_drawn = block_reduce(positives, steps, False, np.any)
-    # Extent in original frame numbers: cell (i, j) of the drawn matrix covers rows i*sq.. and columns j*sr..
-    h, w = drawn.shape
-    extent = (-0.5, w * steps[1] - 0.5, h * steps[0] - 0.5, -0.5)
-
-    aspect = n_q / max(n_r, 1)
-    fig = new_figure(7.0, float(np.clip(7.0 * aspect, 4.5, 7.5)) + 0.4)
-    ax = fig.add_subplot()
-    cmap = _matrix_colormap()
-    vmin, vmax = colour_limits(drawn)
-    image = ax.imshow(
-        np.ma.masked_invalid(drawn), cmap=cmap, vmin=vmin, vmax=vmax, origin="upper", extent=extent,
-        aspect="auto", interpolation="antialiased",
-    )
-    fig.colorbar(image, ax=ax, label="distance", shrink=0.9, pad=0.02)
-
-    handles = []
-    if pos_drawn.any():
-        overlay = np.zeros((*pos_drawn.shape, 4), dtype=np.float32)
-        overlay[pos_drawn] = (*_rgb(GT_COLOUR), 0.28)
-        ax.imshow(overlay, origin="upper", extent=extent, aspect="auto", interpolation="nearest")
-        if pos_drawn.shape[0] > 1 and pos_drawn.shape[1] > 1:
-            xs = np.arange(w) * steps[1] + (steps[1] - 1) / 2
-            ys = np.arange(h) * steps[0] + (steps[0] - 1) / 2
-            ax.contour(xs, ys, pos_drawn.astype(np.float32), levels=[0.5], colors=[GT_COLOUR], linewidths=0.8)
-        handles.append(Patch(facecolor=(*_rgb(GT_COLOUR), 0.35), edgecolor=GT_COLOUR, label="ground-truth positives"))
-
-    rows = np.arange(n_q)
-    has = top1 >= 0
-    size = float(np.clip(3000.0 / max(n_q, 1), 1.5, 14.0))
-    # Wrong matches are drawn last and larger: they are the few points worth finding.
-    for mask, colour, label, scale in (
-        (has & correct, CORRECT_COLOUR, "top-1 correct", 1.0),
-        (has & ~correct, WRONG_COLOUR, "top-1 wrong", 2.0),
-    ):
-        if mask.any():
-            ax.scatter(top1[mask], rows[mask], s=size * scale, c=colour, marker="o", linewidths=0, zorder=3)
-        handles.append(Line2D([], [], ls="", marker="o", ms=6, color=colour, label=f"{label} ({int(mask.sum())})"))
-    if (~np.isfinite(distances)).all(axis=1).any():
-        handles.append(Patch(facecolor=NO_WINDOW_COLOUR, edgecolor="#999999", label="no distance"))
-
-    ax.set_xlim(-0.5, n_r - 0.5)
-    ax.set_ylim(n_q - 0.5, -0.5)
-    ax.set_xlabel("reference frame")
-    ax.set_ylabel("query frame")
-    title = textwrap.fill(view.title, 70)
-    if steps != (1, 1):
-        title += f"\n(each pixel: minimum over {steps[0]}×{steps[1]} frames)"
-    ax.set_title(title)
-    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), frameon=False, fontsize=9)
-    save_figure(fig, path)
-
-
-def _matrix_colormap():
-    """Dark = close, light = far, grey where undefined; green/red dots and the blue band stay visible on it."""
-    return colormaps["bone"].with_extremes(bad=NO_WINDOW_COLOUR)
-
-
-def _rgb(hex_colour: str) -> tuple[float, float, float]:
-    """'#rrggbb' as three floats in 0..1."""
-    v = hex_colour.lstrip("#")
-    return tuple(int(v[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]
 
 
 # ----------------------------------------------------------------------------------------------- thumbnails
@@ -474,52 +303,70 @@ def build_report(
     files: list[tuple[str, str]] = [("results.csv", "the numbers of the table, every K")]
     write_results_csv(methods, folder / "results.csv")
     sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary)]
-
-    sections.append("<h2>Recall</h2>")
-    sections.append(recall_table_html(methods, table_ks, colours))
-    sections.append(
-        '<p class="legend">R@K: share of queries with a correct place among the K nearest references. '
-        "PR-AUC and R@100%P: precision–recall of accepting the top-1 match below a distance threshold. "
-        "Best value per column in bold.</p>"
-    )
-
-    if methods:
-        plot_recall_at_k(methods, colours, folder / "recall_at_k.png")
-        plot_pr_curves(methods, colours, folder / "pr_curves.png")
-        files += [("recall_at_k.png", "Recall@K curves"), ("pr_curves.png", "precision–recall curves")]
-        sections.append("<h2>Curves</h2>")
-        sections.append(
-            '<div class="plots">'
-            '<figure><img src="recall_at_k.png" alt="Recall@K curves"><figcaption>Recall@K against K.</figcaption></figure>'
-            '<figure><img src="pr_curves.png" alt="Precision-recall curves">'
-            "<figcaption>Precision against recall of the top-1 match, over all distance thresholds.</figcaption></figure>"
-            "</div>"
-        )
-
-    if distance_views:
-        sections.append("<h2>Distance matrices</h2>")
-        figures = []
-        for i, view in enumerate(distance_views):
-            name = f"distance_{i}.png"
-            plot_distance_view(view, folder / name)
-            files.append((name, f"distance matrix: {view.title}"))
-            figures.append(
-                f'<figure class="wide"><img src="{name}" alt="{html.escape(view.title, quote=True)}">'
-                f"<figcaption>{html.escape(view.title)}: darker is closer; the blue band marks the ground-truth "
-                "positives; dots are each query's top-1 reference, green when correct, red when wrong.</figcaption></figure>"
-            )
-        sections.append('<div class="plots">' + "".join(figures) + "</div>")
-
-    n_thumbs = 0
-    if examples:
-        thumbs = copy_thumbnails(examples, folder / EXAMPLES_DIR)
-        n_thumbs = sum(1 for v in thumbs.values() if v)
-        sections.append(f"<h2>{html.escape(example_title or 'Example queries')}</h2>")
-        sections.append(examples_html(examples, thumbs))
-
+    sections += _recall_sections(methods, table_ks, colours)
+    sections += _curve_sections(methods, colours, folder, files)
+    sections += _distance_sections(distance_views, folder, files)
+    example_parts, n_thumbs = _example_sections(examples, example_title, folder)
+    sections += example_parts
     sections.append("<h2>Files</h2>")
     sections.append(files_html([("index.html", "this page"), *files], n_thumbs))
     (folder / "index.html").write_text(page_html(title, sections), encoding="utf-8")
+
+
+def _recall_sections(methods: Sequence[MethodResult], table_ks: Sequence[int], colours: dict[str, str]) -> list[str]:
+    """The 'Recall' heading, the recall table and the line explaining its columns."""
+    return [
+        "<h2>Recall</h2>",
+        recall_table_html(methods, table_ks, colours),
+        '<p class="legend">R@K: share of queries with a correct place among the K nearest references. '
+        "PR-AUC and R@100%P: precision–recall of accepting the top-1 match below a distance threshold. "
+        "Best value per column in bold.</p>",
+    ]
+
+
+def _curve_sections(
+    methods: Sequence[MethodResult], colours: dict[str, str], folder: Path, files: list[tuple[str, str]]
+) -> list[str]:
+    """Draw the Recall@K and PR plots into ``folder``, listed in ``files``; their section (none without methods)."""
+    if not methods:
+        return []
+    plot_recall_at_k(methods, colours, folder / "recall_at_k.png")
+    plot_pr_curves(methods, colours, folder / "pr_curves.png")
+    files += [("recall_at_k.png", "Recall@K curves"), ("pr_curves.png", "precision–recall curves")]
+    return [
+        "<h2>Curves</h2>",
+        '<div class="plots">'
+        '<figure><img src="recall_at_k.png" alt="Recall@K curves"><figcaption>Recall@K against K.</figcaption></figure>'
+        '<figure><img src="pr_curves.png" alt="Precision-recall curves">'
+        "<figcaption>Precision against recall of the top-1 match, over all distance thresholds.</figcaption></figure>"
+        "</div>",
+    ]
+
+
+def _distance_sections(views: Sequence[DistanceView], folder: Path, files: list[tuple[str, str]]) -> list[str]:
+    """Draw each view as ``distance_<i>.png`` in ``folder``, listed in ``files``; their section (none without views)."""
+    if not views:
+        return []
+    figures = []
+    for i, view in enumerate(views):
+        name = f"distance_{i}.png"
+        plot_distance_view(view, folder / name)
+        files.append((name, f"distance matrix: {view.title}"))
+        figures.append(
+            f'<figure class="wide"><img src="{name}" alt="{html.escape(view.title, quote=True)}">'
+            f"<figcaption>{html.escape(view.title)}: darker is closer; the blue band marks the ground-truth "
+            "positives; dots are each query's top-1 reference, green when correct, red when wrong.</figcaption></figure>"
+        )
+    return ["<h2>Distance matrices</h2>", '<div class="plots">' + "".join(figures) + "</div>"]
+
+
+def _example_sections(examples: Sequence[QueryExample], example_title: str, folder: Path) -> tuple[list[str], int]:
+    """Thumbnail the example images into ``folder``; their section and how many thumbnails were written."""
+    if not examples:
+        return [], 0
+    thumbs = copy_thumbnails(examples, folder / EXAMPLES_DIR)
+    n_thumbs = sum(1 for v in thumbs.values() if v)
+    return [f"<h2>{html.escape(example_title or 'Example queries')}</h2>", examples_html(examples, thumbs)], n_thumbs
 
 
 def write_report(

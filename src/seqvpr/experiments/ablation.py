@@ -7,6 +7,8 @@ descriptors are tested the same way.
 
 from __future__ import annotations
 
+import csv
+import io
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -14,6 +16,7 @@ from pathlib import Path
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
+from seqvpr.io import atomic_write
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals
 from seqvpr.models.seqmatchnet import load_seqmatchnet
@@ -96,3 +99,30 @@ def ablation_markdown(rows: Sequence[AblationRow], ks: Sequence[int]) -> str:
         else:
             lines.append(f"| {row.loss} | {row.mining} | {recall} | {row.training.best_epoch} |")
     return "\n".join(lines)
+
+
+def ablation_csv(rows: Sequence[AblationRow], ks: Sequence[int]) -> str:
+    """The table as CSV: loss, mining, R@K..., best epoch, queries evaluated."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["loss", "mining", *[f"R@{k}" for k in ks], "best_epoch", "queries_evaluated"])
+    for row in rows:
+        writer.writerow([row.loss or "untransformed", row.mining or "", *[f"{row.test.recall[k]:.4f}" for k in ks],
+                         "" if row.training is None else row.training.best_epoch, row.test.queries_evaluated])
+    return buffer.getvalue()
+
+
+def write_ablation(rows: Sequence[AblationRow], ks: Sequence[int], out_dir: str | Path) -> tuple[Path, Path]:
+    """``ablation.csv`` and ``ablation.md`` in ``out_dir``, each written atomically."""
+    out = Path(out_dir)
+    with atomic_write(out / "ablation.csv") as handle:
+        handle.write(ablation_csv(rows, ks))
+    with atomic_write(out / "ablation.md") as handle:
+        handle.write(ablation_markdown(rows, ks) + "\n")
+    return out / "ablation.csv", out / "ablation.md"
+
+
+def ablation_json(rows: Sequence[AblationRow]) -> list[dict]:
+    """The rows as JSON-ready dicts: loss, mining, recall, best epoch."""
+    return [{"loss": r.loss, "mining": r.mining, "recall": {str(k): v for k, v in r.test.recall.items()},
+             "best_epoch": None if r.training is None else r.training.best_epoch} for r in rows]

@@ -19,7 +19,8 @@ A method that fails is reported in its row and the others go on.
     [seqnet]              # SeqNet settings (SeqNetSettings fields), optional
     epochs = 50
 
-    [jist]                # JIST model and run (JistConfig and JistTrainSettings fields, cell_m, min_images)
+    [jist]                # JIST model and run (``training.jist.jist_setup`` keys: JistConfig and
+                          # JistTrainSettings fields, cell_m, min_images)
     backbone = "efficientnet-lite0"
     weights = "imagenet"
 
@@ -38,7 +39,7 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -48,23 +49,13 @@ from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_write
-from seqvpr.pipeline import (
-    MatchResult,
-    MatchSettings,
-    describe,
-    evaluate_match,
-    match_traversals,
-    rerank_match,
-    retrieve_traversals,
-    transform_traversal,
-)
+from seqvpr.methods import METHODS
+from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
 
-METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqnet", "seqgem", "jist", "hvpr")
-LENGTH_METHODS = METHODS[1:]
-HVPR_SHORTLIST = 20
+DEFAULT_METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqnet", "seqgem", "jist", "hvpr")
 SHORTLISTS = ("seqnet", "seqgem")
-MonitorFactory = Callable[[str], Any]  # method name -> its training monitor
+MonitorFactory = Callable[[str], Any]  # model kind -> its training monitor
 
 
 class NotApplicable(SeqvprError):
@@ -90,7 +81,7 @@ class BenchmarkConfig:
     """The whole benchmark: datasets, methods, the main sequence length, the length table's lengths, K values."""
 
     datasets: tuple[DatasetSpec, ...]
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] = DEFAULT_METHODS
     seq_len: int = 5
     lengths: tuple[int, ...] = (5, 10, 20)
     ks: tuple[int, ...] = (1, 5, 20)
@@ -142,7 +133,7 @@ def read_config(path: str | Path) -> BenchmarkConfig:
             values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
         specs.append(DatasetSpec(**values))
     settings = raw.get("benchmark", {})
-    methods = tuple(settings.get("methods", METHODS))
+    methods = tuple(settings.get("methods", DEFAULT_METHODS))
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise SeqvprError(f"{path}: unknown methods {', '.join(bad)} (choose from: {', '.join(METHODS)})")
@@ -170,17 +161,12 @@ def _training_table(raw: dict, name: str, path: Path) -> dict[str, Any]:
 
 
 def _jist_table(raw: dict, path: Path) -> dict[str, Any]:
-    """The ``[jist]`` table: JistConfig and JistTrainSettings fields, plus the CosPlace cell's ``cell_m`` and
-    ``min_images``."""
-    from seqvpr.models.jist import JistConfig
-    from seqvpr.training.jist import JistTrainSettings
+    """The ``[jist]`` table: the keys ``jist_setup`` takes (JistConfig and JistTrainSettings fields, ``cell_m``,
+    ``min_images``), but not ``seq_length`` (the benchmark's ``seq_len``)."""
+    from seqvpr.training.jist import JIST_KEYS
 
     table = dict(raw.get("jist", {}))
-    allowed = ({f.name for f in fields(JistConfig)} | {f.name for f in fields(JistTrainSettings)} | {"cell_m", "min_images"})
-    _check_keys(table, allowed - {"seq_length", "grouping"}, "jist", path)
-    for key in ("ks", "trainable_stages"):
-        if key in table:
-            table[key] = tuple(table[key])
+    _check_keys(table, set(JIST_KEYS) - {"seq_length"}, "jist", path)
     return table
 
 
@@ -213,131 +199,80 @@ def load_splits(spec: DatasetSpec, progress=None) -> Splits:
 
 
 class MethodRunner:
-    """Runs the methods on one dataset; each trained model is made once and shared (SeqMatchNet and SeqNet also
-    feed HVPR), and a re-run into the same folder reuses the finished runs."""
+    """Runs the methods on one dataset through ``run_method``; each model kind a method uses is trained once on the
+    train split (selected on the select split) and shared (SeqMatchNet and SeqNet also feed HVPR); a re-run into
+    the same folder reuses the finished runs."""
 
     def __init__(self, splits: Splits, config: BenchmarkConfig, out: Path, monitors: MonitorFactory | None = None) -> None:
         self.splits, self.config, self.out, self.monitors = splits, config, out, monitors
-        self._models: dict[str, Any] = {}
-
-    def monitor(self, method: str):
-        """The training monitor for ``method`` (None: silent)."""
-        return self.monitors(method) if self.monitors else None
-
-    def _training_data(self):
-        """Train and select splits with the positive, negative (4x) and validation radii of the config."""
-        from seqvpr.training.trainer import TrainingData
-
-        radius = self.splits.radius
-        return TrainingData(*self.splits.train, *self.splits.select, radius, Radius(4 * radius.value, radius.unit), radius)
+        self._cache: dict[str, Any] = {}
 
     def _once(self, name: str, make: Callable[[], Any]) -> Any:
-        if name not in self._models:
-            self._models[name] = make()
-        return self._models[name]
+        if name not in self._cache:
+            self._cache[name] = make()
+        return self._cache[name]
 
-    def seqmatchnet_model(self):
-        """SeqMatchNet trained on the train split at the config's length, best epoch on the select split."""
+    def model(self, kind: str):
+        """The trained model of ``kind`` (its best epoch), trained or resumed into ``out/<kind>``."""
         def make():
-            from seqvpr.models.seqmatchnet import TransformConfig
-            from seqvpr.models.seqmatchnet import load_seqmatchnet as load_model
-            from seqvpr.training.seqmatchnet import TrainSettings, train_seqmatchnet
+            from seqvpr.models.registry import load_trained_model
 
-            data = self._training_data()
-            settings = TrainSettings(**{**self.config.training, "sequence": SequenceSpec(self.config.seq_len)})
-            result = train_seqmatchnet(data, TransformConfig(data.dim), settings, self.out / "seqmatchnet",
-                                       resume=True, monitor=self.monitor("seqmatchnet"))  # continues or reuses a run
-            return load_model(result.folder)[0]
+            monitor = self.monitors(kind) if self.monitors else None
+            folder = train_kind(kind, self.splits, self.config, self.out / kind, monitor)
+            return load_trained_model(folder, _device(self.config, kind))
 
-        return self._once("seqmatchnet", make)
+        return self._once(kind, make)
 
-    def seqnet_model(self):
-        """SeqNet S_L (L = the config's length) trained on the train split, best epoch on the select split."""
-        def make():
-            from seqvpr.training.seqnet import SeqNetSettings, load_seqnet, train_seqnet
+    def test_frames(self, models: dict) -> tuple[Traversal, Traversal]:
+        """The test split's frames for these models: JIST's encoder describes the images (once, pooled at every
+        length); otherwise the dataset's descriptors."""
+        if "jist" not in models:
+            return self.splits.test
+        from seqvpr.methods import describe_for_models
 
-            settings = SeqNetSettings(**{**self.config.seqnet, "sequence": SequenceSpec(self.config.seq_len)})
-            result = train_seqnet(self._training_data(), settings, self.out / "seqnet", resume=True,
-                                  monitor=self.monitor("seqnet"))
-            return load_seqnet(result.folder)[0]
-
-        return self._once("seqnet", make)
-
-    def jist_model(self):
-        """JIST trained on the train split's images (best epoch on the select split); frame-aligned datasets get
-        along-route positions in frames, so the radius and CosPlace cells count frames."""
-        def make():
-            from seqvpr.training import jist
-
-            if any(t.image_paths is None for t in self.splits.train):
-                raise NotApplicable("needs images (this dataset has descriptor files only)")
-            model_config, settings = jist_settings(self.config)
-            finished = jist.load_finished_jist(self.out / "jist", model_config, settings)
-            if finished is not None:
-                return finished
-            radius = self.splits.radius
-            data = jist.JistData(*(jist.jist_positions(t, radius) for t in (*self.splits.train, *self.splits.select)),
-                                 positive_radius=radius.value, negative_radius=4 * radius.value, val_radius=radius.value)
-            return jist.train_jist(data, model_config, settings, self.out / "jist", monitor=self.monitor("jist")).model
-
-        return self._once("jist", make)
-
-    def jist_test_frames(self) -> tuple[Traversal, Traversal]:
-        """The test split described by the trained JIST encoder (computed once, pooled at every length)."""
-        def make():
-            from seqvpr.training.jist import describe_with_jist
-
-            model, (_, settings) = self.jist_model(), jist_settings(self.config)
-            return tuple(describe_with_jist(model, t, settings.width, settings.height, settings.device)
-                         for t in self.splits.test)
-
-        return self._once("jist-test", make)
-
-    def shortlist(self, reference: Traversal, query: Traversal, settings: MatchSettings) -> MatchResult:
-        """HVPR's first stage: top-K by the trained SeqNet, or by untrained SeqGeM."""
-        if self.config.hvpr_shortlist == "seqnet":
-            return retrieve_traversals(reference, query, "seqnet", settings, model=self.seqnet_model())
-        return retrieve_traversals(reference, query, "seqgem", settings)
+        return self._once("jist-test", lambda: describe_for_models(
+            *self.splits.test, models, lambda r, q: (r, q), _device(self.config, "jist")))
 
     def run(self, method: str, length: int) -> MatchResult:
         """The method's top-K on the test split at sequence length ``length``."""
-        reference, query = self.splits.test
+        from seqvpr.methods import HVPR_SHORTLIST, models_used, run_method
+
+        shortlist = self.config.hvpr_shortlist
+        models = {kind: self.model(kind) for kind in models_used(method, shortlist)}
         settings = MatchSettings(SequenceSpec(length), k=max(max(self.config.ks), HVPR_SHORTLIST))
-        if method == "single":
-            return match_traversals(reference, query, replace(settings, sequence=SequenceSpec(1)))
-        if method == "matching":
-            return match_traversals(reference, query, settings)
-        if method == "seqmatchnet":
-            model = self.seqmatchnet_model()
-            return match_traversals(transform_traversal(reference, model), transform_traversal(query, model), settings)
-        if method in ("smoothing", "delta", "seqgem"):
-            return retrieve_traversals(reference, query, method, settings)
-        if method == "seqnet":
-            return retrieve_traversals(reference, query, "seqnet", settings, model=self.seqnet_model())
-        if method == "jist":
-            model = self.jist_model()
-            return retrieve_traversals(*self.jist_test_frames(), "seqgem", settings, model=model.sequence_pool)
-        if method == "hvpr":
-            model = self.seqmatchnet_model()
-            shortlist = self.shortlist(reference, query, settings)
-            transformed = replace(shortlist, reference=transform_traversal(reference, model),
-                                  query=transform_traversal(query, model))
-            return rerank_match(transformed)
-        raise SeqvprError(f"method {method!r} is not known")
+        return run_method(method, *self.test_frames(models), settings, models,
+                          shortlist=shortlist if method == "hvpr" else None)
 
 
-def jist_settings(config: BenchmarkConfig):
-    """The JistConfig (at the benchmark's length) and JistTrainSettings of the config's ``[jist]`` table."""
-    from seqvpr.models.jist import JistConfig
-    from seqvpr.training.cosplace import CellGrouping
-    from seqvpr.training.jist import JistTrainSettings
+def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, monitor=None) -> Path:
+    """Train (or resume, or reuse a finished run of) ``kind`` on the train split at the config's length, selecting
+    on the select split with the kind's training defaults; returns the model folder."""
+    from seqvpr.training.data import training_data
 
-    table = dict(config.jist)
-    grouping = CellGrouping(**{k: table.pop(k) for k in ("cell_m", "min_images") if k in table})
-    model_keys = {f.name for f in fields(JistConfig)}
-    model = JistConfig(**{k: v for k, v in table.items() if k in model_keys}, seq_length=config.seq_len)
-    settings = JistTrainSettings(**{k: v for k, v in table.items() if k not in model_keys}, grouping=grouping)
-    return model, settings
+    if kind == "jist" and any(t.image_paths is None for t in splits.train):
+        raise NotApplicable("needs images (this dataset has descriptor files only)")
+    data = training_data(kind, splits.train, splits.select, splits.radius)
+    spec = SequenceSpec(config.seq_len)
+    if kind == "seqmatchnet":
+        from seqvpr.models.seqmatchnet import TransformConfig
+        from seqvpr.training.seqmatchnet import TrainSettings, train_seqmatchnet
+
+        settings = TrainSettings(**{**config.training, "sequence": spec})
+        return train_seqmatchnet(data, TransformConfig(data.dim), settings, out, resume=True, monitor=monitor).folder
+    if kind == "seqnet":
+        from seqvpr.training.seqnet import SeqNetSettings, train_seqnet
+
+        settings = SeqNetSettings(**{**config.seqnet, "sequence": spec})
+        return train_seqnet(data, settings, out, resume=True, monitor=monitor).folder
+    from seqvpr.training.jist import jist_setup, train_jist
+
+    model_config, settings = jist_setup(config.jist, config.seq_len)
+    return train_jist(data, model_config, settings, out, resume=True, monitor=monitor).folder
+
+
+def _device(config: BenchmarkConfig, kind: str) -> str:
+    table = {"seqmatchnet": config.training, "seqnet": config.seqnet, "jist": config.jist}[kind]
+    return str(table.get("device", "cpu"))
 
 
 def run_benchmark(
@@ -357,7 +292,7 @@ def run_benchmark(
         runner = MethodRunner(splits, config, out / spec.name, monitors)
         gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
         plan = [(m, config.seq_len) for m in config.methods]
-        plan += [(m, n) for n in config.lengths for m in config.methods if m in LENGTH_METHODS and n != config.seq_len]
+        plan += [(m, n) for n in config.lengths for m in config.methods if METHODS[m].length is None and n != config.seq_len]
         for method, length in plan:
             echo(f"{spec.name}: {method} L={length}")
             try:
@@ -394,7 +329,7 @@ def main_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
 def length_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
     """Markdown: R@1 per method at each length of the length table, per dataset (like SeqMatchNet's Table 4)."""
     names = [spec.name for spec in config.datasets]
-    methods = [m for m in config.methods if m in LENGTH_METHODS]
+    methods = [m for m in config.methods if METHODS[m].length is None]
     header = "| method | " + " | ".join(f"{name} L={n}" for name in names for n in config.lengths) + " |"
     lines = [header, "|---|" + "---:|" * (len(names) * len(config.lengths))]
     for method in methods:

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,19 +19,16 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
+from seqvpr.errors import SeqvprError
+from seqvpr.methods import run_method
 from seqvpr.pipeline import (
-    MatchResult,
-    MatchSettings,
-    ProgressFactory,
-    describe,
-    distance_matrix,
-    evaluate_match,
-    ground_truth,
-    match_traversals,
-    transform_traversal,
+    MatchResult, MatchSettings, ProgressFactory, describe, distance_matrix, evaluate_match, ground_truth,
 )
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
+
+if TYPE_CHECKING:
+    from seqvpr.models.registry import TrainedModel
 
 TRAVERSALS = ("train_reference", "train_query", "test_reference", "test_query")
 CURVE_KS = tuple(range(1, 21))
@@ -53,6 +51,12 @@ class DemoSettings:
     lr: float = 1e-2
     device: str = "cpu"
     examples: int = 6
+
+    def __post_init__(self) -> None:
+        if self.frames < 50:
+            raise SeqvprError(f"--frames must be at least 50, got {self.frames}")
+        if self.epochs < 1:
+            raise SeqvprError(f"--epochs must be at least 1, got {self.epochs}")
 
     @classmethod
     def quick(cls, **changes) -> DemoSettings:
@@ -100,16 +104,18 @@ def describe_world(
 
 
 def match_and_score(
-    name: str, reference: Traversal, query: Traversal, gt: GroundTruth, length: int, device: str = "cpu"
+    name: str, method: str, reference: Traversal, query: Traversal, gt: GroundTruth, length: int,
+    device: str = "cpu", models: dict | None = None,
 ) -> MethodRun:
-    """Sequence matching at one length (L = 1 is single-image retrieval), scored at every K of the curves."""
-    result = match_traversals(reference, query, MatchSettings(SequenceSpec(length), k=max(CURVE_KS), device=device))
+    """One method at one length, scored at every K of the curves."""
+    settings = MatchSettings(SequenceSpec(length), k=max(CURVE_KS), device=device)
+    result = run_method(method, reference, query, settings, models)
     return MethodRun(name, result, evaluate_match(result, gt, CURVE_KS))
 
 
-def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Path, monitor=None):
+def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Path, monitor=None) -> TrainedModel:
     """SeqMatchNet on the training route (first 75 % of frames train, the rest validate); returns the best model."""
-    from seqvpr.models.seqmatchnet import load_seqmatchnet as load_model
+    from seqvpr.models.registry import load_trained_model
     from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
 
     reference, query = world["train_reference"], world["train_query"]
@@ -123,8 +129,7 @@ def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Pa
     train = TrainSettings(sequence=SequenceSpec(settings.train_length), epochs=settings.epochs, lr=settings.lr,
                           refresh_every=250, seed=settings.seed, device=settings.device)
     result = train_seqmatchnet(data, settings=train, out_dir=out, monitor=monitor)
-    model, _ = load_model(result.folder)
-    return model
+    return load_trained_model(result.folder, settings.device)
 
 
 def method_result(run: MethodRun) -> MethodResult:
@@ -202,18 +207,16 @@ def run_demo(
     reference, query = world["test_reference"], world["test_query"]
     gt = ground_truth(reference, query, Radius(settings.radius_m, "m"))
     runs = [
-        match_and_score("single image" if length == 1 else f"sequence matching L={length}", reference, query, gt,
-                        length, settings.device)
+        match_and_score("single image" if length == 1 else f"sequence matching L={length}",
+                        "single" if length == 1 else "matching", reference, query, gt, length, settings.device)
         for length in settings.lengths
     ]
     lap("match")
     if settings.train:
         echo(f"training SeqMatchNet on the training route ({settings.epochs} epochs)...")
         model = train_transform(world, settings, out / "seqmatchnet", monitor)
-        transformed = (transform_traversal(reference, model, settings.device),
-                       transform_traversal(query, model, settings.device))
-        runs.append(match_and_score(f"SeqMatchNet L={settings.train_length}", *transformed, gt,
-                                    settings.train_length, settings.device))
+        runs.append(match_and_score(f"SeqMatchNet L={settings.train_length}", "seqmatchnet", reference, query, gt,
+                                    settings.train_length, settings.device, {"seqmatchnet": model}))
         lap("train")
     best = max(runs[1:] or runs, key=lambda run: run.evaluation.recall[1])
     page = write_report(
@@ -229,7 +232,7 @@ def run_demo(
     return DemoResult(runs, page, seconds)
 
 
-def recall_rows(runs: Sequence[MethodRun], ks: Sequence[int] = (1, 5, 20)) -> str:
+def demo_recall_table(runs: Sequence[MethodRun], ks: Sequence[int] = (1, 5, 20)) -> str:
     """The recall table as text: one row per method, R@K columns, PR-AUC."""
     width = max(len(run.name) for run in runs) + 2
     lines = [f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}"]

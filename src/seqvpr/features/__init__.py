@@ -1,5 +1,1 @@
-"""From images to descriptors: weight-free patch-normalised thumbnails (learned backbones come later)."""
-
-from seqvpr.features.patchnorm import PatchNormConfig, patch_normalize, patchnorm_descriptors
-
-__all__ = ["PatchNormConfig", "patch_normalize", "patchnorm_descriptors"]
+"""From images to descriptors: patch-normalised thumbnails, backbones with GeM or NetVLAD pooling, PCA-whitening."""

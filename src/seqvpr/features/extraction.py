@@ -201,47 +201,97 @@ def extract_descriptors(
         raise SeqvprError("no images to extract descriptors from")
     if config.pooling == "netvlad" and extractor is None:
         raise SeqvprError("NetVLAD pooling needs an initialised extractor (build_extractor, then init_netvlad)")
-    head = model_digest(extractor.pooling) if extractor is not None and config.pooling == "netvlad" else ""
-    key = cache_key(config, paths, head) if cache_dir is not None else None
+    key = _extraction_key(config, paths, cache_dir, extractor)
     final = Path(cache_dir) / f"{key}.npz" if key else None
-    if final is not None and final.is_file():
-        with np.load(final, allow_pickle=False) as cached:
-            if progress:
-                progress(len(paths))
-            skipped = tuple(paths[i] for i in cached["skipped"])
-            return Extraction(cached["descriptors"], cached["rows"], skipped, final)
+    cached = _load_cached(final, paths, progress)
+    if cached is not None:
+        return cached
+    model = _prepare_model(config, extractor, device)
+    part = _Partial(Path(cache_dir) / f"{key}.part" if key else None)
+    if progress and part.done:
+        progress(part.done)
+    _extract_remaining(model, paths, config, part, device=device, skip_bad=skip_bad, progress=progress)
+    return _assemble(paths, part, final)
+
+
+def _extraction_key(
+    config: ExtractorConfig, paths: list[Path], cache_dir: str | Path | None, extractor: Extractor | None
+) -> str | None:
+    """The cache key of this extraction (covering a NetVLAD head's state), or None when nothing is cached."""
+    head = model_digest(extractor.pooling) if extractor is not None and config.pooling == "netvlad" else ""
+    return cache_key(config, paths, head) if cache_dir is not None else None
+
+
+def _load_cached(final: Path | None, paths: list[Path], progress: Callable[[int], None] | None) -> Extraction | None:
+    """The finished extraction stored in ``final``, reported as all done, or None when there is none to reuse."""
+    if final is None or not final.is_file():
+        return None
+    with np.load(final, allow_pickle=False) as cached:
+        if progress:
+            progress(len(paths))
+        skipped = tuple(paths[i] for i in cached["skipped"])
+        return Extraction(cached["descriptors"], cached["rows"], skipped, final)
+
+
+def _prepare_model(config: ExtractorConfig, extractor: Extractor | None, device: str) -> Extractor:
+    """The given (or newly built) extractor on the device, channels-last on CPU where that is faster."""
     model = (extractor or build_extractor(config)).to(device)
     if device == "cpu" or str(device).startswith("cpu"):
         model = model.to(memory_format=torch.channels_last)
-    part = _Partial(Path(cache_dir) / f"{key}.part" if key else None)
-    rows_out: list[np.ndarray] = part.rows
-    kept: list[int] = part.kept
-    skipped: list[int] = part.skipped
-    if progress and part.done:
-        progress(part.done)
+    return model
+
+
+def _load_batch(
+    paths: list[Path], begin: int, end: int, config: ExtractorConfig, skip_bad: bool
+) -> tuple[list[torch.Tensor], list[int], list[int]]:
+    """Images ``begin..end-1`` as tensors, with the rows they are and the rows skipped as unreadable (if allowed)."""
+    images: list[torch.Tensor] = []
+    batch_rows: list[int] = []
+    batch_skipped: list[int] = []
+    for index in range(begin, end):
+        try:
+            images.append(load_image(paths[index], config.width, config.height))
+            batch_rows.append(index)
+        except SeqvprError:
+            if not skip_bad:
+                raise
+            batch_skipped.append(index)
+    return images, batch_rows, batch_skipped
+
+
+def _extract_remaining(
+    model: Extractor,
+    paths: list[Path],
+    config: ExtractorConfig,
+    part: _Partial,
+    *,
+    device: str,
+    skip_bad: bool,
+    progress: Callable[[int], None] | None,
+) -> None:
+    """Describe the batches after those ``part`` already holds, adding each to it (and its folder) as it finishes."""
     with torch.no_grad():
         for begin in range(part.done, len(paths), config.batch_size):
             end = min(begin + config.batch_size, len(paths))
-            batch_rows, batch_skipped, images = [], [], []
-            for index in range(begin, end):
-                try:
-                    images.append(load_image(paths[index], config.width, config.height))
-                    batch_rows.append(index)
-                except SeqvprError:
-                    if not skip_bad:
-                        raise
-                    batch_skipped.append(index)
+            images, batch_rows, batch_skipped = _load_batch(paths, begin, end, config, skip_bad)
             out = _describe_batch(model, images, device) if images else None
             if out is not None:
-                rows_out.append(out)
-            kept.extend(batch_rows)
-            skipped.extend(batch_skipped)
+                part.rows.append(out)
+            part.kept.extend(batch_rows)
+            part.skipped.extend(batch_skipped)
             part.save_batch(begin, end, out, batch_rows, batch_skipped)
             if progress:
                 progress(end - begin)
-    if not kept:
-        raise SeqvprError(f"none of the {len(paths)} images could be read (first: {paths[skipped[0]]})")
-    result = Extraction(np.concatenate(rows_out), np.asarray(kept, np.int64), tuple(paths[i] for i in skipped), final)
+
+
+def _assemble(paths: list[Path], part: _Partial, final: Path | None) -> Extraction:
+    """The extraction from all batches in ``part``, saved to the cache file ``final`` (if any) replacing the partial."""
+    if not part.kept:
+        raise SeqvprError(f"none of the {len(paths)} images could be read (first: {paths[part.skipped[0]]})")
+    skipped = part.skipped
+    result = Extraction(
+        np.concatenate(part.rows), np.asarray(part.kept, np.int64), tuple(paths[i] for i in skipped), final
+    )
     if final is not None:
         with atomic_write(final, "wb") as handle:
             np.savez(handle, descriptors=result.descriptors, rows=result.rows, skipped=np.asarray(skipped, np.int64))
@@ -260,7 +310,10 @@ class _Partial:
 
     def __init__(self, folder: Path | None) -> None:
         self.folder = folder
-        self.done, self.rows, self.kept, self.skipped = 0, [], [], []
+        self.done = 0
+        self.rows: list[np.ndarray] = []
+        self.kept: list[int] = []
+        self.skipped: list[int] = []
         if folder is None or not folder.is_dir():
             return
         for file in sorted(folder.glob("batch_*.npz")):

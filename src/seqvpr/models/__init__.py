@@ -1,1 +1,2 @@
-"""Learnable parts: small torch modules that take descriptors and return descriptors."""
+"""Learnable parts, each owning its model folder (save and load); ``registry`` has one record per model kind.
+Never imports ``seqvpr.training``."""

@@ -9,9 +9,8 @@ running statistics do not drift as the reference's do (digest section 5, item 14
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -20,67 +19,13 @@ from torch import nn
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
+from seqvpr.models.configs import DEFAULT_STAGES, JIST_BACKBONES, JistConfig  # noqa: F401 (re-exported)
 from seqvpr.features import backbones
 from seqvpr.features.extraction import IMAGENET_MEAN, IMAGENET_STD, load_image
 from seqvpr.features.pooling import GeM
 from seqvpr.models.files import CONFIG_FILE, load_weights_into, read_model_config, save_model_folder
 
-JIST_BACKBONES = ("resnet18", "resnet50", "efficientnet-lite0")
-#: the backbone stages trained when none are named: the last one (the reference's layer4)
-DEFAULT_STAGES = {"resnet18": ("layer4",), "resnet50": ("layer4",), "efficientnet-lite0": ("stage7", "head")}
 FORMAT = "seqvpr-jist"
-
-
-@dataclass(frozen=True)
-class JistConfig:
-    """Every choice of a JIST model and its joint loss; defaults are the reference's (digest sections 3.2, 3.3,
-    3.7): ResNet-18, 512-D, only ``layer4`` trainable, L=5, loss = 1e4 * sequence triplet (margin 0.1, Euclidean)
-    + 1e2 * CosFace cross-entropy (s=30, m=0.4), Adam lr 1e-5 for the model and 1e-2 for the classifiers.
-
-    ``trainable_stages`` names backbone stages: ``stem``, ``layer1``..``layer4`` for ResNets; ``stem``,
-    ``stage1``..``stage7``, ``head`` for EfficientNet-Lite0; the top-level child names for an injected backbone.
-    None (or empty) is the backbone's default, ``DEFAULT_STAGES``: its last stage.
-    ``weights``: None (random, for tests), a checkpoint path (torchvision or CosPlace keys; a CosPlace file also
-    fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only).
-    """
-
-    backbone: str = "resnet18"
-    weights: str | None = None
-    out_dim: int = 512
-    trainable_stages: tuple[str, ...] | None = None
-    seq_length: int = 5
-    triplet_weight: float = 1e4
-    classification_weight: float = 1e2
-    margin: float = 0.1
-    lr: float = 1e-5
-    classifier_lr: float = 1e-2
-    cosface_s: float = 30.0
-    cosface_m: float = 0.4
-
-    def __post_init__(self) -> None:
-        if self.backbone not in JIST_BACKBONES:
-            raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(JIST_BACKBONES)})")
-        if isinstance(self.trainable_stages, str):
-            raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
-        if not self.trainable_stages:
-            object.__setattr__(self, "trainable_stages", DEFAULT_STAGES[self.backbone])
-        object.__setattr__(self, "trainable_stages", tuple(self.trainable_stages))
-        if not all(isinstance(s, str) for s in self.trainable_stages):
-            raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
-        for name in ("out_dim", "seq_length"):
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise SeqvprError(f"{name} must be a positive integer, got {value}")
-        for name in ("triplet_weight", "classification_weight", "margin"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise SeqvprError(f"{name} must be a number >= 0, got {value}")
-        for name in ("lr", "classifier_lr", "cosface_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise SeqvprError(f"{name} must be a positive number, got {value}")
-        if not (math.isfinite(self.cosface_m) and self.cosface_m >= 0):
-            raise SeqvprError(f"cosface_m must be a number >= 0, got {self.cosface_m}")
 
 
 def backbone_stages(backbone: nn.Module) -> dict[str, list[nn.Module]]:
@@ -271,6 +216,20 @@ def build_jist(
 
         sequence_pool = SeqGeM()
     return JistModel(encoder, sequence_pool).eval()
+
+
+def trainable_parameters(model: JistModel, config: JistConfig) -> list[nn.Parameter]:
+    """What the model's optimiser group updates: the configured backbone stages, the encoder head and the sequence
+    pool's parameters (those that require grad)."""
+    params: dict[int, nn.Parameter] = {}
+    for p in model.encoder.stage_parameters(config.trainable_stages):
+        params[id(p)] = p
+    for p in model.encoder.head_parameters():
+        params[id(p)] = p
+    for p in model.sequence_pool.parameters():
+        if p.requires_grad:
+            params[id(p)] = p
+    return list(params.values())
 
 
 # --- inference: images to frame descriptors ---------------------------------------------------------------------

@@ -7,60 +7,18 @@ loss and the miner, which use the matching kernel's sequence distance.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from seqvpr.errors import SeqvprError
+from seqvpr.models.configs import Init, TransformConfig
 from seqvpr.models.files import CONFIG_FILE, load_weights_into, read_model_config, save_model_folder
 
-Init = Literal["reference", "identity"]
 
-
-@dataclass(frozen=True)
-class TransformConfig:
-    """Shape and initialisation of the transform.
-
-    ``out_dim`` defaults to ``in_dim`` (as in the paper); ``hidden`` adds ReLU layers (the supplement's deeper
-    variant). ``init="reference"`` is PyTorch's default Linear/Conv1d initialisation (what the reference code
-    gets); ``"identity"`` starts from W = I (semi-orthogonal when the dimensions differ) and B = 0, i.e. from the
-    untransformed descriptors.
-    """
-
-    in_dim: int
-    out_dim: int | None = None
-    hidden: tuple[int, ...] = ()
-    init: Init = "reference"
-    normalize_input: bool = True
-
-    def __post_init__(self) -> None:
-        dims = (self.in_dim, self.output_dim, *self.hidden)
-        if any(int(d) != d or d < 1 for d in dims):
-            raise SeqvprError(f"transform dimensions must be positive integers, got in={self.in_dim} "
-                              f"out={self.out_dim} hidden={self.hidden}")
-        if self.init not in ("reference", "identity"):
-            raise SeqvprError(f"init must be 'reference' or 'identity', got {self.init!r}")
-
-    @property
-    def output_dim(self) -> int:
-        return self.in_dim if self.out_dim is None else self.out_dim
-
-    def as_dict(self) -> dict:
-        return {**asdict(self), "hidden": list(self.hidden)}
-
-    @classmethod
-    def from_dict(cls, values: dict) -> TransformConfig:
-        return cls(
-            in_dim=int(values["in_dim"]),
-            out_dim=None if values.get("out_dim") is None else int(values["out_dim"]),
-            hidden=tuple(int(h) for h in values.get("hidden", ())),
-            init=values.get("init", "reference"),
-            normalize_input=bool(values.get("normalize_input", True)),
-        )
 
 
 class FrameTransform(nn.Module):

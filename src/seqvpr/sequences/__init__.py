@@ -1,1 +1,1 @@
-"""Sequence windows, the matching kernel, and (later) sequence descriptors."""
+"""Sequence windows, the matching kernel, sequence descriptors, retrieval and hierarchical re-ranking."""

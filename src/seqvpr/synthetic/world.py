@@ -29,8 +29,7 @@ from numba import njit
 from PIL import Image
 
 from seqvpr.io import atomic_folder
-
-CONDITIONS = ("day", "dusk", "night", "winter", "fog", "rain")
+from seqvpr.synthetic import CONDITIONS
 
 CAMERA_HEIGHT = 1.5  # metres above the road
 HFOV_DEG = 80.0  # horizontal field of view of the pinhole camera

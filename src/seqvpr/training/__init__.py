@@ -1,1 +1,1 @@
-"""Losses, miners, training loops and checkpoints."""
+"""Losses, miners, the one training loop and its learners (SeqMatchNet, SeqNet, JIST), settings and run state."""

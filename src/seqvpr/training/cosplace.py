@@ -10,41 +10,13 @@ large-margin cosine (CosFace) classifier over the shared image descriptor.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
 from seqvpr.errors import SeqvprError
-
-
-@dataclass(frozen=True)
-class CellGrouping:
-    """CosPlace classes: UTM cells of M metres x heading sectors of alpha degrees, split into N*N*L groups so that
-    classes of one group are never adjacent. Defaults are the reference's (``--M 10 --alpha 30 --N 5 --L 2
-    --min_images_per_class 10``, digest section 3.2 and 3.7)."""
-
-    cell_m: float = 10.0
-    heading_deg: float = 30.0
-    groups_n: int = 5
-    groups_l: int = 2
-    min_images: int = 10
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
-            raise SeqvprError(f"cell size must be a positive number of metres, got {self.cell_m}")
-        if not (math.isfinite(self.heading_deg) and 0 < self.heading_deg <= 360):
-            raise SeqvprError(f"heading sector must be in (0, 360] degrees, got {self.heading_deg}")
-        for name in ("groups_n", "groups_l", "min_images"):
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise SeqvprError(f"{name} must be a positive integer, got {value}")
-
-    @property
-    def n_groups(self) -> int:
-        """How many groups exist (N*N*L); some may be empty."""
-        return self.groups_n * self.groups_n * self.groups_l
+from seqvpr.training.settings import CellGrouping
 
 
 def cell_keys(positions: np.ndarray, headings: np.ndarray | None, grouping: CellGrouping) -> np.ndarray:

@@ -14,7 +14,7 @@ they use are encoded once (no grad) and pooled into windows with ``model.pool``.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -29,60 +29,18 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.files import MODEL_FILE, read_tensors
 from seqvpr.models.jist import (
     ImageStore, JistConfig, JistModel, build_jist, check_images_exist, describe_with_jist, encode_frames, save_jist,
+    trainable_parameters,
 )
 from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
 from seqvpr.sequences.windows import SequenceSpec, window_frames
-from seqvpr.training.cosplace import CellGrouping, CosFaceHead, assign_classes, cosface_loss, group_members
+from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members
+from seqvpr.training.settings import CellGrouping, JistTrainSettings
 from seqvpr.training.losses import euclidean, triplet_hinge
 from seqvpr.training.mining import Triplet
 from seqvpr.training.trainer import (
-    SequenceLearner, SettingsRecord, Step, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
+    SequenceLearner, Step, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
     train_sequence_model,
 )
-
-
-@dataclass(frozen=True)
-class JistTrainSettings(SettingsRecord):
-    """Schedule, batches, mining and runtime of a JIST run. Reference values (digest 3.2, 3.6, 3.7): 5 epochs x 10
-    refreshes, 1000 queries / 3000 pool windows per refresh, 4 triplets x 5 negatives, 64 classification images,
-    groups rotated per epoch, AMP. ``max_iterations`` caps the steps of one refresh (None: all triplets)."""
-
-    epochs: int = 5
-    refreshes: int = 10
-    queries_per_refresh: int = 1000
-    negative_pool: int = 3000
-    batch_size: int = 4
-    negatives: int = 5
-    images_per_batch: int = 64
-    max_iterations: int | None = None
-    width: int = 640
-    height: int = 480
-    grouping: CellGrouping = field(default_factory=CellGrouping)
-    group_per: str = "iteration"
-    select_k: int = 5
-    ks: tuple[int, ...] = (1, 5, 10)
-    infer_batch: int = 32
-    device: str = "cpu"
-    amp: bool = True
-    cache_images: bool = True
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        for name in ("epochs", "refreshes", "queries_per_refresh", "negative_pool", "batch_size", "negatives",
-                     "images_per_batch", "width", "height", "select_k", "infer_batch"):
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise SeqvprError(f"{name} must be a positive integer, got {value}")
-        if self.max_iterations is not None and (int(self.max_iterations) != self.max_iterations or self.max_iterations < 1):
-            raise SeqvprError(f"max_iterations must be a positive integer or None, got {self.max_iterations}")
-        if self.group_per not in ("iteration", "epoch"):
-            raise SeqvprError(f"group_per must be 'iteration' or 'epoch', got {self.group_per!r}")
-        if self.select_k not in self.ks:
-            raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
-
-    def resume_key(self) -> dict[str, Any]:
-        """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""
-        return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images")}
 
 
 def train_jist(
@@ -191,20 +149,6 @@ def _check_triplet_windows(windows_q: torch.Tensor, windows_p: torch.Tensor, win
             f"got shape {tuple(windows_n.shape)}"
         )
     return windows_n
-
-
-def trainable_parameters(model: JistModel, config: JistConfig) -> list[nn.Parameter]:
-    """What the model's optimiser group updates: the configured backbone stages, the encoder head and the sequence
-    pool's parameters (those that require grad)."""
-    params: dict[int, nn.Parameter] = {}
-    for p in model.encoder.stage_parameters(config.trainable_stages):
-        params[id(p)] = p
-    for p in model.encoder.head_parameters():
-        params[id(p)] = p
-    for p in model.sequence_pool.parameters():
-        if p.requires_grad:
-            params[id(p)] = p
-    return list(params.values())
 
 
 # --- mining ----------------------------------------------------------------------------------------------------
@@ -413,3 +357,23 @@ class JistLearner(SequenceLearner):
 
     def load_weights(self, folder: Path) -> dict[str, torch.Tensor]:
         return read_tensors(Path(folder) / MODEL_FILE)
+
+
+def jist_setup(values: dict[str, Any], seq_length: int | None = None) -> tuple[JistConfig, JistTrainSettings]:
+    """The JistConfig and JistTrainSettings of a flat table of their field values (plus the CosPlace cell's
+    ``cell_m`` and ``min_images``); what is not given takes the dataclasses' defaults (the reference's, and the
+    backbone's default trainable stages). ``seq-length`` overrides the table's."""
+    table = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    grouping = CellGrouping(**{k: table.pop(k) for k in ("cell_m", "min_images") if k in table})
+    model_keys = {f.name for f in fields(JistConfig)}
+    model = {k: v for k, v in table.items() if k in model_keys}
+    if seq_length is not None:
+        model["seq_length"] = seq_length
+    settings = JistTrainSettings(**{k: v for k, v in table.items() if k not in model_keys}, grouping=grouping)
+    return JistConfig(**model), settings
+
+
+#: the keys ``jist_setup`` takes
+JIST_KEYS = frozenset(
+    {f.name for f in fields(JistConfig)} | {f.name for f in fields(JistTrainSettings)} | {"cell_m", "min_images"}
+) - {"grouping"}

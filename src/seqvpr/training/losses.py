@@ -2,25 +2,10 @@
 
 from __future__ import annotations
 
-import math
-from typing import Literal
-
 import torch
 
-from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import aligned_sequence_distances
-
-SequenceMethod = Literal["seqmatch", "single"]
-DEFAULT_MARGIN = math.sqrt(0.1)  # the reference's --margin 0.1, used as its square root
-
-
-def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
-    """Frames of a window a distance uses: all of them (seqmatch) or the current frame only (single)."""
-    if method == "seqmatch":
-        return None
-    if method == "single":
-        return slice(offset, offset + 1)
-    raise SeqvprError(f"sequence method must be 'seqmatch' or 'single', got {method!r}")
+from seqvpr.training.settings import DEFAULT_MARGIN, SequenceMethod, window_part  # noqa: F401 (re-exported)
 
 
 def euclidean(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:

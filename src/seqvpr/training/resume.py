@@ -8,7 +8,6 @@ commit. Older state folders are removed after it.
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import asdict
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from seqvpr.errors import SeqvprError
 from seqvpr.models.files import read_json, read_tensors, save_json, save_tensors
+from seqvpr.training.settings import jsonable
 from seqvpr.training.history import HISTORY_FILE, EpochRecord, record_from_dict, write_history
 from seqvpr.training.state import STATE_FILE, STATE_JSON, flatten_optimizer, unflatten_optimizer
 
@@ -23,11 +23,6 @@ if TYPE_CHECKING:
     from seqvpr.training.trainer import _Run
 
 LOSS_PREFIX = "loss."
-
-
-def jsonable(values: dict) -> dict:
-    """``values`` as JSON would give them back (tuples become lists, other objects strings)."""
-    return json.loads(json.dumps(values, default=str))
 
 
 def check_same(saved: dict, current: dict, path: Path) -> None:

@@ -11,9 +11,8 @@ killed run to the same weights as an uninterrupted one (deterministic on CPU for
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,19 +24,18 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqmatchnet, save_seqmatchnet
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals, transform_traversal
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training.losses import DEFAULT_MARGIN, SequenceMethod, sequence_triplet_loss, window_part
+from seqvpr.training.losses import sequence_triplet_loss, window_part
+from seqvpr.training.settings import TrainSettings
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
 from seqvpr.training.frames import DescriptorLearner
 from seqvpr.training.trainer import (
     EpochRecord,
-    SettingsRecord,
     Step,
     SilentMonitor,
     TrainingContext,
     TrainingData,
     TrainingMonitor,
     TrainResult,
-    check_optimizer_settings,
     train_sequence_model,
 )
 
@@ -47,37 +45,6 @@ __all__ = [
     "SeqMatchNetLearner", "evaluate_transform", "train_seqmatchnet",
 ]
 
-Optimizer = Literal["sgd", "adam"]
-
-
-@dataclass(frozen=True)
-class TrainSettings(SettingsRecord):
-    """Every choice of a SeqMatchNet run; defaults follow the reference code (SGD 1e-3, step x0.5 every 5)."""
-
-    sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
-    loss: SequenceMethod = "seqmatch"
-    mining: SequenceMethod = "seqmatch"
-    margin: float = DEFAULT_MARGIN
-    negatives: int = 10
-    negative_pool: int | None = 1000
-    refresh_every: int = 1000
-    batch_size: int = 16
-    epochs: int = 50
-    optimizer: Optimizer = "sgd"
-    lr: float = 1e-3
-    momentum: float = 0.9
-    weight_decay: float = 1e-3
-    lr_step: int = 5
-    lr_gamma: float = 0.5
-    select_k: int = 1
-    ks: tuple[int, ...] = (1, 5, 10, 20)
-    seed: int = 123
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        check_optimizer_settings(self)
-        window_part(self.loss, self.sequence.length, self.sequence.offset)
-        window_part(self.mining, self.sequence.length, self.sequence.offset)
 
 
 def train_seqmatchnet(

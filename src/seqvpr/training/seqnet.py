@@ -19,9 +19,8 @@ The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,77 +35,19 @@ from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.seqnet import load_seqnet, save_seqnet
 from seqvpr.training.losses import DEFAULT_MARGIN, euclidean, triplet_hinge
+from seqvpr.training.settings import SeqNetSettings
 from seqvpr.training.mining import DistanceRows, Triplet
 from seqvpr.training.frames import DescriptorLearner
 from seqvpr.training.trainer import (
-    SettingsRecord,
     Step,
     TrainingContext,
     TrainingData,
     TrainingMonitor,
     TrainResult,
-    check_optimizer_settings,
     train_sequence_model,
 )
 
 FEATURE_BATCH = 4096  # windows per forward pass when computing mining features
-
-
-@dataclass(frozen=True)
-class SeqNetSettings(SettingsRecord):
-    """Every choice of a SeqNet run. Defaults follow the reference seqNet code (design digest, reference
-    implementations §2.2 flags, §2.3 model, §2.5 training, §7 checklist):
-
-    * ``sequence`` L = 5 (``--seqL 5``) and ``w`` = 3 (``--w 3``) (§2.2; Oxford/MSLS recipe, §2.3);
-    * ``out_dim`` None = the input dimension (the reference has no default, ``--outDims`` must be given and the
-      README uses 4096 = its input size, §2.2);
-    * SGD ``lr`` 1e-4, ``momentum`` 0.9, ``weight_decay`` 1e-3, StepLR every ``lr_step`` 50 epochs x ``lr_gamma``
-      0.5, ``epochs`` 200, ``batch_size`` 16 queries (§2.2);
-    * ``margin`` sqrt(0.1) on non-squared Euclidean distances (``--margin 0.1`` used as its root, §2.2/§2.5);
-    * ``negatives`` 10 hardest from ``negative_pool`` 1000 random candidates + the query's cached negatives,
-      violating-margin filter (§2.2 hard-coded nNeg/nNegSample, §2.5);
-    * ``refresh_every`` None: the mining features are computed once per epoch (``--cacheRefreshRate 0``, §2.2);
-    * best epoch by validation Recall@5 (``select_k`` 5, §2.5); ``seed`` 123 (§2.2).
-
-    Deviations (deliberate): windows never cross a segment break (§5 item 1; the spec's boundary rule decides
-    edge frames); validation runs on its own split, never the test set (§5 item 2); the negative cache lives in
-    the main process, so it is actually used (§5 item 9); Euclidean distances in the loss are a clamped sqrt of
-    the squared difference (``nn.TripletMarginLoss`` adds eps=1e-6 to the difference instead); the loss is the
-    mean over all (q, p, n) triplets, which equals the reference's sum divided by the number of negatives.
-    """
-
-    sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
-    w: int = 3
-    out_dim: int | None = None
-    margin: float = DEFAULT_MARGIN
-    negatives: int = 10
-    negative_pool: int | None = 1000
-    refresh_every: int | None = None
-    batch_size: int = 16
-    epochs: int = 200
-    optimizer: Literal["sgd", "adam"] = "sgd"
-    lr: float = 1e-4
-    momentum: float = 0.9
-    weight_decay: float = 1e-3
-    lr_step: int = 50
-    lr_gamma: float = 0.5
-    select_k: int = 5
-    ks: tuple[int, ...] = (1, 5, 10, 20)
-    seed: int = 123
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        check_optimizer_settings(self)
-        if self.w < 1:
-            raise SeqvprError(f"seqnet: the temporal kernel width w must be >= 1, got {self.w}")
-        if self.sequence.length < self.w:
-            raise SeqvprError(
-                f"seqnet: sequence length {self.sequence.length} is shorter than the temporal kernel width w={self.w}"
-            )
-        if tuple(self.sequence.velocities) != (1.0,):
-            raise SeqvprError(f"seqnet: sequence descriptors use velocity 1 only, got {self.sequence.velocities}")
-        if self.out_dim is not None and self.out_dim < 1:
-            raise SeqvprError(f"seqnet: out_dim must be >= 1, got {self.out_dim}")
 
 
 def train_seqnet(

@@ -16,10 +16,9 @@ the optimiser, mining, the loss of a batch, validation, and the model folder.
 from __future__ import annotations
 
 import contextlib
-import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -32,25 +31,15 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
-from seqvpr.training.history import EpochRecord, write_history
+from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
-from seqvpr.training.resume import RunState, check_same, jsonable
+from seqvpr.training.resume import RunState
+from seqvpr.training.settings import SettingsRecord, check_optimizer_settings
 
 __all__ = [
     "EpochRecord", "LoopSettings", "SequenceLearner", "SettingsRecord", "SilentMonitor", "Step", "TrainingContext",
     "TrainingData", "TrainingMonitor", "TrainResult", "check_optimizer_settings", "train_sequence_model",
 ]
-
-
-class SettingsRecord:
-    """What every training-settings dataclass shares: a JSON-ready dict, and the part a resume must match."""
-
-    def as_dict(self) -> dict[str, Any]:
-        return jsonable(asdict(self))  # type: ignore[call-overload]
-
-    def resume_key(self) -> dict[str, Any]:
-        """What must not change when a run is resumed (everything but the number of epochs and the device)."""
-        return {k: v for k, v in self.as_dict().items() if k not in ("epochs", "device")}
 
 
 @dataclass(frozen=True)
@@ -304,19 +293,6 @@ def sgd_or_adam(model: nn.Module, settings: Any) -> tuple[torch.optim.Optimizer,
     else:
         optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     return optimizer, torch.optim.lr_scheduler.StepLR(optimizer, settings.lr_step, settings.lr_gamma)
-
-
-def check_optimizer_settings(settings: Any) -> None:
-    """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``)."""
-    for name in ("refresh_every", "batch_size", "lr_step", "select_k"):
-        if getattr(settings, name) is not None and getattr(settings, name) < 1:
-            raise SeqvprError(f"{name} must be >= 1, got {getattr(settings, name)}")
-    if settings.epochs < 0:
-        raise SeqvprError(f"epochs must be >= 0, got {settings.epochs}")
-    if settings.optimizer not in ("sgd", "adam"):
-        raise SeqvprError(f"optimizer must be 'sgd' or 'adam', got {settings.optimizer!r}")
-    if not (settings.lr > 0 and math.isfinite(settings.lr)):
-        raise SeqvprError(f"learning rate must be a positive number, got {settings.lr}")
 
 
 def training_context(data: TrainingData, spec: SequenceSpec, device: torch.device) -> TrainingContext:

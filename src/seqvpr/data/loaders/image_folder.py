@@ -22,7 +22,7 @@ from __future__ import annotations
 import csv
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -125,54 +125,84 @@ def _read_positions_csv(path: Path, folder: Path) -> _CsvRows:
 
 def _parse_rows(path: Path, reader, folder: Path) -> _CsvRows:
     """Walk the CSV rows, collecting names and numbers with row/column-specific errors."""
-    header = next(reader, None)
-    if header is None or not any(cell.strip() for cell in header):
-        raise SeqvprError(f"{path}: no header row (expected columns such as name,easting,northing)")
+    header = _read_header(path, reader)
     cols = _find_columns(path, header)
-    names: list[str] = []
-    first: list[float] = []
-    second: list[float] = []
-    stamps: list[float] = []
-    heads: list[float] = []
-    segs: list[int] = []
+    values = _RowValues()
     seen: dict[str, int] = {}
     for row in reader:
         if not any(cell.strip() for cell in row):
             continue  # blank lines carry no frame
-        row_no = len(names) + 1
+        row_no = len(values.names) + 1
         where = f"{path}: row {row_no} (line {reader.line_num})"
-        if len(row) < len(header):
-            raise SeqvprError(f"{where} has {len(row)} fields, the header has {len(header)}")
-        image = row[cols.name].strip()
-        if not image:
-            raise SeqvprError(f"{where}, column {header[cols.name].strip()!r}: the image name is empty")
-        if image in seen:
-            raise SeqvprError(f"{where}: image {image!r} is listed twice (first at row {seen[image]})")
-        if not (folder / image).is_file():
-            raise SeqvprError(f"{where}: image {image!r} does not exist in {folder}")
+        image = _checked_image(row, header, cols, where, seen, folder)
         seen[image] = row_no
-        names.append(image)
-        first.append(_number(row, cols.first, header, where))
-        second.append(_number(row, cols.second, header, where))
-        if cols.timestamp is not None:
-            stamps.append(_number(row, cols.timestamp, header, where))
-        if cols.heading is not None:
-            heads.append(_number(row, cols.heading, header, where))
-        if cols.segment is not None:
-            segs.append(_integer(row, cols.segment, header, where))
-    if not names:
+        values.add(image, row, header, cols, where)
+    if not values.names:
         raise SeqvprError(f"{path}: the CSV has a header but no rows")
+    return _csv_rows(path, cols, values)
+
+
+def _read_header(path: Path, reader) -> list[str]:
+    """The header row; a one-line error when the CSV is empty or its first row is blank."""
+    header = next(reader, None)
+    if header is None or not any(cell.strip() for cell in header):
+        raise SeqvprError(f"{path}: no header row (expected columns such as name,easting,northing)")
+    return header
+
+
+@dataclass
+class _RowValues:
+    """The image names and numbers read so far, one entry per data row (optional columns only when present)."""
+
+    names: list[str] = field(default_factory=list)
+    first: list[float] = field(default_factory=list)
+    second: list[float] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)
+    heads: list[float] = field(default_factory=list)
+    segs: list[int] = field(default_factory=list)
+
+    def add(self, image: str, row: list[str], header: list[str], cols: _Columns, where: str) -> None:
+        """Append one row's image and numbers, in column order, failing on the first one that does not parse."""
+        self.names.append(image)
+        self.first.append(_number(row, cols.first, header, where))
+        self.second.append(_number(row, cols.second, header, where))
+        if cols.timestamp is not None:
+            self.stamps.append(_number(row, cols.timestamp, header, where))
+        if cols.heading is not None:
+            self.heads.append(_number(row, cols.heading, header, where))
+        if cols.segment is not None:
+            self.segs.append(_integer(row, cols.segment, header, where))
+
+
+def _checked_image(
+    row: list[str], header: list[str], cols: _Columns, where: str, seen: dict[str, int], folder: Path
+) -> str:
+    """The row's image name, once the row is complete and the name is non-empty, new and a file in the folder."""
+    if len(row) < len(header):
+        raise SeqvprError(f"{where} has {len(row)} fields, the header has {len(header)}")
+    image = row[cols.name].strip()
+    if not image:
+        raise SeqvprError(f"{where}, column {header[cols.name].strip()!r}: the image name is empty")
+    if image in seen:
+        raise SeqvprError(f"{where}: image {image!r} is listed twice (first at row {seen[image]})")
+    if not (folder / image).is_file():
+        raise SeqvprError(f"{where}: image {image!r} does not exist in {folder}")
+    return image
+
+
+def _csv_rows(path: Path, cols: _Columns, values: _RowValues) -> _CsvRows:
+    """The parsed columns as arrays, latitude/longitude converted to UTM metres."""
     if cols.latlon:
-        positions = _latlon_to_utm(path, np.asarray(first), np.asarray(second))
+        positions = _latlon_to_utm(path, np.asarray(values.first), np.asarray(values.second))
     else:
-        positions = np.column_stack([first, second]).astype(np.float64)
+        positions = np.column_stack([values.first, values.second]).astype(np.float64)
     return _CsvRows(
         path=path,
-        names=names,
+        names=values.names,
         positions=positions,
-        timestamps=np.asarray(stamps, dtype=np.float64) if cols.timestamp is not None else None,
-        headings=np.asarray(heads, dtype=np.float64) if cols.heading is not None else None,
-        segments=np.asarray(segs, dtype=np.int64) if cols.segment is not None else None,
+        timestamps=np.asarray(values.stamps, dtype=np.float64) if cols.timestamp is not None else None,
+        headings=np.asarray(values.heads, dtype=np.float64) if cols.heading is not None else None,
+        segments=np.asarray(values.segs, dtype=np.int64) if cols.segment is not None else None,
     )
 
 

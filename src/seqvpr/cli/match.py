@@ -1,0 +1,219 @@
+"""``seqvpr match``, ``seqvpr eval`` and ``seqvpr extract``: parse, call the library, print."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from seqvpr.cli.options import extraction_options, extraction_settings, parse_ks, parse_size, parse_velocities
+from seqvpr.cli.progress import tqdm_progress
+from seqvpr.errors import SeqvprError
+from seqvpr.methods import METHODS
+
+MATCH_EPILOG = """\b
+Examples:
+  seqvpr match --reference day.mat --query night.mat --seq-len 5 --radius 2f
+  seqvpr match --reference summer/ --query winter/ --frames 17:2000 --radius 1f --seq-len 10
+  seqvpr match --reference dataset.toml --query dataset.toml --json
+  seqvpr match --reference ref.npz --query qry.npz --radius 25m --velocities 0.8:1.2:0.1
+  seqvpr match -r ref.npz -q qry.npz --radius 25m --model runs/seqnet --model runs/seqmatchnet --method hvpr
+"""
+
+
+@click.command(epilog=MATCH_EPILOG)
+@click.option("--reference", "-r", required=True, help="Reference traversal: descriptor file, image folder, .db or .toml.")
+@click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
+@click.option("--seq-len", "-L", type=int, help="Frames per sequence window.  [default: 1, or the --model's L]")
+@click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
+              help="Window around the frame (centred) or ending at it (causal, for online use).")
+@click.option("--model", "model_dirs", type=click.Path(), multiple=True,
+              help="A seqvpr train --out folder (repeatable, one per kind): SeqMatchNet transforms the frames that "
+                   "sequence matching compares; SeqNet and JIST give sequence descriptors (--method seqnet / jist, "
+                   "implied), JIST describing the images itself.")
+@click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
+              help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
+@click.option("--velocities", default="1", show_default=True,
+              help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
+@click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
+@click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
+@extraction_options
+@click.option("--method", type=click.Choice(list(METHODS)),
+              help="; ".join(f"{m.name}: {m.summary}" for m in METHODS.values())
+              + ".  [default: matching, or the --model's method]")
+@click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
+              help="faiss index for sequence-descriptor methods: exact (flat) or approximate (HNSW).")
+@click.option("--rerank", type=int, default=0, show_default=True,
+              help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
+@click.option("--pca-dim", default=0, show_default=True, type=int,
+              help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
+@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
+              help="Queries with no positive: excluded from the denominator, or counted as misses.")
+@click.option("--no-normalize", is_flag=True, help="Do not L2-normalise descriptors before matching.")
+@click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--memory-budget", default="2G", show_default=True,
+              help="Most bytes of distance matrix held at once (e.g. 512M); 'none' for the whole matrix.")
+@click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=click.Path(),
+              help="Folder for predictions.csv and run.json.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
+def match(**o: Any) -> None:
+    """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
+    from seqvpr.data.sources import load_pair
+    from seqvpr.methods import run_length, run_method
+    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
+    from seqvpr.sequences.windows import SequenceSpec
+
+    k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
+    if o["pca_dim"] < 0:
+        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
+    if o["seq_len"] is not None:
+        SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
+    models, method = _models_and_method(o)
+    reference, query = load_pair(o["reference"], o["query"], o["frames"])
+    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"])
+    has_images = reference.image_paths is not None
+    reference, query = _frames(reference, query, models, o)
+    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
+    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
+    result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
+                        progress=tqdm_progress)
+    evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
+    descriptor = "jist" if "jist" in models else o["descriptor"] if has_images else "file"
+    run = _run_settings(o, method, models, descriptor, gt.description, settings.as_dict())
+    _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
+
+
+def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
+    """The --model folders loaded by kind, and the method (--method or the models' own), checked together."""
+    from seqvpr.methods import check_run, implied_method
+    from seqvpr.models.registry import load_trained_model, model_kind
+
+    kinds: dict[str, str] = {}
+    for folder in o["model_dirs"]:
+        kind = model_kind(folder).name
+        if kind in kinds:
+            raise SeqvprError(f"--model {folder}: a second {kind} model (give one --model per kind)")
+        kinds[kind] = folder
+    method = o["method"] or implied_method(kinds)
+    check_run(method, kinds, o["rerank"])  # before any model or data is read
+    if "jist" in kinds and o["pca_dim"]:
+        raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
+    return {kind: load_trained_model(folder, o["device"]) for kind, folder in kinds.items()}, method
+
+
+def _frames(reference, query, models: dict, o: dict[str, Any]):
+    """Frame descriptors for the method: the models' (JIST) or the extraction options', then PCA-whitened if asked."""
+    from seqvpr.methods import describe_for_models
+    from seqvpr.pipeline import describe_pair, whiten_pair
+
+    descriptor, patchnorm, extraction = extraction_settings(o, o["device"])
+    reference, query = describe_for_models(
+        reference, query, models,
+        lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), o["device"],
+    )
+    if not o["pca_dim"]:
+        return reference, query
+    reference, query, used = whiten_pair(reference, query, o["pca_dim"])
+    if used < o["pca_dim"]:
+        click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
+    return reference, query
+
+
+def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str, rule: str, match: dict) -> dict:
+    """Everything that decided the run, for run.json."""
+    folders = [str(f) for f in o["model_dirs"]]
+    kinds = list(models)
+    return {
+        "reference": o["reference"], "query": o["query"], "frames": o["frames"], "radius": o["radius"],
+        "ground_truth": o["gt_file"], "ground_truth_rule": rule, "descriptor": descriptor, "method": method,
+        "index": None if METHODS[method].family == "matching" else o["index_kind"], "rerank": o["rerank"],
+        "pooling": o["pooling"], "pca_dim": o["pca_dim"], "no_positive": o["no_positive"],
+        "model": folders[0] if len(folders) == 1 else folders or None,
+        "model_kind": kinds[0] if len(kinds) == 1 else kinds or None, **match,
+    }
+
+
+def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label: str, pair) -> None:
+    """predictions.csv and run.json in --out, then the table (or one JSON object) on stdout."""
+    from seqvpr.evaluation.predictions import save_match_predictions
+    from seqvpr.evaluation.results import evaluation_json, recall_table
+    from seqvpr.io import atomic_write
+
+    out = Path(o["out_dir"])
+    save_match_predictions(out / "predictions.csv", result, gt)
+    with atomic_write(out / "run.json") as handle:
+        json.dump(evaluation_json(evaluation, run), handle, indent=2, default=str)
+    if o["as_json"]:
+        click.echo(json.dumps(evaluation_json(evaluation, run), default=str))
+        return
+    click.echo(f"reference: {pair[0]!r}\nquery:     {pair[1]!r}\nground truth: {gt.description}")
+    click.echo(recall_table(evaluation, label))
+    click.echo(f"predictions: {out / 'predictions.csv'}")
+
+
+@click.command(name="eval", epilog="\b\nExample:\n  seqvpr eval seqvpr-out/predictions.csv --reference day.mat --query night.mat --radius 2f")
+@click.argument("predictions", type=click.Path())
+@click.option("--reference", "-r", required=True, help="The reference traversal the predictions index.")
+@click.option("--query", "-q", required=True, help="The query traversal.")
+@click.option("--radius", help="Ground-truth tolerance: 25m or 2f.")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat or VPR-Bench .npy).")
+@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive, as_json) -> None:
+    """Score a predictions CSV (query, references, distances) against ground truth."""
+    k_values = parse_ks(ks)
+    from seqvpr.data.sources import load_pair
+    from seqvpr.evaluation.predictions import evaluate_predictions
+    from seqvpr.evaluation.results import evaluation_json, recall_table
+    from seqvpr.pipeline import resolve_ground_truth
+
+    ref, qry = load_pair(reference, query)
+    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
+    evaluation = evaluate_predictions(predictions, ref, qry, gt, k_values, no_positive)
+    if as_json:
+        click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))
+    else:
+        click.echo(recall_table(evaluation, Path(predictions).name[:14]))
+
+
+@click.command(epilog="""\b
+Examples:
+  seqvpr extract images/ --out ref.npz
+  seqvpr extract images/ --descriptor resnet50 --weights cosplace_r50.pth --image-size 512x384 --out ref.npz
+  seqvpr match --reference ref.npz --query qry.npz --radius 25m -L 5
+""")
+@click.argument("images")
+@extraction_options
+@click.option("--cluster-images", help="netvlad: traversal whose images initialise the clusters  [default: IMAGES]; "
+              "extract the query with the reference's images here so both share one NetVLAD head.")
+@click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
+              help="Which side of a dbStruct or description file to read.")
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--out", "out_file", required=True, type=click.Path(),
+              help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
+def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
+    """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
+    descriptor, patchnorm, extraction = extraction_settings(o, device)
+    from seqvpr.data.sources import load_traversal, save_traversal_npz
+    from seqvpr.pipeline import describe, dropped_frames, netvlad_extractor
+
+    traversal = load_traversal(images, role)
+    if traversal.image_paths is None:
+        raise SeqvprError(f"{images}: holds descriptors, not images; nothing to extract")
+    if descriptor != "patchnorm" and o["pooling"] == "netvlad":
+        source = load_traversal(cluster_images, "reference") if cluster_images else traversal
+        if source.image_paths is None:
+            raise SeqvprError(f"{cluster_images}: --cluster-images must be a traversal of images")
+        extraction["model"] = netvlad_extractor(extraction["extractor"], source.image_paths, device, tqdm_progress)
+    described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
+    skipped = dropped_frames(traversal, described)
+    if skipped:
+        click.echo(f"skipped {len(skipped)} unreadable images: {', '.join(skipped)}", err=True)
+    save_traversal_npz(Path(out_file), described)
+    click.echo(f"{out_file}: {len(described)} frames, {described.descriptors.shape[1]}-D {descriptor} descriptors")

@@ -1,0 +1,340 @@
+"""``seqvpr train seqmatchnet|seqnet|jist`` and ``seqvpr ablate seqmatchnet``: parse, call the library, print.
+Option defaults are the settings dataclasses' (``training.settings``, ``models.configs``), read without torch."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options
+from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
+from seqvpr.errors import SeqvprError
+from seqvpr.models.configs import JIST_BACKBONES, JistConfig
+from seqvpr.training.settings import CellGrouping, JistTrainSettings, SeqNetSettings, TrainSettings
+
+
+def data_options(kind: str) -> list[Callable]:
+    """Training and validation traversals, their splits and the radii (shared by every training command)."""
+    from seqvpr.training.settings import NEGATIVE_RADIUS_FACTOR
+
+    return [
+        click.option("--reference", "-r", required=True, help="Training reference traversal (any source seqvpr reads)."),
+        click.option("--query", "-q", required=True, help="Training query traversal."),
+        click.option("--frames", help="Keep source frames START:STOP of both traversals first (e.g. 17:2000)."),
+        click.option("--train-frames", required=True, help="Source frames START:STOP used for training."),
+        click.option("--val-frames", required=True, help="Source frames START:STOP used for validation (model selection)."),
+        click.option("--val-reference", help="Validation reference (default: --reference)."),
+        click.option("--val-query", help="Validation query (default: --query)."),
+        click.option("--radius", required=True, help="Ground truth for validation (and test): 25m or 2f."),
+        click.option("--pos-radius", help="Positives for training are within this radius (default: --radius)."),
+        click.option("--neg-radius", help=f"Negatives lie outside this radius (default: {NEGATIVE_RADIUS_FACTOR[kind]:g}x "
+                                          "--pos-radius; a buffer zone)."),
+    ]
+
+
+def sequence_training_options(kind: str, defaults: TrainSettings | SeqNetSettings, model_options: list[Callable]):
+    """The options of a model trained on frame descriptors (data, sequence, mining, optimisation, patchnorm), with
+    the defaults of its settings class, plus ``model_options`` (its own) before --seed."""
+    pool = "all" if defaults.negative_pool is None else str(defaults.negative_pool)
+    per_epoch = defaults.refresh_every is None
+    return with_options([
+        *data_options(kind),
+        click.option("--seq-len", "-L", default=defaults.sequence.length, show_default=True, type=int,
+                     help="Frames per sequence window."),
+        click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True),
+        click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
+                     help="Windows at segment ends: dropped (training never uses shifted windows) or shifted."),
+        click.option("--margin", default=defaults.margin, show_default=True, type=float,
+                     help="Triplet margin on sequence distances (default sqrt(0.1), as the reference)."),
+        click.option("--negatives", default=defaults.negatives, show_default=True, type=int,
+                     help="Hard negatives per query."),
+        click.option("--negative-pool", default=pool, show_default=True,
+                     help="Random negative candidates per query (plus its previous negatives), or 'all'."),
+        click.option("--refresh-every", default=defaults.refresh_every, show_default=not per_epoch, type=int,
+                     help="Re-mine with the current model every N queries." + per_epoch * "  [default: once per epoch]"),
+        click.option("--batch-size", default=defaults.batch_size, show_default=True, type=int,
+                     help="Queries (triplet groups) per step."),
+        click.option("--epochs", default=defaults.epochs, show_default=True, type=int),
+        click.option("--optimizer", type=click.Choice(["sgd", "adam"]), default=defaults.optimizer, show_default=True),
+        click.option("--lr", default=defaults.lr, show_default=True, type=float),
+        click.option("--momentum", default=defaults.momentum, show_default=True, type=float, help="SGD momentum."),
+        click.option("--weight-decay", default=defaults.weight_decay, show_default=True, type=float),
+        click.option("--lr-step", default=defaults.lr_step, show_default=True, type=int,
+                     help="Epochs between learning-rate steps."),
+        click.option("--lr-gamma", default=defaults.lr_gamma, show_default=True, type=float,
+                     help="Learning-rate factor per step."),
+        click.option("--select", "select_k", default=defaults.select_k, show_default=True, type=int,
+                     help="Keep the checkpoint with the best validation Recall@K for this K."),
+        click.option("--k", "ks", default=",".join(map(str, defaults.ks)), show_default=True,
+                     help="Recall@K values reported."),
+        *model_options,
+        click.option("--seed", default=defaults.seed, show_default=True, type=int),
+        click.option("--device", default="cpu", show_default=True),
+        click.option("--thumbnail", default="64x32", show_default=True, help="Image folders: patch-normalised thumbnail size."),
+        click.option("--patch", default=8, show_default=True, type=int, help="Image folders: patch side."),
+    ])
+
+
+training_options = sequence_training_options("seqmatchnet", TrainSettings(), [
+    click.option("--out-dim", type=int, help="Output dimension of the transform (default: input dimension)."),
+    click.option("--hidden", default="", help="Hidden layer sizes for the deeper MLP variant, e.g. 4096."),
+    click.option("--init", type=click.Choice(["reference", "identity"]), default="reference", show_default=True,
+                 help="PyTorch default initialisation (as the reference code) or identity W, zero B."),
+])
+
+seqnet_options = sequence_training_options("seqnet", SeqNetSettings(), [
+    click.option("--w", "w", default=SeqNetSettings.w, show_default=True, type=int,
+                 help="Temporal kernel width of SeqNet's Conv1d (at most -L)."),
+    click.option("--out-dim", type=int, help="Output dimension of the sequence descriptor (default: input dimension)."),
+])
+
+run_options = with_options([
+    click.option("--resume", is_flag=True, help="Continue the run in --out from its last finished epoch."),
+])
+
+
+def settings_from_options(o: dict, kind: type = TrainSettings, **model_fields: Any):
+    """The settings object of ``kind`` (TrainSettings or SeqNetSettings) the shared options describe."""
+    from seqvpr.sequences.windows import SequenceSpec
+
+    pool = o["negative_pool"]
+    try:
+        pool_size = None if str(pool).lower() == "all" else int(pool)
+    except ValueError:
+        raise SeqvprError(f"--negative-pool {pool!r}: expected a number or 'all'") from None
+    return kind(
+        sequence=SequenceSpec(o["seq_len"], o["align"], o["boundary"]),
+        margin=o["margin"], negatives=o["negatives"], negative_pool=pool_size, refresh_every=o["refresh_every"],
+        batch_size=o["batch_size"], epochs=o["epochs"], optimizer=o["optimizer"], lr=o["lr"],
+        momentum=o["momentum"], weight_decay=o["weight_decay"], lr_step=o["lr_step"], lr_gamma=o["lr_gamma"],
+        select_k=o["select_k"], ks=parse_ks(o["ks"]), seed=o["seed"], device=o["device"], **model_fields,
+    )
+
+
+def transform_from_options(o: dict, dim: int):
+    from seqvpr.models.configs import TransformConfig
+
+    try:
+        hidden = tuple(int(h) for h in o["hidden"].split(",") if h.strip())
+    except ValueError:
+        raise SeqvprError(f"--hidden {o['hidden']!r}: expected comma-separated sizes, e.g. 4096") from None
+    return TransformConfig(dim, o["out_dim"], hidden, o["init"])
+
+
+def described_data(kind: str, o: dict):
+    """The training data of the options, images described as patch-normalised thumbnails; with the whole described
+    training pair and the patchnorm config (for the ablation's test split)."""
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.features.patchnorm import PatchNormConfig
+    from seqvpr.pipeline import describe_pair
+    from seqvpr.training.data import training_data, training_pairs
+
+    width, height = parse_thumbnail(o["thumbnail"])
+    config = PatchNormConfig(width, height, o["patch"])
+    prepare = lambda r, q: describe_pair(r, q, "patchnorm", config, tqdm_progress)  # noqa: E731
+    train, validation, whole = training_pairs(
+        o["reference"], o["query"], o["train_frames"], o["val_frames"], prepare, frames=o["frames"],
+        val_reference=o["val_reference"], val_query=o["val_query"],
+    )
+    radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
+    return training_data(kind, train, validation, *radii), whole, config
+
+
+def echo_best(best_epoch: int, best_recall: dict[int, float], folder: Path | str) -> None:
+    """The closing lines of a training command: the best epoch's validation recall and the model folder."""
+    best = " ".join(f"R@{k} {v:.3f}" for k, v in sorted(best_recall.items()))
+    click.echo(f"best epoch {best_epoch}: validation {best}\nmodel: {folder} "
+               f"(apply with: seqvpr match --model {folder} ...)")
+
+
+@click.group()
+def train() -> None:
+    """Train a model on a training split, selecting the best checkpoint on a validation split."""
+
+
+@train.command(name="seqmatchnet", epilog="""\b
+Example (Nordland, summer reference, winter query, +-1 frame, L=5):
+  seqvpr train seqmatchnet -r nordland_64x32/summer -q nordland_64x32/winter \\
+      --train-frames 17:1200 --val-frames 1200:1600 --radius 1f -L 5 --out runs/nordland
+  seqvpr match -r nordland_64x32/summer -q nordland_64x32/winter --frames 1600:2000 \\
+      --radius 1f --model runs/nordland
+""")
+@training_options
+@click.option("--out", "out_dir", default="seqmatchnet-run", show_default=True, type=click.Path(),
+              help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
+@run_options
+def train_seqmatchnet_command(out_dir, resume, **o) -> None:
+    """SeqMatchNet: a per-frame transform trained with a sequence-matching triplet loss and sequence mining."""
+    from seqvpr.training.seqmatchnet import train_seqmatchnet
+
+    settings = settings_from_options(o)
+    data, _, _ = described_data("seqmatchnet", o)
+    result = train_seqmatchnet(data, transform_from_options(o, data.dim), settings, out_dir, resume=resume,
+                               monitor=TqdmMonitor())
+    echo_best(result.best_epoch, result.best_recall, result.folder)
+
+
+@train.command(name="seqnet", epilog="""\b
+Example (Nordland, summer reference, winter query, +-1 frame, L=5, w=3):
+  seqvpr train seqnet -r nordland_64x32/summer -q nordland_64x32/winter \\
+      --train-frames 17:1200 --val-frames 1200:1600 --radius 1f --out runs/seqnet-nordland
+  seqvpr match -r nordland_64x32/summer -q nordland_64x32/winter --frames 1600:2000 \\
+      --radius 1f --model runs/seqnet-nordland --rerank 20
+""")
+@seqnet_options
+@click.option("--out", "out_dir", default="seqnet-run", show_default=True, type=click.Path(),
+              help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
+@run_options
+def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
+    """SeqNet: a temporal Conv1d over each window of frame descriptors, one descriptor per sequence, trained with a
+    triplet loss and hard negatives mined in its own descriptor space (velocity 1)."""
+    from seqvpr.training.seqnet import train_seqnet
+
+    settings = settings_from_options(o, SeqNetSettings, w=w, out_dim=out_dim)
+    data, _, _ = described_data("seqnet", o)
+    result = train_seqnet(data, settings, out_dir, resume=resume, monitor=TqdmMonitor())
+    echo_best(result.best_epoch, result.best_recall, result.folder)
+
+
+JIST_DEFAULTS, JIST_RUN = JistConfig(), JistTrainSettings()
+
+jist_options = with_options([
+    *data_options("jist"),
+    click.option("--backbone", type=click.Choice(list(JIST_BACKBONES)), default=JIST_DEFAULTS.backbone,
+                 show_default=True),
+    click.option("--weights", help="Backbone weights: a checkpoint path (torchvision or CosPlace keys), or 'imagenet' "
+                 "(efficientnet-lite0's packaged weights).  [default: random initialisation]"),
+    click.option("--trainable-stages", help="Comma list of backbone stages to train (ResNet: stem, layer1..layer4; "
+                 "efficientnet-lite0: stem, stage1..stage7, head).  [default: the backbone's last stage: layer4; "
+                 "efficientnet-lite0: stage7,head]"),
+    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=int, help="Frame descriptor size."),
+    click.option("--seq-len", "-L", default=JIST_DEFAULTS.seq_length, show_default=True, type=int,
+                 help="Frames per sequence window."),
+    click.option("--epochs", default=JIST_RUN.epochs, show_default=True, type=int),
+    click.option("--refreshes", default=JIST_RUN.refreshes, show_default=True, type=int,
+                 help="Triplet mining refreshes per epoch."),
+    click.option("--max-iterations", type=int, help="Most iterations per refresh.  [default: every mined batch]"),
+    click.option("--batch-size", default=JIST_RUN.batch_size, show_default=True, type=int,
+                 help="Sequence triplets per iteration."),
+    click.option("--images-per-batch", default=JIST_RUN.images_per_batch, show_default=True, type=int,
+                 help="Single images per iteration for the CosPlace classification branch."),
+    click.option("--image-size", default=f"{JIST_RUN.width}x{JIST_RUN.height}", show_default=True,
+                 help="Image size WIDTHxHEIGHT for training and for seqvpr match --model."),
+    click.option("--cell-size", default=CellGrouping.cell_m, show_default=True, type=float,
+                 help="CosPlace class cells, in the radius unit (metres, or frames with a frame radius)."),
+    click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=int,
+                 help="Images a CosPlace class needs to be used."),
+    click.option("--lr", default=JIST_DEFAULTS.lr, show_default=True, type=float, help="Adam learning rate of the model."),
+    click.option("--classifier-lr", default=JIST_DEFAULTS.classifier_lr, show_default=True, type=float,
+                 help="Adam learning rate of the CosFace classifiers."),
+    click.option("--select", "select_k", default=JIST_RUN.select_k, show_default=True, type=int,
+                 help="Keep the epoch with the best validation Recall@K for this K (one of --k)."),
+    click.option("--k", "ks", default=",".join(map(str, JIST_RUN.ks)), show_default=True, help="Recall@K values reported."),
+    click.option("--seed", default=JIST_RUN.seed, show_default=True, type=int),
+    click.option("--device", default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
+])
+
+
+def jist_values(o: dict) -> dict[str, Any]:
+    """The JIST options as the flat table ``training.jist.jist_setup`` takes (the benchmark's ``[jist]`` table)."""
+    width, height = parse_thumbnail(o["image_size"], "--image-size")
+    return {
+        "backbone": o["backbone"], "weights": o["weights"], "out_dim": o["out_dim"],
+        "trainable_stages": parse_stages(o["trainable_stages"]), "seq_length": o["seq_len"], "lr": o["lr"],
+        "classifier_lr": o["classifier_lr"], "epochs": o["epochs"], "refreshes": o["refreshes"],
+        "max_iterations": o["max_iterations"], "batch_size": o["batch_size"],
+        "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
+        "min_images": o["min_images"], "select_k": o["select_k"], "ks": parse_ks(o["ks"]), "device": o["device"],
+        "seed": o["seed"],
+    }
+
+
+@train.command(name="jist", epilog="""\b
+Examples:
+  # a route with positions (metres): positives within 10 m, negatives outside 25 m, validation within 25 m
+  seqvpr train jist -r city/day -q city/night --train-frames 0:4000 --val-frames 4000:5000 \\
+      --radius 25m --pos-radius 10m --backbone resnet18 --weights cosplace_r18.pth --out runs/jist-city
+  # Nordland image folders (frame-aligned, no positions): radii and cells count frames
+  seqvpr train jist -r nordland/summer -q nordland/winter --train-frames 17:1200 --val-frames 1200:1600 \\
+      --radius 1f --backbone efficientnet-lite0 --weights imagenet --out runs/jist-nordland
+  seqvpr match -r nordland/summer -q nordland/winter --frames 1600:2000 --radius 1f --model runs/jist-nordland
+""")
+@jist_options
+@click.option("--out", "out_dir", default="jist-run", show_default=True, type=click.Path(),
+              help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
+@run_options
+def train_jist_command(out_dir, resume, **o) -> None:
+    """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
+    single images, from the traversals' images (best epoch by validation Recall@K)."""
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.training.data import training_data, training_pairs
+    from seqvpr.training.jist import jist_setup, train_jist
+
+    config, settings = jist_setup(jist_values(o))
+    train_pair, validation, _ = training_pairs(
+        o["reference"], o["query"], o["train_frames"], o["val_frames"], lambda r, q: (r, q), frames=o["frames"],
+        val_reference=o["val_reference"], val_query=o["val_query"],
+    )
+    radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
+    data = training_data("jist", train_pair, validation, *radii)
+    result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor())
+    echo_best(result.best_epoch, result.best_recall, result.folder)
+
+
+@click.group()
+def ablate() -> None:
+    """Run a method's ablation grid and print one row per variant."""
+
+
+@ablate.command(name="seqmatchnet", epilog="""\b
+Example (SeqMatchNet Table 1 on Nordland):
+  seqvpr ablate seqmatchnet -r nordland_64x32/summer -q nordland_64x32/winter --train-frames 17:1200 \\
+      --val-frames 1200:1600 --test-frames 1600:2000 --radius 1f -L 5 --out runs/ablation-nordland
+""")
+@training_options
+@click.option("--test-frames", required=True, help="Source frames START:STOP of the test split.")
+@click.option("--test-reference", help="Test reference (default: --reference).")
+@click.option("--test-query", help="Test query (default: --query).")
+@click.option("--test-radius", help="Test ground truth (default: --radius), e.g. to test in metres after training in frames.")
+@click.option("--out", "out_dir", default="seqmatchnet-ablation", show_default=True, type=click.Path(),
+              help="Folder with one run per variant, ablation.csv and ablation.md.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
+def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **o) -> None:
+    """SeqMatchNet Table 1: loss {single, seqmatch} x mining {single, seqmatch}, plus untransformed descriptors."""
+    from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius
+    from seqvpr.evaluation.results import recall_rows
+    from seqvpr.experiments.ablation import ablation_json, run_ablation, write_ablation
+
+    settings = settings_from_options(o)
+    data, whole, config = described_data("seqmatchnet", o)
+    test_ref, test_qry = _test_split(o, whole, config, test_frames, test_reference, test_query)
+    gt = ground_truth_within_radius(test_qry, test_ref, parse_radius(test_radius or o["radius"]))
+    rows = run_ablation(data, test_ref, test_qry, gt, transform_from_options(o, data.dim), settings, out_dir,
+                        monitor=lambda name: TqdmMonitor(f"{name} "))
+    csv_path, md_path = write_ablation(rows, settings.ks, out_dir)
+    if as_json:
+        click.echo(json.dumps(ablation_json(rows)))
+        return
+    click.echo(f"test: {test_ref!r} / {test_qry!r}, ground truth {gt.description}, L={settings.sequence.length}")
+    click.echo(recall_rows([(row.name, row.test) for row in rows], 18))
+    click.echo(f"tables: {md_path}, {csv_path}")
+
+
+def _test_split(o: dict, whole, config, test_frames: str, test_reference: str | None, test_query: str | None):
+    """The ablation's test pair: from its own sources, or a split of the training traversals disjoint from the
+    training and validation frames."""
+    from seqvpr.data.sources import load_pair
+    from seqvpr.data.traversal import check_disjoint, slice_frame_range
+    from seqvpr.pipeline import describe_pair
+
+    if test_reference or test_query:
+        pair = load_pair(test_reference or o["reference"], test_query or o["query"], o["frames"])
+        whole = describe_pair(*pair, "patchnorm", config, tqdm_progress)
+    else:
+        check_disjoint(o["train_frames"], test_frames, ("--train-frames", "--test-frames"))
+        check_disjoint(o["val_frames"], test_frames, ("--val-frames", "--test-frames"))
+    return tuple(slice_frame_range(t, test_frames, "--test-frames") for t in whole)

@@ -1,0 +1,204 @@
+"""One record per method and one ``run_method`` that every entry point uses (``seqvpr match``, ``seqvpr
+benchmark``, the demo).
+
+A method is frame-level sequence matching (``single``, ``matching``, ``seqmatchnet``), retrieval by one sequence
+descriptor per window (``smoothing``, ``delta``, ``concat``, ``seqgem``, ``seqgem-signed``, ``seqnet``, ``jist``),
+or hierarchical (``hvpr``: a retrieval shortlist re-ranked by exact sequence distance). Trained models come in as
+``TrainedModel``s keyed by kind: a SeqMatchNet model transforms the frames that sequence matching compares (the
+matching methods and every re-ranking); SeqNet and JIST give their own sequence descriptors. Sequence-descriptor
+methods pool the frames as described (JIST's frames come from its own encoder: ``describe_for_models``).
+
+Adding a method: one ``Method`` record in ``METHODS`` and, when no family fits, a branch of ``run_method``; the
+CLI's ``--method`` choices and the benchmark's accepted methods are ``METHODS``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Literal
+
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.windows import SequenceSpec
+
+if TYPE_CHECKING:
+    from seqvpr.models.registry import TrainedModel
+    from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
+
+Family = Literal["matching", "retrieval", "hierarchical"]
+MODEL_TITLES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST"}
+HVPR_SHORTLIST = 20  # HVPR's default shortlist length (the top N re-ranked)
+
+
+@dataclass(frozen=True)
+class Method:
+    """A method: its family, the model kind it needs (if any), the sequence-descriptor pooling it retrieves with,
+    a fixed sequence length (``single``: 1), and a line saying what it is."""
+
+    name: str
+    family: Family
+    summary: str
+    needs: str | None = None
+    pooling: str | None = None
+    length: int | None = None
+
+    def accepts(self, kind: str) -> bool:
+        """Whether a model of ``kind`` can be given to this method (its own, or a SeqMatchNet transform for the
+        frames it matches or re-ranks; JIST's frames are its own descriptors, so nothing else goes with it)."""
+        if kind == self.needs:
+            return True
+        if self.needs == "jist" or kind == "jist":
+            return False
+        return kind == "seqmatchnet" or (self.family == "hierarchical" and kind == "seqnet")
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("single", "matching", "single-image retrieval (sequence matching at L = 1)", length=1),
+    Method("matching", "matching", "sequence matching: mean of order-aligned frame distances over L frames"),
+    Method("seqmatchnet", "matching", "sequence matching over SeqMatchNet-transformed frames", needs="seqmatchnet"),
+    Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
+    Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
+    Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
+    Method("seqgem", "retrieval", "SeqGeM (p = 3) of the window, faiss search", pooling="seqgem"),
+    Method("seqgem-signed", "retrieval", "SeqGeM keeping negative parts (for PCA-whitened or HDC descriptors)",
+           pooling="seqgem-signed"),
+    Method("seqnet", "retrieval", "a trained SeqNet's sequence descriptor, faiss search", needs="seqnet",
+           pooling="seqnet"),
+    Method("jist", "retrieval", "a trained JIST: its encoder's frames pooled by its SeqGeM, faiss search",
+           needs="jist", pooling="seqgem"),
+    Method("hvpr", "hierarchical", "hierarchical: a SeqNet (or SeqGeM) shortlist re-ranked by sequence matching"),
+)}
+
+
+def get_method(name: str) -> Method:
+    if name not in METHODS:
+        raise SeqvprError(f"method {name!r} is not known (choose from: {', '.join(METHODS)})")
+    return METHODS[name]
+
+
+def implied_method(models: Mapping[str, TrainedModel]) -> str:
+    """The method a set of models implies: JIST's or SeqNet's own, SeqMatchNet's, or plain sequence matching."""
+    for kind in ("jist", "seqnet", "seqmatchnet"):
+        if kind in models:
+            return kind
+    return "matching"
+
+
+def check_models(method: Method, models: Mapping[str, TrainedModel]) -> None:
+    """A method and models that do not go together are a one-line error."""
+    if method.needs is not None and method.needs not in models:
+        given = next(iter(models), None)
+        found = "no --model" if given is None else f"a {MODEL_TITLES[given]} --model"
+        raise SeqvprError(f"--method {method.name} needs a {MODEL_TITLES[method.needs]} --model "
+                          f"(seqvpr train {method.needs} --out), got {found}")
+    for kind in models:
+        if not method.accepts(kind):
+            advice = (f"gives sequence descriptors itself: use --method {kind} (or leave --method out)"
+                      if kind in ("seqnet", "jist") else "does not apply")
+            raise SeqvprError(f"a {MODEL_TITLES[kind]} --model {advice}, not --method {method.name}")
+
+
+def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0) -> Method:
+    """The method, after checking that it goes with these models and this re-ranking (before any data is read)."""
+    method = get_method(name)
+    check_models(method, models)
+    if rerank < 0 or (rerank and method.family == "matching"):
+        raise SeqvprError(f"--rerank N needs N >= 0 and a --method other than matching (got {rerank}, {name})")
+    return method
+
+
+def run_length(method: Method, models: Mapping[str, TrainedModel]) -> int:
+    """The sequence length a method runs at when none is asked for: its model's (the one it needs, else the first
+    given), else 1."""
+    if method.needs in models:
+        return models[method.needs].length
+    return next(iter(models.values())).length if models else 1
+
+
+def models_used(name: str, shortlist: str = "seqnet") -> tuple[str, ...]:
+    """The model kinds ``run_method(name, ...)`` uses (what the benchmark trains for it)."""
+    method = get_method(name)
+    if method.family == "hierarchical":
+        return ("seqmatchnet", *models_used(shortlist))
+    return () if method.needs is None else (method.needs,)
+
+
+def run_method(
+    name: str,
+    reference: Traversal,
+    query: Traversal,
+    settings: MatchSettings,
+    models: Mapping[str, TrainedModel] | None = None,
+    *,
+    index: str = "flat",
+    rerank: int = 0,
+    shortlist: str | None = None,
+    progress: ProgressFactory | None = None,
+) -> MatchResult:
+    """Top-K reference frames per query frame by method ``name`` over described traversals.
+
+    ``rerank`` N > 0 re-ranks the top N of a retrieval method by exact sequence distance (HVPR; ``hvpr`` itself
+    defaults to N = 20 and to the ``shortlist`` method ``seqnet`` when a SeqNet model is given, else ``seqgem``).
+    """
+    from seqvpr.pipeline import match_traversals, rerank_match, retrieve_traversals
+
+    models = dict(models or {})
+    method = check_run(name, models, rerank)
+    if method.family == "hierarchical":
+        first = shortlist or ("seqnet" if "seqnet" in models else "seqgem")
+        if get_method(first).family != "retrieval":
+            raise SeqvprError(f"hvpr: the shortlist must be a retrieval method, got {first!r}")
+        used = {kind: models[kind] for kind in models if get_method(first).accepts(kind)}
+        return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST)
+    if method.family == "matching":
+        if method.length is not None:
+            settings = replace(settings, sequence=SequenceSpec(method.length))
+        return match_traversals(*transformed_frames(reference, query, models, settings.device), settings, progress)
+    shortlist_settings = replace(settings, k=max(rerank, settings.k))
+    result = retrieve_traversals(reference, query, method.pooling, shortlist_settings, index=index,
+                                 model=_pooling_module(method, models))
+    if not rerank:
+        return result
+    ref, qry = transformed_frames(reference, query, models, settings.device)
+    return rerank_match(replace(result, reference=ref, query=qry), settings)
+
+
+def _pooling_module(method: Method, models: Mapping[str, TrainedModel]):
+    """The learned pooling a retrieval method uses: SeqNet itself, JIST's SeqGeM, or none."""
+    if method.needs == "seqnet":
+        return models["seqnet"].module
+    if method.needs == "jist":
+        return models["jist"].module.sequence_pool
+    return None
+
+
+def transformed_frames(
+    reference: Traversal, query: Traversal, models: Mapping[str, TrainedModel], device: str = "cpu"
+) -> tuple[Traversal, Traversal]:
+    """Both traversals through a SeqMatchNet model's per-frame transform when one is given; else unchanged."""
+    if "seqmatchnet" not in models:
+        return reference, query
+    from seqvpr.pipeline import transform_traversal
+
+    module = models["seqmatchnet"].module
+    return transform_traversal(reference, module, device), transform_traversal(query, module, device)
+
+
+def describe_for_models(
+    reference: Traversal,
+    query: Traversal,
+    models: Mapping[str, TrainedModel],
+    describe_pair: Callable[[Traversal, Traversal], tuple[Traversal, Traversal]],
+    device: str = "cpu",
+) -> tuple[Traversal, Traversal]:
+    """Frame descriptors of both traversals: a JIST model's encoder reads the images at its image size; anything
+    else is ``describe_pair`` (e.g. patch normalisation or a backbone, as the caller chose)."""
+    if "jist" not in models:
+        return describe_pair(reference, query)
+    from seqvpr.models.jist import ImageStore, describe_with_jist
+
+    model = models["jist"]
+    store = ImageStore(*model.image_size)
+    return tuple(describe_with_jist(model.module, t, *model.image_size, device, store=store)  # type: ignore[return-value]
+                 for t in (reference, query))

@@ -1,0 +1,219 @@
+"""Every training setting as plain frozen dataclasses, with their checks and defaults (the reference codes'):
+SeqMatchNet's ``TrainSettings``, ``SeqNetSettings``, JIST's ``JistTrainSettings`` and CosPlace's ``CellGrouping``.
+
+No torch here: the command line reads these defaults for its ``--help`` without loading a model library.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+from seqvpr.errors import SeqvprError
+from seqvpr.sequences.windows import SequenceSpec
+
+SequenceMethod = Literal["seqmatch", "single"]
+Optimizer = Literal["sgd", "adam"]
+DEFAULT_MARGIN = math.sqrt(0.1)  # the reference's --margin 0.1, used as its square root
+#: negatives lie outside this multiple of the positive radius: the reference codes' 10/40 frames (SeqMatchNet,
+#: SeqNet) and 10/25 m (JIST); ``training.data.training_radii`` applies it
+NEGATIVE_RADIUS_FACTOR = {"seqmatchnet": 4.0, "seqnet": 4.0, "jist": 2.5}
+
+
+def jsonable(values: dict) -> dict:
+    """``values`` as JSON would give them back (tuples become lists, other objects strings)."""
+    return json.loads(json.dumps(values, default=str))
+
+
+class SettingsRecord:
+    """What every training-settings dataclass shares: a JSON-ready dict, and the part a resume must match."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return jsonable(asdict(self))  # type: ignore[call-overload]
+
+    def resume_key(self) -> dict[str, Any]:
+        """What must not change when a run is resumed (everything but the number of epochs and the device)."""
+        return {k: v for k, v in self.as_dict().items() if k not in ("epochs", "device")}
+
+
+def check_optimizer_settings(settings: Any) -> None:
+    """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``)."""
+    for name in ("refresh_every", "batch_size", "lr_step", "select_k"):
+        if getattr(settings, name) is not None and getattr(settings, name) < 1:
+            raise SeqvprError(f"{name} must be >= 1, got {getattr(settings, name)}")
+    if settings.epochs < 0:
+        raise SeqvprError(f"epochs must be >= 0, got {settings.epochs}")
+    if settings.optimizer not in ("sgd", "adam"):
+        raise SeqvprError(f"optimizer must be 'sgd' or 'adam', got {settings.optimizer!r}")
+    if not (settings.lr > 0 and math.isfinite(settings.lr)):
+        raise SeqvprError(f"learning rate must be a positive number, got {settings.lr}")
+
+
+def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
+    """Frames of a window a distance uses: all of them (seqmatch) or the current frame only (single)."""
+    if method == "seqmatch":
+        return None
+    if method == "single":
+        return slice(offset, offset + 1)
+    raise SeqvprError(f"sequence method must be 'seqmatch' or 'single', got {method!r}")
+
+
+@dataclass(frozen=True)
+class CellGrouping:
+    """CosPlace classes: UTM cells of M metres x heading sectors of alpha degrees, split into N*N*L groups so that
+    classes of one group are never adjacent. Defaults are the reference's (``--M 10 --alpha 30 --N 5 --L 2
+    --min_images_per_class 10``, digest section 3.2 and 3.7)."""
+
+    cell_m: float = 10.0
+    heading_deg: float = 30.0
+    groups_n: int = 5
+    groups_l: int = 2
+    min_images: int = 10
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
+            raise SeqvprError(f"cell size must be a positive number of metres, got {self.cell_m}")
+        if not (math.isfinite(self.heading_deg) and 0 < self.heading_deg <= 360):
+            raise SeqvprError(f"heading sector must be in (0, 360] degrees, got {self.heading_deg}")
+        for name in ("groups_n", "groups_l", "min_images"):
+            value = getattr(self, name)
+            if int(value) != value or value < 1:
+                raise SeqvprError(f"{name} must be a positive integer, got {value}")
+
+    @property
+    def n_groups(self) -> int:
+        """How many groups exist (N*N*L); some may be empty."""
+        return self.groups_n * self.groups_n * self.groups_l
+
+
+@dataclass(frozen=True)
+class TrainSettings(SettingsRecord):
+    """Every choice of a SeqMatchNet run; defaults follow the reference code (SGD 1e-3, step x0.5 every 5)."""
+
+    sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
+    loss: SequenceMethod = "seqmatch"
+    mining: SequenceMethod = "seqmatch"
+    margin: float = DEFAULT_MARGIN
+    negatives: int = 10
+    negative_pool: int | None = 1000
+    refresh_every: int = 1000
+    batch_size: int = 16
+    epochs: int = 50
+    optimizer: Optimizer = "sgd"
+    lr: float = 1e-3
+    momentum: float = 0.9
+    weight_decay: float = 1e-3
+    lr_step: int = 5
+    lr_gamma: float = 0.5
+    select_k: int = 1
+    ks: tuple[int, ...] = (1, 5, 10, 20)
+    seed: int = 123
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_optimizer_settings(self)
+        window_part(self.loss, self.sequence.length, self.sequence.offset)
+        window_part(self.mining, self.sequence.length, self.sequence.offset)
+
+
+@dataclass(frozen=True)
+class SeqNetSettings(SettingsRecord):
+    """Every choice of a SeqNet run. Defaults follow the reference seqNet code (design digest, reference
+    implementations §2.2 flags, §2.3 model, §2.5 training, §7 checklist):
+
+    * ``sequence`` L = 5 (``--seqL 5``) and ``w`` = 3 (``--w 3``) (§2.2; Oxford/MSLS recipe, §2.3);
+    * ``out_dim`` None = the input dimension (the reference has no default, ``--outDims`` must be given and the
+      README uses 4096 = its input size, §2.2);
+    * SGD ``lr`` 1e-4, ``momentum`` 0.9, ``weight_decay`` 1e-3, StepLR every ``lr_step`` 50 epochs x ``lr_gamma``
+      0.5, ``epochs`` 200, ``batch_size`` 16 queries (§2.2);
+    * ``margin`` sqrt(0.1) on non-squared Euclidean distances (``--margin 0.1`` used as its root, §2.2/§2.5);
+    * ``negatives`` 10 hardest from ``negative_pool`` 1000 random candidates + the query's cached negatives,
+      violating-margin filter (§2.2 hard-coded nNeg/nNegSample, §2.5);
+    * ``refresh_every`` None: the mining features are computed once per epoch (``--cacheRefreshRate 0``, §2.2);
+    * best epoch by validation Recall@5 (``select_k`` 5, §2.5); ``seed`` 123 (§2.2).
+
+    Deviations (deliberate): windows never cross a segment break (§5 item 1; the spec's boundary rule decides
+    edge frames); validation runs on its own split, never the test set (§5 item 2); the negative cache lives in
+    the main process, so it is actually used (§5 item 9); Euclidean distances in the loss are a clamped sqrt of
+    the squared difference (``nn.TripletMarginLoss`` adds eps=1e-6 to the difference instead); the loss is the
+    mean over all (q, p, n) triplets, which equals the reference's sum divided by the number of negatives.
+    """
+
+    sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
+    w: int = 3
+    out_dim: int | None = None
+    margin: float = DEFAULT_MARGIN
+    negatives: int = 10
+    negative_pool: int | None = 1000
+    refresh_every: int | None = None
+    batch_size: int = 16
+    epochs: int = 200
+    optimizer: Literal["sgd", "adam"] = "sgd"
+    lr: float = 1e-4
+    momentum: float = 0.9
+    weight_decay: float = 1e-3
+    lr_step: int = 50
+    lr_gamma: float = 0.5
+    select_k: int = 5
+    ks: tuple[int, ...] = (1, 5, 10, 20)
+    seed: int = 123
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_optimizer_settings(self)
+        if self.w < 1:
+            raise SeqvprError(f"seqnet: the temporal kernel width w must be >= 1, got {self.w}")
+        if self.sequence.length < self.w:
+            raise SeqvprError(
+                f"seqnet: sequence length {self.sequence.length} is shorter than the temporal kernel width w={self.w}"
+            )
+        if tuple(self.sequence.velocities) != (1.0,):
+            raise SeqvprError(f"seqnet: sequence descriptors use velocity 1 only, got {self.sequence.velocities}")
+        if self.out_dim is not None and self.out_dim < 1:
+            raise SeqvprError(f"seqnet: out_dim must be >= 1, got {self.out_dim}")
+
+
+@dataclass(frozen=True)
+class JistTrainSettings(SettingsRecord):
+    """Schedule, batches, mining and runtime of a JIST run. Reference values (digest 3.2, 3.6, 3.7): 5 epochs x 10
+    refreshes, 1000 queries / 3000 pool windows per refresh, 4 triplets x 5 negatives, 64 classification images,
+    groups rotated per epoch, AMP. ``max_iterations`` caps the steps of one refresh (None: all triplets)."""
+
+    epochs: int = 5
+    refreshes: int = 10
+    queries_per_refresh: int = 1000
+    negative_pool: int = 3000
+    batch_size: int = 4
+    negatives: int = 5
+    images_per_batch: int = 64
+    max_iterations: int | None = None
+    width: int = 640
+    height: int = 480
+    grouping: CellGrouping = field(default_factory=CellGrouping)
+    group_per: str = "iteration"
+    select_k: int = 5
+    ks: tuple[int, ...] = (1, 5, 10)
+    infer_batch: int = 32
+    device: str = "cpu"
+    amp: bool = True
+    cache_images: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "refreshes", "queries_per_refresh", "negative_pool", "batch_size", "negatives",
+                     "images_per_batch", "width", "height", "select_k", "infer_batch"):
+            value = getattr(self, name)
+            if int(value) != value or value < 1:
+                raise SeqvprError(f"{name} must be a positive integer, got {value}")
+        if self.max_iterations is not None and (int(self.max_iterations) != self.max_iterations or self.max_iterations < 1):
+            raise SeqvprError(f"max_iterations must be a positive integer or None, got {self.max_iterations}")
+        if self.group_per not in ("iteration", "epoch"):
+            raise SeqvprError(f"group_per must be 'iteration' or 'epoch', got {self.group_per!r}")
+        if self.select_k not in self.ks:
+            raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
+
+    def resume_key(self) -> dict[str, Any]:
+        """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""
+        return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images")}
