@@ -5,24 +5,38 @@ faiss or matplotlib: each command imports what it uses when it runs."""
 
 from __future__ import annotations
 
+import importlib
 import sys
 
 import click
 
-from seqvpr.cli.experiments import benchmark, demo
-from seqvpr.cli.match import eval_command, extract, match
-from seqvpr.cli.train import ablate, train
 from seqvpr.errors import SeqvprError
 
+#: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
+COMMANDS = {
+    "match": "seqvpr.cli.match:match", "eval": "seqvpr.cli.match:eval_command", "extract": "seqvpr.cli.match:extract",
+    "train": "seqvpr.cli.train:train", "ablate": "seqvpr.cli.train:ablate",
+    "benchmark": "seqvpr.cli.experiments:benchmark", "demo": "seqvpr.cli.experiments:demo",
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
+
+class LazyGroup(click.Group):
+    """A click group whose commands are imported when used: ``seqvpr match`` loads nothing of training."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module, attribute = COMMANDS[name].split(":")
+        return getattr(importlib.import_module(module), attribute)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.version_option(package_name="seqvpr")
 def cli() -> None:
     """Sequence-based visual place recognition: match a query traversal against a reference traversal."""
-
-
-for command in (match, eval_command, demo, extract, benchmark, train, ablate):
-    cli.add_command(command)
 
 
 def main() -> None:

@@ -63,9 +63,6 @@ Examples:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    from seqvpr.data.sources import load_pair
-    from seqvpr.methods import run_length, run_method
-    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
     from seqvpr.sequences.windows import SequenceSpec
 
     k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
@@ -73,6 +70,10 @@ def match(**o: Any) -> None:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
     if o["seq_len"] is not None:
         SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
+    from seqvpr.data.sources import load_pair
+    from seqvpr.methods import run_length, run_method
+    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
+
     models, method = _models_and_method(o)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"])

@@ -457,6 +457,16 @@ _SIGN_COLOURS = np.array([
 _SNOW = np.array([0.93, 0.94, 0.97], dtype=np.float32)
 
 
+def _paint_wall(rng: np.random.Generator) -> np.ndarray:
+    """A facade's bare wall (float [FACADE_H, FACADE_W, 3]): one colour with grain, brick courses in a third."""
+    wall = _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))] * rng.uniform(0.85, 1.1, 3).astype(np.float32)
+    grain = _periodic_noise(rng, FACADE_H, FACADE_W, 1.0) * 0.05 + _periodic_noise(rng, FACADE_H, FACADE_W, 12.0) * 0.06
+    rgb = np.clip(wall[None, None, :] * (1.0 + grain[..., None]), 0, 1)
+    if rng.random() < 0.35:  # brick courses
+        rgb = rgb * np.where((np.arange(FACADE_H) % 3 == 0)[:, None, None], 0.85, 1.0)
+    return rgb
+
+
 def _paint_facade(rng: np.random.Generator, snow: bool) -> np.ndarray:
     """One street facade (uint8 [FACADE_H, FACADE_W, 5], row 0 at the ground): storeys of windows over a shop
     or residential ground floor, with per-window curtains and lights; snow on sills and ledges when asked."""
@@ -464,12 +474,7 @@ def _paint_facade(rng: np.random.Generator, snow: bool) -> np.ndarray:
     bay = FACADE_W / PX_PER_M / n_bays
     z = ((np.arange(FACADE_H) + 0.5) / PX_PER_M)[:, None]
     u = ((np.arange(FACADE_W) + 0.5) / PX_PER_M)[None, :]
-    wall = _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))] * rng.uniform(0.85, 1.1, 3).astype(np.float32)
-    grain = _periodic_noise(rng, FACADE_H, FACADE_W, 1.0) * 0.05 + _periodic_noise(rng, FACADE_H, FACADE_W, 12.0) * 0.06
-    rgb = np.clip(wall[None, None, :] * (1.0 + grain[..., None]), 0, 1)
-    brick = rng.random() < 0.35
-    if brick:
-        rgb = rgb * np.where((np.arange(FACADE_H) % 3 == 0)[:, None, None], 0.85, 1.0)
+    rgb = _paint_wall(rng)
     emission = np.zeros((FACADE_H, FACADE_W), np.float32)
     width = bay * rng.uniform(0.38, 0.62)
     win_h = storey * rng.uniform(0.42, 0.6)
