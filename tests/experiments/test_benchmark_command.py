@@ -157,3 +157,39 @@ def test_config_errors_are_one_line(tmp_path):
     raises_one_line("[seqnet] has unknown keys epoch", read_config, bad)
     bad.write_text(config_text('["single"]').replace("ks = [1, 5]", "ks = [1, 5]\nhvpr_shortlist = 'netvlad'"))
     raises_one_line("hvpr_shortlist 'netvlad' is not one of seqnet, seqgem", read_config, bad)
+
+
+class Captured(Exception):
+    """Raised by a stand-in ``train_jist`` to stop once it has seen its arguments."""
+
+
+def test_jist_defaults_are_the_same_in_train_jist_and_the_benchmark(monkeypatch, capsys, tmp_path):
+    """``seqvpr train jist`` with its defaults and the benchmark with an empty [jist] table hand ``train_jist`` the
+    same model config, run settings and radii (negatives at 2.5x the positive radius, trainable stages)."""
+    import seqvpr.training.jist as jist
+    from seqvpr.experiments.benchmark import Splits, train_kind
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.sources import load_pair
+    from seqvpr.synthetic.world import write_demo_world
+
+    seen = []
+
+    def capture(data, config, settings, out_dir, **kwargs):
+        seen.append((config, settings, data.positive_radius, data.negative_radius, data.val_radius))
+        raise Captured
+
+    monkeypatch.setattr(jist, "train_jist", capture)
+    paths = write_demo_world(tmp_path / "world", frames=40, width=64, height=48, seed=0)
+    ref, qry = str(paths["train_reference"]), str(paths["train_query"])
+    with pytest.raises(Captured):
+        run_cli(monkeypatch, capsys, "train", "jist", "-r", ref, "-q", qry, "--train-frames", "0:30",
+                "--val-frames", "30:40", "--radius", "10m", "--out", tmp_path / "run")
+    config = tmp_path / "b.toml"
+    config.write_text(config_text('["jist"]').replace('"reference.npz"', f'"{ref}"').replace('"query.npz"', f'"{qry}"'))
+    reference, query = load_pair(ref, qry)
+    splits = Splits((reference.slice_frames(0, 30), query.slice_frames(0, 30)),
+                    (reference.slice_frames(30, 40), query.slice_frames(30, 40)), None, parse_radius("10m"))
+    with pytest.raises(Captured):
+        train_kind("jist", splits, read_config(config), tmp_path / "bench")
+    assert seen[0] == seen[1]
+    assert seen[0][0].trainable_stages == ("layer4",) and seen[0][3].value == 25.0

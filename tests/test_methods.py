@@ -1,0 +1,103 @@
+"""One record per method and one ``run_method``: every family against the stage functions it strings together, the
+method/model rules, and one set of method names for the CLI, the benchmark and the registry."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from seqvpr.cli.match import match
+from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.experiments.benchmark import read_config
+from seqvpr.methods import METHODS, check_models, implied_method, models_used, run_length, run_method
+from seqvpr.models.configs import TransformConfig
+from seqvpr.models.registry import TrainedModel
+from seqvpr.models.seqmatchnet import FrameTransform
+from seqvpr.pipeline import MatchSettings, match_traversals, rerank_match, retrieve_traversals, transform_traversal
+from seqvpr.sequences.descriptors import SeqNet
+from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.synthetic.routes import generate_route
+from tests.helpers import raises_one_line
+
+SETTINGS = MatchSettings(SequenceSpec(5), k=10)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return generate_route(n_frames=120, dim=16, seed=4)
+
+
+def trained(kind: str, module, length: int = 5) -> TrainedModel:
+    return TrainedModel(kind, module.eval(), length, Path(kind))
+
+
+SMN = trained("seqmatchnet", FrameTransform(TransformConfig(16), seed=1))
+SEQNET = trained("seqnet", SeqNet(16, 16, 3))
+
+
+def same(a, b) -> None:
+    np.testing.assert_array_equal(a.topk.indices, b.topk.indices)
+    np.testing.assert_allclose(a.topk.distances, b.topk.distances, rtol=1e-6)
+
+
+def test_method_names_are_one_set_for_cli_benchmark_and_registry(tmp_path):
+    choices = next(p for p in match.params if p.name == "method").type.choices
+    assert set(choices) == set(METHODS)
+    for name in METHODS:  # the benchmark accepts every method of the registry ...
+        config = tmp_path / f"{name}.toml"
+        config.write_text(f'[benchmark]\nmethods = ["{name}"]\n[[dataset]]\nname = "d"\nreference = "r.npz"\n'
+                          'query = "q.npz"\nradius = "1f"\ntrain = "0:1"\nselect = "1:2"\ntest = "2:3"\n')
+        assert read_config(config).methods == (name,)
+    config.write_text(config.read_text().replace(f'["{name}"]', '["magic"]'))
+    raises_one_line("unknown methods magic", read_config, config)  # ... and nothing else
+
+
+def test_matching_family(pair):
+    reference, query = pair
+    same(run_method("matching", reference, query, SETTINGS), match_traversals(reference, query, SETTINGS))
+    single = run_method("single", reference, query, SETTINGS)
+    assert single.settings.sequence.length == 1
+    same(single, match_traversals(reference, query, replace(SETTINGS, sequence=SequenceSpec(1))))
+    transformed = (transform_traversal(reference, SMN.module), transform_traversal(query, SMN.module))
+    expected = match_traversals(*transformed, SETTINGS)
+    same(run_method("seqmatchnet", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
+    same(run_method("matching", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
+
+
+def test_retrieval_and_hierarchical_families(pair):
+    reference, query = pair
+    same(run_method("delta", reference, query, SETTINGS), retrieve_traversals(reference, query, "delta", SETTINGS))
+    same(run_method("seqnet", reference, query, SETTINGS, {"seqnet": SEQNET}),
+         retrieve_traversals(reference, query, "seqnet", SETTINGS, model=SEQNET.module))
+    # HVPR: the SeqNet shortlist over the frames as described, re-ranked over SeqMatchNet-transformed frames
+    shortlist = retrieve_traversals(reference, query, "seqnet", replace(SETTINGS, k=20), model=SEQNET.module)
+    transformed = replace(shortlist, reference=transform_traversal(reference, SMN.module),
+                          query=transform_traversal(query, SMN.module))
+    hvpr = run_method("hvpr", reference, query, SETTINGS, {"seqnet": SEQNET, "seqmatchnet": SMN})
+    same(hvpr, rerank_match(transformed, SETTINGS))
+    seqgem = run_method("hvpr", reference, query, SETTINGS, shortlist="seqgem")
+    same(seqgem, run_method("seqgem", reference, query, SETTINGS, rerank=20))
+    gt = ground_truth_within_radius(query, reference, Radius(4, "m"))
+    assert gt.contains(np.arange(len(query)), hvpr.topk.indices[:, 0]).any()
+
+
+def test_models_and_methods_that_do_not_go_together_are_one_line_errors():
+    jist = {"jist": trained("jist", SeqNet(4, 4, 1))}
+    raises_one_line("--method seqnet needs a SeqNet --model", check_models, METHODS["seqnet"], {})
+    raises_one_line("got a SeqMatchNet --model", check_models, METHODS["jist"], {"seqmatchnet": SMN})
+    raises_one_line("use --method seqnet", check_models, METHODS["delta"], {"seqnet": SEQNET})
+    raises_one_line("use --method jist", check_models, METHODS["matching"], jist)
+    raises_one_line("--rerank N needs", run_method, "matching", None, None, SETTINGS, rerank=5)
+    raises_one_line("method 'magic' is not known", run_method, "magic", None, None, SETTINGS)
+
+
+def test_implied_method_length_and_models_used():
+    assert implied_method({}) == "matching" and implied_method({"seqmatchnet": SMN}) == "seqmatchnet"
+    assert implied_method({"seqmatchnet": SMN, "seqnet": SEQNET}) == "seqnet"
+    assert run_length(METHODS["seqnet"], {"seqmatchnet": trained("seqmatchnet", SMN.module, 3), "seqnet": SEQNET}) == 5
+    assert run_length(METHODS["matching"], {}) == 1
+    assert models_used("hvpr") == ("seqmatchnet", "seqnet") and models_used("hvpr", "seqgem") == ("seqmatchnet",)
+    assert models_used("jist") == ("jist",) and models_used("delta") == ()
