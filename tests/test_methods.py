@@ -101,3 +101,25 @@ def test_implied_method_length_and_models_used():
     assert run_length(METHODS["matching"], {}) == 1
     assert models_used("hvpr") == ("seqmatchnet", "seqnet") and models_used("hvpr", "seqgem") == ("seqmatchnet",)
     assert models_used("jist") == ("jist",) and models_used("delta") == ()
+
+
+def test_a_new_method_is_one_record_plus_its_function(monkeypatch, pair):
+    """The README's how-to: a pooling function and one Method record make a method ``run_method`` runs."""
+    import torch
+
+    from seqvpr.methods import Method
+    from seqvpr.sequences import descriptors
+
+    def maxpool(windows: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.normalize(windows.amax(dim=1), dim=-1)
+
+    monkeypatch.setitem(descriptors.FIXED_POOLINGS, "maxpool", maxpool)
+    monkeypatch.setitem(METHODS, "maxpool", Method("maxpool", "retrieval", "element-wise max", pooling="maxpool"))
+    reference, query = pair
+    result = run_method("maxpool", reference, query, SETTINGS)
+    ref, qry = (torch.nn.functional.normalize(torch.as_tensor(t.descriptors, dtype=torch.float32), dim=1)
+                for t in pair)
+    window = lambda x, i: maxpool(x[i - 2 : i + 3][None])[0]  # noqa: E731 (centred L = 5)
+    i = 60
+    expected = min(range(2, len(ref) - 2), key=lambda j: float(torch.dist(window(qry, i), window(ref, j))))
+    assert result.topk.indices[i, 0] == expected

@@ -19,7 +19,6 @@ from torch import nn
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_frames, window_starts
 
-SEQUENCE_METHODS = ("smoothing", "delta", "concat", "seqnet", "seqgem")
 SEQGEM_MODES = ("clamp", "signed")
 
 
@@ -157,7 +156,8 @@ class SequenceDescriptors:
         return int(self.vectors.shape[1])
 
 
-_FIXED = {"smoothing": smoothing, "delta": delta, "concat": concatenation}
+#: poolings without parameters: windows [B, L, D] -> one vector per window; a new one is an entry here
+FIXED_POOLINGS = {"smoothing": smoothing, "delta": delta, "concat": concatenation}
 
 
 def sequence_descriptors(
@@ -201,12 +201,13 @@ def sequence_descriptors(
 
 def _pooling(method: str, model: nn.Module | None, spec: SequenceSpec, dim: int):
     """The pooling callable of ``method``, checking that a model is given exactly where one is needed and fits."""
-    if method not in SEQUENCE_METHODS:
-        raise SeqvprError(f"sequence method {method!r} is not known (choose from: {', '.join(SEQUENCE_METHODS)})")
-    if method in _FIXED:
+    known = (*FIXED_POOLINGS, "seqnet", "seqgem")
+    if method not in known:
+        raise SeqvprError(f"sequence method {method!r} is not known (choose from: {', '.join(known)})")
+    if method in FIXED_POOLINGS:
         if model is not None:
             raise SeqvprError(f"sequence method {method!r} takes no model")
-        return _FIXED[method]
+        return FIXED_POOLINGS[method]
     if method == "seqgem":
         return SeqGeM() if model is None else model
     if model is None:
