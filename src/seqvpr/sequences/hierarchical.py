@@ -13,7 +13,7 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import TopK, aligned_sequence_distances
-from seqvpr.sequences.windows import SequenceSpec, window_starts
+from seqvpr.sequences.windows import SequenceSpec, window_frames, window_starts
 
 
 def rerank(
@@ -49,14 +49,14 @@ def rerank(
     rows = np.flatnonzero(has_window)
     per_query = max(1, candidates.shape[1] * spec.length * query.shape[1] * query.element_size())
     step = max(1, memory_budget // per_query)
-    offsets = torch.arange(spec.length, device=query.device)
     for begin in range(0, len(rows), step):
         batch = rows[begin : begin + step]
         picked = candidates[batch]
         starts = np.where(picked >= 0, r_starts[np.maximum(picked, 0)], -1)
         valid = starts >= 0
-        q_windows = query[torch.as_tensor(q_starts[batch], device=query.device)[:, None] + offsets]  # [b, L, D]
-        r_index = torch.as_tensor(np.maximum(starts, 0), device=query.device)[..., None] + offsets  # [b, K, L]
+        q_windows = query[torch.as_tensor(window_frames(q_starts[batch], spec.length), device=query.device)]  # [b, L, D]
+        r_frames = window_frames(np.maximum(starts, 0).reshape(-1), spec.length).reshape(*starts.shape, spec.length)
+        r_index = torch.as_tensor(r_frames, device=query.device)  # [b, K, L]
         d = aligned_sequence_distances(q_windows[:, None], reference[r_index]).double().cpu().numpy()
         d[~valid] = np.inf
         order = np.argsort(d, axis=1, kind="stable")[:, :keep]

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_steps, window_starts
+from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_steps, window_frames, window_starts
 
 ProgressFn = Callable[[int], None]
 
@@ -278,7 +278,7 @@ def sequence_distance_rows(
     starts = np.asarray(query_starts, dtype=np.int64)
     if len(starts) and int(starts.min()) < 0:
         raise SeqvprError("sequence_distance_rows: every query start must be a window start (>= 0)")
-    covered = np.unique((starts[:, None] + np.arange(spec.length)[None, :]).ravel())
+    covered = np.unique(window_frames(starts, spec.length).ravel())
     position = np.full(int(covered[-1]) + 1 if len(covered) else 0, -1, dtype=np.int64)
     position[covered] = np.arange(len(covered))
     index = torch.as_tensor(covered, device=query.device)

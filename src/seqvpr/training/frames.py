@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from seqvpr.sequences.windows import window_frames
 from seqvpr.training.mining import DistanceRows, MiningConfig, SequenceMiner, Triplet
 from seqvpr.training.trainer import SequenceLearner, TrainingContext, TrainingData
 
@@ -23,15 +24,15 @@ class TrainingFrames:
     reference: torch.Tensor
     query_starts: np.ndarray
     reference_starts: np.ndarray
-    window: torch.Tensor  # arange(L) on the device
+    length: int
     device: torch.device
 
     def query_windows(self, rows: np.ndarray) -> torch.Tensor:
         """Frame rows [n, L] of the windows of query rows ``rows``."""
-        return torch.as_tensor(self.query_starts[rows], device=self.device)[:, None] + self.window
+        return torch.as_tensor(window_frames(self.query_starts[rows], self.length), device=self.device)
 
     def reference_windows(self, rows: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(self.reference_starts[rows], device=self.device)[:, None] + self.window
+        return torch.as_tensor(window_frames(self.reference_starts[rows], self.length), device=self.device)
 
 
 class DescriptorLearner(SequenceLearner):
@@ -61,7 +62,7 @@ class DescriptorLearner(SequenceLearner):
         data, device = context.data, context.device
         self.frames = TrainingFrames(
             self.input_frames(data.query.descriptors, device), self.input_frames(data.reference.descriptors, device),
-            context.query_starts, context.reference_starts, torch.arange(self.spec.length, device=device), device,
+            context.query_starts, context.reference_starts, self.spec.length, device,
         )
         mining = MiningConfig(settings.negatives, settings.negative_pool, settings.margin)
         self.miner = SequenceMiner(self.mining_kernel(context, settings), context.query_starts, context.positives,

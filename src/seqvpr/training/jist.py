@@ -195,7 +195,7 @@ def pool_windows(model: JistModel, frame_descriptors: torch.Tensor, frames: np.n
         model.train(was_training)
 
 
-def window_descriptors(
+def jist_window_descriptors(
     model: JistModel, store: ImageStore, traversal: Traversal, frames: np.ndarray, device: str, batch: int = 32
 ) -> torch.Tensor:
     """Descriptors of the given windows (rows [n, L] of the traversal): only the frames they use are encoded."""
@@ -305,7 +305,7 @@ class JistLearner(SequenceLearner):
     def _windows(self, model: JistModel, side: str, rows: np.ndarray) -> torch.Tensor:
         starts = getattr(self.context, f"{side}_starts")[rows]
         traversal = getattr(self.context.data, side)
-        return window_descriptors(model, self.store, traversal, window_frames(starts, self.spec.length),
+        return jist_window_descriptors(model, self.store, traversal, window_frames(starts, self.spec.length),
                                   str(self.context.device), self._settings.infer_batch)
 
     def batches(self, triplets: list[Triplet], settings: JistTrainSettings) -> list[list[Triplet]]:

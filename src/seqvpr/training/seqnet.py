@@ -32,7 +32,7 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.matching import frame_distances
-from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.sequences.windows import SequenceSpec, window_frames
 from seqvpr.models.seqnet import load_seqnet, save_seqnet
 from seqvpr.training.losses import DEFAULT_MARGIN, euclidean, triplet_hinge
 from seqvpr.training.settings import SeqNetSettings
@@ -68,10 +68,9 @@ def train_seqnet(
 # --- kernel and loss ---------------------------------------------------------------------------------------------
 
 
-def window_descriptors(model: SeqNet, frames: torch.Tensor, starts: np.ndarray, length: int) -> torch.Tensor:
+def seqnet_descriptors(model: SeqNet, frames: torch.Tensor, starts: np.ndarray, length: int) -> torch.Tensor:
     """SeqNet descriptor [n, out_dim] of the window starting at each of ``starts`` (all >= 0) over ``frames``."""
-    rows = torch.as_tensor(np.asarray(starts, dtype=np.int64), device=frames.device)[:, None]
-    rows = rows + torch.arange(length, device=frames.device)
+    rows = torch.as_tensor(window_frames(starts, length), device=frames.device)
     return model(frames[rows.reshape(-1)].view(len(rows), length, -1))
 
 
@@ -81,7 +80,7 @@ def frame_window_descriptors(model: SeqNet, frames: torch.Tensor, starts: np.nda
     rows = np.flatnonzero(np.asarray(starts) >= 0)
     for begin in range(0, len(rows), FEATURE_BATCH):
         part = rows[begin : begin + FEATURE_BATCH]
-        out[torch.as_tensor(part, device=frames.device)] = window_descriptors(model, frames, starts[part], length)
+        out[torch.as_tensor(part, device=frames.device)] = seqnet_descriptors(model, frames, starts[part], length)
     return out
 
 
@@ -160,8 +159,8 @@ class SeqNetLearner(DescriptorLearner):
         references = np.concatenate([[t.positive for t in batch], *[t.negatives for t in batch]]).astype(np.int64)
         owner = torch.as_tensor(np.repeat(np.arange(len(batch)), [len(t.negatives) for t in batch]),
                                 device=frames.device)
-        q = window_descriptors(model, frames.query, frames.query_starts[queries], length)
-        r = window_descriptors(model, frames.reference, frames.reference_starts[references], length)
+        q = seqnet_descriptors(model, frames.query, frames.query_starts[queries], length)
+        r = seqnet_descriptors(model, frames.reference, frames.reference_starts[references], length)
         return {"total": seqnet_triplet_loss(q, r[: len(batch)], r[len(batch) :], owner, settings.margin)}
 
     def validate(self, model: SeqNet, data: TrainingData, gt: GroundTruth, settings: SeqNetSettings) -> Evaluation:
