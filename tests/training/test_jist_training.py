@@ -26,7 +26,6 @@ from seqvpr.training.jist import (
     JistTrainSettings,
     classification_batch,
     pool_windows,
-    select_triplets,
     train_jist,
     training_spec,
     used_groups,
@@ -116,23 +115,6 @@ def test_joint_loss_goes_down_and_history_has_its_parts(run):
     assert all(set(r.parts) == {"sequence", "images"} for r in result.history[1:])
     history = (result.folder / "history.csv").read_text().splitlines()
     assert len(history) == 4 and "loss_images" in history[0] and "loss_sequence" in history[0]
-
-
-def test_select_triplets_matches_brute_force():
-    rng = np.random.default_rng(3)
-    q, r = torch.as_tensor(rng.normal(size=(6, 8))), torch.as_tensor(rng.normal(size=(30, 8)))
-    positives = [np.sort(rng.choice(30, size=int(rng.integers(0, 4)), replace=False)) for _ in range(6)]
-    near = [np.union1d(p, rng.choice(30, size=5, replace=False)) for p in positives]
-    pool = np.sort(rng.choice(30, size=20, replace=False))
-    got = {qi: (p, tuple(n)) for qi, p, n, _, _ in select_triplets(q, r, positives, near, pool, 3)}
-    for qi in range(6):
-        if len(positives[qi]) == 0:
-            assert qi not in got
-            continue
-        dist = lambda j: float(torch.dist(q[qi], r[j]))  # noqa: E731
-        best = min(positives[qi], key=dist)
-        candidates = sorted((j for j in pool if j not in near[qi]), key=dist)
-        assert got[qi] == (best, tuple(candidates[:3]))
 
 
 def test_mined_triplets_against_brute_force(data):

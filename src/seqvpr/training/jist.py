@@ -7,7 +7,8 @@ CosPlace group, each group with its own CosFace head (``JistLoss``, the loss's t
 ``jist_losses(...)["total"]``; one Adam optimiser with a model group (``config.lr``) and a group for the heads
 (``config.classifier_lr``). An epoch has ``refreshes`` mining rounds (the reference's sub-epochs), each over
 ``queries_per_refresh`` random trainable queries and a pool of ``negative_pool`` reference windows: the frames
-they use are encoded once (no grad) and pooled into windows with ``model.pool``. Validation is the pipeline's:
+they use are encoded once (no grad) and pooled into windows with ``model.pool``; the shared ``SequenceMiner`` picks
+the triplets with a kernel over those window descriptors. Validation is the pipeline's:
 ``describe_with_jist`` then SeqGeM retrieval (``retrieve_traversals``) and Recall@K.
 """
 
@@ -36,7 +37,7 @@ from seqvpr.sequences.windows import SequenceSpec, window_frames
 from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members
 from seqvpr.training.settings import CellGrouping, JistTrainSettings
 from seqvpr.training.losses import euclidean, triplet_hinge
-from seqvpr.training.mining import Triplet
+from seqvpr.training.mining import MiningConfig, SequenceMiner, Triplet
 from seqvpr.training.trainer import (
     SequenceLearner, Step, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
     train_sequence_model,
@@ -154,35 +155,6 @@ def _check_triplet_windows(windows_q: torch.Tensor, windows_p: torch.Tensor, win
 # --- mining ----------------------------------------------------------------------------------------------------
 
 
-def select_triplets(
-    query_desc: torch.Tensor,
-    reference_desc: torch.Tensor,
-    positives: Sequence[np.ndarray],
-    non_negatives: Sequence[np.ndarray],
-    pool: np.ndarray,
-    negatives: int,
-) -> list[tuple[int, int, np.ndarray, float, np.ndarray]]:
-    """Per query: the positive (among ``positives[q]``) nearest in descriptor space and the ``negatives`` nearest
-    pool rows that are not in ``non_negatives[q]`` (digest 3.6); queries lacking either are skipped.
-    Returns (query position, positive row, negative rows, their distances) with rows of ``reference_desc``."""
-    out = []
-    pool = np.asarray(pool, dtype=np.int64)
-    pool_desc = reference_desc[torch.as_tensor(pool, device=reference_desc.device)]
-    for q, (pos, near) in enumerate(zip(positives, non_negatives)):
-        if len(pos) == 0:
-            continue
-        candidates = ~np.isin(pool, near)
-        if candidates.sum() < negatives:
-            continue
-        d_pos = torch.cdist(query_desc[q : q + 1], reference_desc[torch.as_tensor(pos, device=reference_desc.device)])[0]
-        best = int(torch.argmin(d_pos))
-        d_neg = torch.cdist(query_desc[q : q + 1], pool_desc)[0].double().cpu().numpy()
-        d_neg[~candidates] = np.inf
-        order = np.argsort(d_neg, kind="stable")[:negatives]
-        out.append((q, int(pos[best]), pool[order], float(d_pos[best]), d_neg[order]))
-    return out
-
-
 def pool_windows(model: JistModel, frame_descriptors: torch.Tensor, frames: np.ndarray) -> torch.Tensor:
     """Sequence descriptors [n_windows, D] pooled from frame descriptors [N, D] (rows ``frames`` [n, L])."""
     index = torch.as_tensor(frames, device=frame_descriptors.device)
@@ -266,6 +238,9 @@ class JistLearner(SequenceLearner):
         self.class_ids, self.group_ids = assign_classes(images.positions, images.headings, settings.grouping)
         self.groups = used_groups(self.group_ids)
         self.reference_rows = np.flatnonzero(context.reference_starts >= 0)
+        self.encoded = np.zeros(len(context.reference_starts), dtype=bool)
+        mining = MiningConfig(settings.negatives, pool=None, margin=self.jist.margin, only_violating=False)
+        self.miner = SequenceMiner(self._distances, context.query_starts, context.positives, context.near, mining)
 
     def build_model(self, settings: JistTrainSettings) -> JistModel:
         return build_jist(self.jist, backbone=self.backbone_factory() if self.backbone_factory else None)
@@ -286,21 +261,29 @@ class JistLearner(SequenceLearner):
         return [np.sort(rng.choice(trainable, size=size, replace=False)) for _ in range(settings.refreshes)]
 
     def mine(self, model: JistModel, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
-        """One refresh (digest 3.6): a pool of reference windows, the frames they and the queries' positives use
-        encoded once, windows pooled, then ``select_triplets``."""
+        """One refresh (digest 3.6): a pool of reference windows; the frames it and the queries' positives use
+        encoded once and pooled into windows; then the shared miner (nearest positive, the K nearest pool windows
+        outside the negative radius). Queries with fewer than K such negatives are skipped."""
         context, settings = self.context, self._settings
-        with_window = np.zeros(len(context.reference_starts), dtype=bool)
-        with_window[self.reference_rows] = True
         pool = np.sort(rng.choice(self.reference_rows, size=min(settings.negative_pool, len(self.reference_rows)),
                                   replace=False))
-        positives = [p[with_window[p]] for p in (context.positives.positives_of(int(q)) for q in queries)]
-        non_negatives = [context.near.positives_of(int(q)) for q in queries]
-        needed = np.unique(np.concatenate([pool, *positives]))
-        reference = torch.zeros(len(with_window), self.jist.out_dim, device=context.device)
+        positives = [context.positives.positives_of(int(q)) for q in queries]
+        needed = np.intersect1d(np.concatenate([pool, *positives]), self.reference_rows)
+        self.encoded[:] = False
+        self.encoded[needed] = True
+        reference = torch.zeros(len(self.encoded), self.jist.out_dim, device=context.device)
         reference[torch.as_tensor(needed, device=context.device)] = self._windows(model, "reference", needed)
-        chosen = select_triplets(self._windows(model, "query", queries), reference, positives, non_negatives, pool,
-                                 settings.negatives)
-        return [Triplet(int(queries[q]), p, n, d_p, d_n) for q, p, n, d_p, d_n in chosen]
+        query = torch.zeros(len(context.query_starts), self.jist.out_dim, device=context.device)
+        query[torch.as_tensor(queries, device=context.device)] = self._windows(model, "query", queries)
+        triplets = self.miner.mine(query, reference, queries, rng)
+        return [t for t in triplets if len(t.negatives) == settings.negatives]
+
+    def _distances(self, query: torch.Tensor, reference: torch.Tensor, starts: np.ndarray) -> torch.Tensor:
+        """JIST's mining kernel: Euclidean distances from the windows starting at ``starts`` (query rows
+        ``starts + offset``) to every reference window encoded this refresh (+inf for the others)."""
+        rows = torch.as_tensor(np.asarray(starts) + self.spec.offset, device=query.device)
+        distances = torch.cdist(query[rows], reference)
+        return distances.masked_fill(~torch.as_tensor(self.encoded, device=distances.device)[None, :], float("inf"))
 
     def _windows(self, model: JistModel, side: str, rows: np.ndarray) -> torch.Tensor:
         starts = getattr(self.context, f"{side}_starts")[rows]
