@@ -35,7 +35,7 @@ information, the core kernel call alone is also timed on one chunk of the timed 
 per-query selection in numpy, the same code for both miners).
 
 Last (``--skip-training`` leaves it out), a short real training: ``train_seqmatchnet`` with default
-``TrainSettings`` except ``epochs=2``, validation on frames [1200, 1600) (radius 1 frame), into a temporary folder;
+``SeqMatchNetSettings`` except ``epochs=2``, validation on frames [1200, 1600) (radius 1 frame), into a temporary folder;
 its per-epoch wall time, mining time and feature time come from the returned history.
 """
 
@@ -69,13 +69,13 @@ from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
 from seqvpr.pipeline import describe
 from seqvpr.sequences.windows import SequenceSpec, window_starts
 from seqvpr.training.mining import DistanceRows, MiningConfig, SequenceMiner, Triplet, seqmatch_rows
-from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
+from seqvpr.training.seqmatchnet import TrainingData, SeqMatchNetSettings, train_seqmatchnet
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN_FRAMES = (17, 1200)
 VAL_FRAMES = (1200, 1600)
 LENGTH = 5
-CHUNK = 1000  # TrainSettings().refresh_every
+CHUNK = 1000  # SeqMatchNetSettings().refresh_every
 YARDSTICK_BUDGET_S = 60.0
 SUBSET = 200
 WARMUP_QUERIES = 20
@@ -359,7 +359,7 @@ def bench_miners(bench: Bench, scope_arg: str, repeats: int) -> bool:
 
 def short_training(bench: Bench) -> None:
     """Two epochs of real SeqMatchNet training into a temporary folder; print each epoch's times from its history."""
-    print("\nshort real training: train_seqmatchnet, default TrainSettings except epochs=2, "
+    print("\nshort real training: train_seqmatchnet, default SeqMatchNetSettings except epochs=2, "
           f"validation frames [{VAL_FRAMES[0]}, {VAL_FRAMES[1]})")
     data = TrainingData(
         reference=bench.reference,
@@ -372,7 +372,7 @@ def short_training(bench: Bench) -> None:
     )
     with tempfile.TemporaryDirectory(prefix="bench-mining-") as folder:
         tick = time.perf_counter()
-        result = train_seqmatchnet(data, TransformConfig(data.dim), TrainSettings(epochs=2), Path(folder) / "run")
+        result = train_seqmatchnet(data, TransformConfig(data.dim), SeqMatchNetSettings(epochs=2), Path(folder) / "run")
         total = time.perf_counter() - tick
     print(f"  epoch 0 (untrained, fresh transform): val R@1 {result.history[0].recall[1]:.3f}")
     for record in result.history[1:]:

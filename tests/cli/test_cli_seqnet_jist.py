@@ -21,7 +21,7 @@ from seqvpr.pipeline import MatchSettings, evaluate_match, rerank_match, retriev
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
 from seqvpr.training.settings import JistTrainSettings
-from seqvpr.training.seqmatchnet import TrainSettings
+from seqvpr.training.seqmatchnet import SeqMatchNetSettings
 from seqvpr.models.seqnet import load_seqnet
 from seqvpr.training.settings import SeqNetSettings
 from tests.helpers import run_cli
@@ -82,7 +82,7 @@ def test_option_defaults_are_each_models_settings_defaults():
     """One shared option list, each command with its own model's defaults (SeqNet: 200 epochs, lr 1e-4, ...)."""
     fields = ("epochs", "lr", "lr_step", "lr_gamma", "select_k", "refresh_every", "negatives", "batch_size",
               "margin", "momentum", "weight_decay", "optimizer", "seed")
-    for command, settings in ((train_seqnet_command, SeqNetSettings()), (train_seqmatchnet_command, TrainSettings())):
+    for command, settings in ((train_seqnet_command, SeqNetSettings()), (train_seqmatchnet_command, SeqMatchNetSettings())):
         defaults = {p.name: p.default for p in command.params}
         assert {f: defaults[f] for f in fields} == {f: getattr(settings, f) for f in fields}
         assert defaults["seq_len"] == settings.sequence.length

@@ -13,7 +13,7 @@ from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models import files as ckpt
 from seqvpr.models.seqmatchnet import load_seqmatchnet, save_seqmatchnet
 from seqvpr.training.state import STATE_JSON
-from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
+from seqvpr.training.seqmatchnet import TrainingData, SeqMatchNetSettings, train_seqmatchnet
 from tests.helpers import raises_one_line, run_cli
 
 
@@ -39,7 +39,7 @@ def small_data(n=120, dim=16, seed=0):
     )
 
 
-SMALL = TrainSettings(SequenceSpec(3), epochs=3, batch_size=8, refresh_every=30, negative_pool=20, lr=0.05,
+SMALL = SeqMatchNetSettings(SequenceSpec(3), epochs=3, batch_size=8, refresh_every=30, negative_pool=20, lr=0.05,
                       lr_step=2, seed=7)
 
 
@@ -49,7 +49,7 @@ def weights(folder):
 
 def test_loss_decreases_and_recall_improves(tmp_path):
     data = small_data()
-    settings = TrainSettings(SequenceSpec(3), epochs=8, batch_size=8, refresh_every=1000, negative_pool=None,
+    settings = SeqMatchNetSettings(SequenceSpec(3), epochs=8, batch_size=8, refresh_every=1000, negative_pool=None,
                              optimizer="adam", lr=3e-3, weight_decay=0.0, seed=1)
     result = train_seqmatchnet(data, TransformConfig(16), settings, tmp_path / "run")
     losses = [r.loss for r in result.history[1:]]

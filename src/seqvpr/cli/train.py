@@ -14,7 +14,7 @@ from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_opt
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
-from seqvpr.training.settings import CellGrouping, JistTrainSettings, SeqNetSettings, TrainSettings
+from seqvpr.training.settings import CellGrouping, JistTrainSettings, SeqNetSettings, SeqMatchNetSettings
 
 
 def data_options(kind: str) -> list[Callable]:
@@ -36,7 +36,7 @@ def data_options(kind: str) -> list[Callable]:
     ]
 
 
-def sequence_training_options(kind: str, defaults: TrainSettings | SeqNetSettings, model_options: list[Callable]):
+def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetSettings, model_options: list[Callable]):
     """The options of a model trained on frame descriptors (data, sequence, mining, optimisation, patchnorm), with
     the defaults of its settings class, plus ``model_options`` (its own) before --seed."""
     pool = "all" if defaults.negative_pool is None else str(defaults.negative_pool)
@@ -79,7 +79,7 @@ def sequence_training_options(kind: str, defaults: TrainSettings | SeqNetSetting
     ])
 
 
-training_options = sequence_training_options("seqmatchnet", TrainSettings(), [
+training_options = sequence_training_options("seqmatchnet", SeqMatchNetSettings(), [
     click.option("--out-dim", type=int, help="Output dimension of the transform (default: input dimension)."),
     click.option("--hidden", default="", help="Hidden layer sizes for the deeper MLP variant, e.g. 4096."),
     click.option("--init", type=click.Choice(["reference", "identity"]), default="reference", show_default=True,
@@ -97,8 +97,8 @@ run_options = with_options([
 ])
 
 
-def settings_from_options(o: dict, kind: type = TrainSettings, **model_fields: Any):
-    """The settings object of ``kind`` (TrainSettings or SeqNetSettings) the shared options describe."""
+def settings_from_options(o: dict, kind: type = SeqMatchNetSettings, **model_fields: Any):
+    """The settings object of ``kind`` (SeqMatchNetSettings or SeqNetSettings) the shared options describe."""
     from seqvpr.sequences.windows import SequenceSpec
 
     pool = o["negative_pool"]

@@ -25,7 +25,7 @@ from seqvpr.training.seqmatchnet import (
     TrainingData,
     TrainingMonitor,
     TrainResult,
-    TrainSettings,
+    SeqMatchNetSettings,
     evaluate_transform,
     train_seqmatchnet,
 )
@@ -55,7 +55,7 @@ def run_ablation(
     test_query: Traversal,
     test_gt: GroundTruth,
     transform: TransformConfig,
-    settings: TrainSettings,
+    settings: SeqMatchNetSettings,
     out_dir: str | Path,
     *,
     variants: Sequence[tuple[str, str]] = VARIANTS,

@@ -12,7 +12,7 @@ A method that fails is reported in its row and the others go on.
     ks = [1, 5, 20]
     hvpr_shortlist = "seqnet"   # HVPR's shortlist: the trained SeqNet S_L, or "seqgem" (untrained)
 
-    [training]            # SeqMatchNet settings (TrainSettings fields), optional
+    [training]            # SeqMatchNet settings (SeqMatchNetSettings fields), optional
     epochs = 10
     lr = 0.01
 
@@ -149,11 +149,11 @@ def read_config(path: str | Path) -> BenchmarkConfig:
 
 def _training_table(raw: dict, name: str, path: Path) -> dict[str, Any]:
     """A ``[training]`` (SeqMatchNet) or ``[seqnet]`` table, checked against its settings' fields."""
-    from seqvpr.training.seqmatchnet import TrainSettings
+    from seqvpr.training.seqmatchnet import SeqMatchNetSettings
     from seqvpr.training.seqnet import SeqNetSettings
 
     table = dict(raw.get(name, {}))
-    allowed = {f.name for f in fields(TrainSettings if name == "training" else SeqNetSettings)} - {"sequence"}
+    allowed = {f.name for f in fields(SeqMatchNetSettings if name == "training" else SeqNetSettings)} - {"sequence"}
     _check_keys(table, allowed, name, path)
     if "ks" in table:
         table["ks"] = tuple(table["ks"])
@@ -255,9 +255,9 @@ def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, mo
     spec = SequenceSpec(config.seq_len)
     if kind == "seqmatchnet":
         from seqvpr.models.seqmatchnet import TransformConfig
-        from seqvpr.training.seqmatchnet import TrainSettings, train_seqmatchnet
+        from seqvpr.training.seqmatchnet import SeqMatchNetSettings, train_seqmatchnet
 
-        settings = TrainSettings(**{**config.training, "sequence": spec})
+        settings = SeqMatchNetSettings(**{**config.training, "sequence": spec})
         return train_seqmatchnet(data, TransformConfig(data.dim), settings, out, resume=True, monitor=monitor).folder
     if kind == "seqnet":
         from seqvpr.training.seqnet import SeqNetSettings, train_seqnet

@@ -116,7 +116,7 @@ def match_and_score(
 def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Path, monitor=None) -> TrainedModel:
     """SeqMatchNet on the training route (first 75 % of frames train, the rest validate); returns the best model."""
     from seqvpr.models.registry import load_trained_model
-    from seqvpr.training.seqmatchnet import TrainingData, TrainSettings, train_seqmatchnet
+    from seqvpr.training.seqmatchnet import TrainingData, SeqMatchNetSettings, train_seqmatchnet
 
     reference, query = world["train_reference"], world["train_query"]
     cut_ref, cut_qry = int(0.75 * len(reference)), int(0.75 * len(query))
@@ -126,7 +126,7 @@ def train_transform(world: dict[str, Traversal], settings: DemoSettings, out: Pa
         reference.select(np.arange(cut_ref, len(reference))), query.select(np.arange(cut_qry, len(query))),
         radius, Radius(4 * settings.radius_m, "m"), radius,
     )
-    train = TrainSettings(sequence=SequenceSpec(settings.train_length), epochs=settings.epochs, lr=settings.lr,
+    train = SeqMatchNetSettings(sequence=SequenceSpec(settings.train_length), epochs=settings.epochs, lr=settings.lr,
                           refresh_every=250, seed=settings.seed, device=settings.device)
     result = train_seqmatchnet(data, settings=train, out_dir=out, monitor=monitor)
     return load_trained_model(result.folder, settings.device)

@@ -25,7 +25,7 @@ from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqm
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals, transform_traversal
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.losses import sequence_triplet_loss, window_part
-from seqvpr.training.settings import TrainSettings
+from seqvpr.training.settings import SeqMatchNetSettings
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
 from seqvpr.training.frames import DescriptorLearner
 from seqvpr.training.trainer import (
@@ -41,7 +41,7 @@ from seqvpr.training.trainer import (
 
 # The loop's data, records and monitors are part of SeqMatchNet training's public names (re-exported).
 __all__ = [
-    "EpochRecord", "SilentMonitor", "TrainingData", "TrainingMonitor", "TrainResult", "TrainSettings",
+    "EpochRecord", "SilentMonitor", "TrainingData", "TrainingMonitor", "TrainResult", "SeqMatchNetSettings",
     "SeqMatchNetLearner", "evaluate_transform", "train_seqmatchnet",
 ]
 
@@ -50,7 +50,7 @@ __all__ = [
 def train_seqmatchnet(
     data: TrainingData,
     transform: TransformConfig | None = None,
-    settings: TrainSettings = TrainSettings(),
+    settings: SeqMatchNetSettings = SeqMatchNetSettings(),
     out_dir: str | Path = "seqmatchnet-run",
     *,
     resume: bool = False,
@@ -81,10 +81,10 @@ class SeqMatchNetLearner(DescriptorLearner):
     def config(self) -> dict[str, Any]:
         return self.transform.as_dict()
 
-    def build_model(self, settings: TrainSettings) -> FrameTransform:
+    def build_model(self, settings: SeqMatchNetSettings) -> FrameTransform:
         return FrameTransform(self.transform, seed=settings.seed)
 
-    def mining_kernel(self, context: TrainingContext, settings: TrainSettings) -> DistanceRows:
+    def mining_kernel(self, context: TrainingContext, settings: SeqMatchNetSettings) -> DistanceRows:
         return mining_kernel(settings.mining, self.spec, context.data.reference.segment_ids)
 
     def mining_features(self, model: FrameTransform) -> tuple[torch.Tensor, torch.Tensor]:
@@ -93,7 +93,7 @@ class SeqMatchNetLearner(DescriptorLearner):
 
     def batch_loss(
         self, model: FrameTransform, loss: None, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
-        settings: TrainSettings,
+        settings: SeqMatchNetSettings,
     ) -> dict[str, torch.Tensor]:
         frames = self.frames
         q_frames = frames.query_windows([t.query for t in batch])
@@ -110,7 +110,7 @@ class SeqMatchNetLearner(DescriptorLearner):
         )
         return {"total": total}
 
-    def validate(self, model: FrameTransform, data: TrainingData, gt: GroundTruth, settings: TrainSettings) -> Evaluation:
+    def validate(self, model: FrameTransform, data: TrainingData, gt: GroundTruth, settings: SeqMatchNetSettings) -> Evaluation:
         return evaluate_transform(
             model, data.val_reference, data.val_query, gt, self.spec, settings.ks, settings.device,
         )

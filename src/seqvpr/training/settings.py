@@ -1,5 +1,5 @@
 """Every training setting as plain frozen dataclasses, with their checks and defaults (the reference codes'):
-SeqMatchNet's ``TrainSettings``, ``SeqNetSettings``, JIST's ``JistTrainSettings`` and CosPlace's ``CellGrouping``.
+``SeqMatchNetSettings``, ``SeqNetSettings``, JIST's ``JistTrainSettings`` and CosPlace's ``CellGrouping``.
 
 No torch here: the command line reads these defaults for its ``--help`` without loading a model library.
 """
@@ -89,7 +89,7 @@ class CellGrouping:
 
 
 @dataclass(frozen=True)
-class TrainSettings(SettingsRecord):
+class SeqMatchNetSettings(SettingsRecord):
     """Every choice of a SeqMatchNet run; defaults follow the reference code (SGD 1e-3, step x0.5 every 5)."""
 
     sequence: SequenceSpec = field(default_factory=lambda: SequenceSpec(5))
