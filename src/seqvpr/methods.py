@@ -99,18 +99,23 @@ def check_models(method: Method, models: Mapping[str, TrainedModel]) -> None:
             raise SeqvprError(f"a {MODEL_TITLES[kind]} --model {advice}, not --method {method.name}")
 
 
-def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0) -> Method:
-    """The method, after checking that it goes with these models and this re-ranking (before any data is read)."""
+def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0, length: int | None = None) -> Method:
+    """The method, after checking that it goes with these models, this re-ranking and this sequence length (before
+    any data is read)."""
     method = get_method(name)
     check_models(method, models)
     if rerank < 0 or (rerank and method.family == "matching"):
         raise SeqvprError(f"--rerank N needs N >= 0 and a --method other than matching (got {rerank}, {name})")
+    if method.length is not None and length not in (None, method.length):
+        raise SeqvprError(f"--method {name} uses L = {method.length}; leave --seq-len out (got {length})")
     return method
 
 
 def run_length(method: Method, models: Mapping[str, TrainedModel]) -> int:
-    """The sequence length a method runs at when none is asked for: its model's (the one it needs, else the first
-    given), else 1."""
+    """The sequence length a method runs at when none is asked for: its own fixed one, its model's (the one it
+    needs, else the first given), else 1."""
+    if method.length is not None:
+        return method.length
     if method.needs in models:
         return models[method.needs].length
     return next(iter(models.values())).length if models else 1

@@ -205,12 +205,17 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
         "jist on descriptors": (["train", "jist", "-r", ref, "-q", qry, *JIST_ARGS], "holds descriptors only"),
         "seqnet w longer than L": (["train", "seqnet", "-r", ref, "-q", qry, *SEQNET_ARGS, "--w", "5"],
                                    "shorter than the temporal kernel width w=5"),
+        "two models of one kind": ([*match, "--model", seqnet_run[0], "--model", seqnet_run[0]],
+                                   "a second seqnet model"),
+        "hvpr with a jist model": ([*match, "--model", jist_run[0], "--method", "hvpr"], "use --method jist"),
+        "single at another length": ([*match, "--method", "single", "-L", "5"], "uses L = 1"),
     }
 
 
 CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model", "jist model, matching",
          "jist model on descriptors", "missing model folder", "unknown model format", "frame radius with positions",
-         "mixed radius units", "jist on descriptors", "seqnet w longer than L"]
+         "mixed radius units", "jist on descriptors", "seqnet w longer than L", "two models of one kind",
+         "hvpr with a jist model", "single at another length"]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -221,3 +226,23 @@ def test_bad_input_is_one_line_without_output(monkeypatch, capsys, tmp_path, rou
     assert code == 2, stderr
     assert stderr.startswith("seqvpr: error:") and stderr.count("\n") == 1 and needle in stderr, stderr
     assert stdout == "" and not out.exists()
+
+
+def test_match_hvpr_with_two_models_equals_run_method(route, seqnet_run, tmp_path):
+    """``--model SEQNET --model SEQMATCHNET --method hvpr``: the benchmark's HVPR row from the command line."""
+    from seqvpr.methods import run_method
+    from seqvpr.models.configs import TransformConfig
+    from seqvpr.models.registry import load_trained_model
+    from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
+
+    save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(16), seed=3), {"sequence": {"length": 4}})
+    ref, qry = route
+    stdout, _ = invoke("match", "-r", ref, "-q", qry, "--frames", "120:150", "--radius", "5m", "--model", seqnet_run[0],
+                       "--model", tmp_path / "smn", "--method", "hvpr", "--json", "--out", tmp_path / "m")
+    result = json.loads(stdout)
+    models = {m.kind: m for m in (load_trained_model(seqnet_run[0]), load_trained_model(tmp_path / "smn"))}
+    reference, query = (load_traversal(p, role).slice_frames(120, 150) for p, role in zip(route, ("reference", "query")))
+    found = run_method("hvpr", reference, query, MatchSettings(SequenceSpec(4), k=20), models)
+    expected = evaluate_match(found, ground_truth_within_radius(query, reference, Radius(5.0, "m")), (1, 5, 10, 20))
+    assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
+    assert result["settings"]["model_kind"] == ["seqnet", "seqmatchnet"] and result["settings"]["method"] == "hvpr"

@@ -101,7 +101,7 @@ def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
             raise SeqvprError(f"--model {folder}: a second {kind} model (give one --model per kind)")
         kinds[kind] = folder
     method = o["method"] or implied_method(kinds)
-    check_run(method, kinds, o["rerank"])  # before any model or data is read
+    check_run(method, kinds, o["rerank"], o["seq_len"])  # before any model or data is read
     if "jist" in kinds and o["pca_dim"]:
         raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
     return {kind: load_trained_model(folder, o["device"]) for kind, folder in kinds.items()}, method

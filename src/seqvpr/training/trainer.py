@@ -34,11 +34,10 @@ from seqvpr.sequences.windows import SequenceSpec, require_windows, window_start
 from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
 from seqvpr.training.resume import RunState
-from seqvpr.training.settings import SettingsRecord, check_optimizer_settings
 
 __all__ = [
-    "EpochRecord", "LoopSettings", "SequenceLearner", "SettingsRecord", "SilentMonitor", "Step", "TrainingContext",
-    "TrainingData", "TrainingMonitor", "TrainResult", "check_optimizer_settings", "train_sequence_model",
+    "EpochRecord", "LoopSettings", "SequenceLearner", "SilentMonitor", "Step", "TrainingContext", "TrainingData",
+    "TrainingMonitor", "TrainResult", "train_sequence_model",
 ]
 
 
