@@ -364,11 +364,13 @@ class _Run:
             triplets = self._mine(queries, rng)
             totals.mining_seconds += time.perf_counter() - tick
             totals.used += len(triplets)
+            stepped = 0
             for batch in self.learner.batches(triplets, self.settings):
                 self._step(batch, Step(epoch, first_step + totals.steps), rng, totals)
                 totals.triplets += sum(len(t.negatives) for t in batch)
+                stepped += len(batch)
                 monitor.advance(len(batch), totals.losses[-1])
-            monitor.advance(len(queries) - len(triplets), None)
+            monitor.advance(len(queries) - stepped, None)
         if self.scheduler is not None:
             self.scheduler.step()
         return self._record(epoch, lr, totals, sum(len(r) for r in rounds), time.perf_counter() - started)
