@@ -1,8 +1,9 @@
 """seqvpr: sequence-based visual place recognition.
 
-The data flow is: traversals (frames with descriptors and positions) -> sequence matching with one kernel
--> predictions -> evaluation.  See README.md for the command line and ``seqvpr.pipeline`` for the Python entry
-points.
+The data flow is: traversals (frames with descriptors and positions) -> descriptors -> transform or sequence
+descriptor -> matching (one kernel) or retrieval -> predictions -> evaluation -> report. See README.md
+("Architecture") for which package owns each step, ``seqvpr.pipeline`` for the stage functions and
+``seqvpr.methods.run_method`` for every method by name.
 """
 
 from seqvpr.errors import SeqvprError

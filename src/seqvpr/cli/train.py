@@ -14,13 +14,13 @@ from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_opt
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
-from seqvpr.training.settings import CellGrouping, JistTrainSettings, SeqNetSettings, SeqMatchNetSettings
+from seqvpr.training.settings import (
+    NEGATIVE_RADIUS_FACTOR, CellGrouping, JistTrainSettings, SeqMatchNetSettings, SeqNetSettings,
+)
 
 
 def data_options(kind: str) -> list[Callable]:
     """Training and validation traversals, their splits and the radii (shared by every training command)."""
-    from seqvpr.training.settings import NEGATIVE_RADIUS_FACTOR
-
     return [
         click.option("--reference", "-r", required=True, help="Training reference traversal (any source seqvpr reads)."),
         click.option("--query", "-q", required=True, help="Training query traversal."),
