@@ -105,7 +105,7 @@ def test_imports_point_down_the_layers_and_form_no_cycle():
 
 def test_cli_command_modules_share_only_options_and_progress():
     graph = import_graph()
-    commands = ("seqvpr.cli.match", "seqvpr.cli.train", "seqvpr.cli.experiments")
+    commands = ("seqvpr.cli.match", "seqvpr.cli.train", "seqvpr.cli.experiments", "seqvpr.cli.published")
     for module in commands:
         assert {m for m in graph[module] if m.startswith("seqvpr.cli")} <= {"seqvpr.cli.options", "seqvpr.cli.progress"}
 

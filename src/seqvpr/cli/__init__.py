@@ -1,7 +1,7 @@
 """The ``seqvpr`` command: the click group and ``main``. One module per command family (``match``: match, eval,
-extract; ``train``: train, ablate; ``experiments``: benchmark, demo) parses options, calls the library and prints;
-shared options live in ``options`` and progress bars in ``progress``. Importing the CLI loads no torch, numba,
-faiss or matplotlib: each command imports what it uses when it runs."""
+extract; ``train``: train, ablate; ``experiments``: benchmark, demo; ``published``: import) parses options, calls
+the library and prints; shared options live in ``options`` and progress bars in ``progress``. Importing the CLI
+loads no torch, numba, faiss or matplotlib: each command imports what it uses when it runs."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ COMMANDS = {
     "match": "seqvpr.cli.match:match", "eval": "seqvpr.cli.match:eval_command", "extract": "seqvpr.cli.match:extract",
     "train": "seqvpr.cli.train:train", "ablate": "seqvpr.cli.train:ablate",
     "benchmark": "seqvpr.cli.experiments:benchmark", "demo": "seqvpr.cli.experiments:demo",
+    "import": "seqvpr.cli.published:import_command",
 }
 
 
