@@ -96,3 +96,56 @@ def test_command_line_import_then_match(monkeypatch, capsys, seqnet_file, tmp_pa
     assert code == 0 and json.loads(stdout)["settings"]["sequence"]["length"] == 5, stderr
     code, _, stderr = run_cli(monkeypatch, capsys, "import", tmp_path / "absent.pth", "--out", tmp_path / "x")
     assert code == 2 and "no such checkpoint file" in stderr and stderr.count("\n") == 1
+
+
+def upstream_jist_state(seed: int = 0) -> dict[str, torch.Tensor]:
+    """A JIST ``best_model.pth`` with the exact upstream keys: CosPlace's under ``model.`` plus ``seq_gem.p``."""
+    from seqvpr.features.backbones import COSPLACE_CHILDREN, ResNet
+
+    torch.manual_seed(seed)
+    children = {v: k for k, v in COSPLACE_CHILDREN.items()}
+    state = {}
+    for key, value in ResNet(18).state_dict().items():
+        child, _, rest = key.partition(".")
+        state[f"model.backbone.{children[child]}.{rest}"] = value + 0.01 * torch.randn_like(value.float()).to(value.dtype)
+    state["model.aggregation.1.p"] = torch.tensor([3.2])
+    state["model.aggregation.3.weight"] = torch.randn(512, 512) / 20
+    state["model.aggregation.3.bias"] = torch.randn(512) / 20
+    state["seq_gem.p"] = torch.tensor([2.7])
+    return state
+
+
+def test_jist_checkpoint_with_the_upstream_keys_converts_exactly(tmp_path):
+    state = upstream_jist_state()
+    assert len(state) == 124
+    torch.save(state, tmp_path / "JIST_r18_512_seqgem.pth")
+    model = load_trained_model(import_checkpoint(tmp_path / "JIST_r18_512_seqgem.pth", tmp_path / "jist").folder)
+    assert (model.kind, model.length, model.image_size) == ("jist", 5, (640, 480))
+    ours = model.module.state_dict()
+    assert torch.equal(ours["encoder.backbone.layer4.1.conv2.weight"], state["model.backbone.7.1.conv2.weight"])
+    assert torch.equal(ours["encoder.backbone.bn1.running_var"], state["model.backbone.1.running_var"])
+    assert torch.equal(ours["encoder.fc.weight"], state["model.aggregation.3.weight"])
+    assert float(ours["encoder.gem.p"]) == pytest.approx(3.2) and float(ours["sequence_pool.p"]) == pytest.approx(2.7)
+    frames = torch.rand(3, 5, 512, generator=torch.Generator().manual_seed(4))
+    plain = frames.clamp(min=1e-6).pow(2.7).mean(dim=1).pow(1 / 2.7)  # upstream SeqGeM: no final L2
+    with torch.no_grad():
+        torch.testing.assert_close(model.module.pool(frames), plain, atol=1e-5, rtol=1e-5)
+        images = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(5))
+        local = model.module.encoder.backbone.features((images - model.module.encoder.mean) / model.module.encoder.std)
+        gem = torch.nn.functional.normalize(local, dim=1).clamp(min=1e-6).pow(3.2).mean((2, 3)).pow(1 / 3.2)
+        head = torch.nn.functional.normalize(gem @ state["model.aggregation.3.weight"].T
+                                             + state["model.aggregation.3.bias"], dim=1)
+        torch.testing.assert_close(model.module.frames(images), head, atol=1e-5, rtol=1e-5)
+
+
+def test_jist_checkpoint_missing_or_extra_key_is_named(tmp_path):
+    state = upstream_jist_state()
+    less = dict(state)
+    del less["model.backbone.4.0.bn1.weight"]
+    torch.save(less, tmp_path / "less.pth")
+    raises_one_line("missing key 'model.backbone.4.0.bn1.weight'", import_checkpoint, tmp_path / "less.pth",
+                    tmp_path / "a")
+    torch.save({**state, "model.aggregation.4.weight": torch.ones(3)}, tmp_path / "more.pth")
+    raises_one_line("unexpected key 'model.aggregation.4.weight'", import_checkpoint, tmp_path / "more.pth",
+                    tmp_path / "b")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -299,7 +299,8 @@ def save_jist(folder: str | Path, model: JistModel, config: JistConfig, metadata
     """``model.safetensors`` and ``config.json`` (format, the JistConfig, the sequence pool, then ``metadata``:
     image size, sequence length, training settings...), each written atomically."""
     pool = model.sequence_pool
-    pool_meta = {"type": type(pool).__name__, "mode": getattr(pool, "mode", None), "eps": getattr(pool, "eps", None)}
+    pool_meta = {"type": type(pool).__name__, "mode": getattr(pool, "mode", None), "eps": getattr(pool, "eps", None),
+                 "normalize": getattr(pool, "normalize", True)}
     return save_model_folder(folder, model, {
         "format": FORMAT, "config": asdict(config), "sequence_pool": pool_meta, **metadata,
     })
@@ -316,7 +317,8 @@ def load_jist(folder: str | Path, *, backbone: nn.Module | None = None) -> JistM
     except (KeyError, TypeError) as error:
         raise SeqvprError(f"{Path(folder) / CONFIG_FILE}: JIST config lacks a valid {error}") from None
     pool_meta = meta.get("sequence_pool") or {}
-    pool = SeqGeM(mode=pool_meta.get("mode") or "clamp", eps=pool_meta.get("eps") or 1e-6)
+    pool = SeqGeM(mode=pool_meta.get("mode") or "clamp", eps=pool_meta.get("eps") or 1e-6,
+                  normalize=bool(pool_meta.get("normalize", True)))
     return load_weights_into(build_jist(config, pool, backbone=backbone), folder)
 
 

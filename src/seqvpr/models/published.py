@@ -6,7 +6,9 @@ unpickling); CosPlace/JIST training checkpoints (``model_state_dict``). Prefixes
 ``pool.module.`` (SeqMatchNet on several GPUs) are removed. Kinds converted so far: SeqNet (``pool.0.conv.*``,
 any w) and SeqMatchNet (``pool.1.conv.*``, kernel 1 = the per-frame transform ``normalize(W x + B)``, with
 upstream's forward: no input normalisation). A missing or unexpected key, or a wrong shape, is a one-line error
-naming it; the folder records the source file and its sha256.
+naming it; the folder records the source file and its sha256. JIST (``JIST_r18_512_seqgem.pth``, ``best_model.pth``:
+the 123 CosPlace keys under ``model.`` plus ``seq_gem.p``) becomes a JIST folder with upstream's forward: SeqGeM
+without final normalisation (searched by exact L2), images at 480 x 640.
 """
 
 from __future__ import annotations
@@ -28,7 +30,10 @@ KINDS_KEYS = {
     "seqnet": ("pool.0.conv.weight", "pool.0.conv.bias"),
     "seqmatchnet": ("pool.1.conv.weight", "pool.1.conv.bias"),
 }
-NOT_YET = {"aggregation.3.weight": "CosPlace", "seq_gem.p": "JIST"}
+NOT_YET = {"aggregation.3.weight": "CosPlace"}
+JIST_POOL, JIST_PREFIX = "seq_gem.p", "model."
+#: JIST's test-time input: 480 x 640 (H x W) with ImageNet normalisation
+JIST_IMAGE_SIZE = (640, 480)
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,8 @@ def state_dict_of(content: dict[str, Any], path: Path) -> dict[str, torch.Tensor
 
 def detect_kind(state: dict[str, torch.Tensor], path: Path) -> str:
     """The published model a state dict is, by its keys; exactly its keys, or a one-line error naming one."""
+    if JIST_POOL in state:
+        return "jist"
     for kind, keys in KINDS_KEYS.items():
         if keys[0] in state:
             unexpected = sorted(set(state) - set(keys))
@@ -148,6 +155,10 @@ def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path 
     state = state_dict_of(read_container(path), path)
     kind, flags = detect_kind(state, path), read_flags(flags_path)
     sha = file_sha256(path)
+    if kind == "jist":
+        source = {"source": {"file": str(path), "sha256": sha, "flags": flags or None}}
+        save_published_jist(state, out, int(flags.get("seq_length") or 5), source, path)
+        return ImportedModel(kind, Path(out), sha)
     prefix = KINDS_KEYS[kind][0].rsplit(".", 1)[0]
     out_dim, in_dim, w = conv_shapes(state, prefix, path)
     check_flag(flags, "outDims", out_dim, path, flags_path)
@@ -166,3 +177,72 @@ def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path 
         length = int(flags.get("seqL") or 1)
         save_seqmatchnet(out, model, {"sequence": {"length": length}, **source})
     return ImportedModel(kind, Path(out), sha)
+
+
+def jist_state(state: dict[str, torch.Tensor], model: torch.nn.Module, path: Path) -> dict[str, torch.Tensor]:
+    """A published JIST state dict (the CosPlace keys under ``model.``, plus ``seq_gem.p``) in the seqvpr JIST
+    model's names, strictly: every file key has a place and every model parameter a file key."""
+    from seqvpr.features.backbones import COSPLACE_CHILDREN
+
+    heads = {"aggregation.1.p": "encoder.gem.p", "aggregation.3.weight": "encoder.fc.weight",
+             "aggregation.3.bias": "encoder.fc.bias"}
+    mapped: dict[str, torch.Tensor] = {"sequence_pool.p": state[JIST_POOL]}
+    for key, value in state.items():
+        if key == JIST_POOL:
+            continue
+        name = key.removeprefix(JIST_PREFIX)
+        child, _, rest = name.removeprefix("backbone.").partition(".")
+        if name in heads:
+            mapped[heads[name]] = value
+        elif name.startswith("backbone.") and child in COSPLACE_CHILDREN:
+            mapped[f"encoder.backbone.{COSPLACE_CHILDREN[child]}.{rest}"] = value
+        else:
+            raise SeqvprError(f"{path}: a JIST checkpoint with an unexpected key {key!r}")
+    expected = model.state_dict()
+    for name, value in mapped.items():
+        if name not in expected:
+            raise SeqvprError(f"{path}: a JIST checkpoint with an unexpected key for {name!r}")
+        if value.numel() != expected[name].numel():
+            raise SeqvprError(f"{path}: {name} has shape {tuple(value.shape)}, the model needs {tuple(expected[name].shape)}")
+        mapped[name] = value.reshape(expected[name].shape)
+    buffers = {"encoder.mean", "encoder.std"}  # seqvpr's input normalisation, not in the file
+    missing = [name for name in expected if name not in mapped and name not in buffers]
+    if missing:
+        raise SeqvprError(f"{path}: a JIST checkpoint with a missing key {upstream_jist_key(missing[0], heads)!r}")
+    return {**{name: expected[name] for name in buffers}, **mapped}
+
+
+def upstream_jist_key(name: str, heads: dict[str, str]) -> str:
+    """The upstream key of a seqvpr JIST parameter name (for naming a missing key as the file would)."""
+    from seqvpr.features.backbones import COSPLACE_CHILDREN
+
+    if name == "sequence_pool.p":
+        return JIST_POOL
+    inverse = {v: k for k, v in heads.items()}
+    if name in inverse:
+        return JIST_PREFIX + inverse[name]
+    child, _, rest = name.removeprefix("encoder.backbone.").partition(".")
+    index = {v: k for k, v in COSPLACE_CHILDREN.items()}.get(child, child)
+    return f"{JIST_PREFIX}backbone.{index}.{rest}"
+
+
+def save_published_jist(
+    state: dict[str, torch.Tensor], out: str | Path, length: int, source: dict, path: Path
+) -> Path:
+    """The JIST model of a published file (ResNet-18/50 by the head's input size), with upstream's forward: SeqGeM
+    without final normalisation, images at 480 x 640."""
+    from seqvpr.models.configs import JistConfig
+    from seqvpr.models.jist import build_jist, save_jist
+    from seqvpr.sequences.descriptors import SeqGeM
+
+    head = state.get(JIST_PREFIX + "aggregation.3.weight")
+    if head is None or head.ndim != 2:
+        raise SeqvprError(f"{path}: a JIST checkpoint with a missing key {JIST_PREFIX + 'aggregation.3.weight'!r}")
+    backbone = {512: "resnet18", 2048: "resnet50"}.get(int(head.shape[1]))
+    if backbone is None:
+        raise SeqvprError(f"{path}: aggregation.3.weight takes {head.shape[1]}-D features; expected 512 or 2048")
+    config = JistConfig(backbone=backbone, out_dim=int(head.shape[0]), seq_length=length)
+    model = build_jist(config, SeqGeM(normalize=False))
+    model.load_state_dict(jist_state(state, model, path), strict=True)
+    return save_jist(out, model, config, {"image_size": list(JIST_IMAGE_SIZE), "sequence": {"length": length},
+                                          **source})

@@ -104,21 +104,21 @@ class SeqGeM(nn.Module):
     split-sign GeM: the same GeM over the positive parts max(x, 0) and over the negative parts max(-x, 0),
     concatenated to 2D dimensions ``[g(x+), g(x-)]``. Each half is an ordinary GeM of non-negative inputs (same
     eps clamp, same p, smooth gradients), no sign is lost, p = 1 gives g(x+) - g(x-) = mean_t x (up to eps),
-    and large p tends to the per-dimension max and -min. The reference applies no L2 after pooling; we do.
+    and large p tends to the per-dimension max and -min. The reference applies no L2 after pooling; we do unless
+    ``normalize=False`` (what an imported JIST checkpoint uses, to rank exactly as upstream).
     """
 
-    def __init__(self, p: float = 3.0, eps: float = 1e-6, mode: str = "clamp") -> None:
+    def __init__(self, p: float = 3.0, eps: float = 1e-6, mode: str = "clamp", normalize: bool = True) -> None:
         super().__init__()
         if mode not in SEQGEM_MODES:
             raise SeqvprError(f"SeqGeM mode must be one of {', '.join(SEQGEM_MODES)}, got {mode!r}")
         self.p = nn.Parameter(torch.tensor([float(p)]))
-        self.eps, self.mode = eps, mode
+        self.eps, self.mode, self.normalize = eps, mode, normalize
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
         """[B, L, D] -> [B, D] (clamp) or [B, 2D] (signed)."""
-        if self.mode == "clamp":
-            return F.normalize(self._gem(windows), dim=-1)
-        return F.normalize(torch.cat([self._gem(windows), self._gem(-windows)], dim=-1), dim=-1)
+        pooled = self._gem(windows) if self.mode == "clamp" else torch.cat([self._gem(windows), self._gem(-windows)], -1)
+        return F.normalize(pooled, dim=-1) if self.normalize else pooled
 
     def _gem(self, windows: torch.Tensor) -> torch.Tensor:
         """Generalised mean over time of max(x, eps) with the shared exponent p."""
