@@ -68,6 +68,12 @@ class DescriptorLearner(SequenceLearner):
         self.miner = SequenceMiner(self.mining_kernel(context, settings), context.query_starts, context.positives,
                                    context.near, mining)
 
+    def rounds(self, trainable: np.ndarray, rng: np.random.Generator, settings) -> list[np.ndarray]:
+        """The trainable queries in a random order, in chunks of ``refresh_every`` (None: one round per epoch)."""
+        order = rng.permutation(trainable)
+        refresh = settings.refresh_every or max(len(order), 1)
+        return [order[begin : begin + refresh] for begin in range(0, len(order), refresh)]
+
     def mine(self, model: torch.nn.Module, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
         tick = time.perf_counter()
         query_features, reference_features = self.mining_features(model)

@@ -1,7 +1,7 @@
 """The one training loop, shared by SeqMatchNet, SeqNet and JIST (one ``SequenceLearner`` adapter each).
 
-An epoch draws its query rounds from a seeded generator (``learner.rounds``; by default the trainable queries in a
-random order, in chunks of ``refresh_every``). Before each round the learner mines triplets with the current model
+An epoch draws its query rounds from a seeded generator (``learner.rounds``: for descriptor models the trainable
+queries in a random order, in chunks of ``refresh_every``; for JIST ``refreshes`` random samples). Before each round the learner mines triplets with the current model
 (``learner.mine``, no gradients); batches of them go through ``learner.batch_loss``, one optimiser step each.
 After each epoch the learner validates the model on its own split; the best epoch by validation
 Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable state (model, optimizer,
@@ -163,7 +163,8 @@ class TrainingContext:
 
 class SequenceLearner:
     """The model-specific parts of a training run. Subclasses set ``config_key`` and ``spec`` and implement the
-    methods that raise ``NotImplementedError``; the others are the defaults SeqMatchNet and SeqNet use."""
+    methods that raise ``NotImplementedError``; the others are defaults (no loss parameters, SGD/Adam with StepLR,
+    consecutive batches, no mixed precision, no state of its own)."""
 
     #: key of the model config in ``train_state.json`` (checked on resume)
     config_key: str = "model"
@@ -197,10 +198,8 @@ class SequenceLearner:
         return sgd_or_adam(model, settings)
 
     def rounds(self, trainable: np.ndarray, rng: np.random.Generator, settings: LoopSettings) -> list[np.ndarray]:
-        """The query rows of each mining round of one epoch: a random order in chunks of ``refresh_every``."""
-        order = rng.permutation(trainable)
-        refresh = getattr(settings, "refresh_every", None) or max(len(order), 1)
-        return [order[begin : begin + refresh] for begin in range(0, len(order), refresh)]
+        """The query rows of each mining round of one epoch, drawn from ``rng``."""
+        raise NotImplementedError
 
     def mine(self, model: nn.Module, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
         """Triplets for ``queries`` with the current model (called in eval mode under ``torch.no_grad``)."""
