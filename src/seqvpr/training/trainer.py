@@ -1,13 +1,13 @@
 """The one training loop, shared by SeqMatchNet, SeqNet and JIST (one ``SequenceLearner`` adapter each).
 
 An epoch draws its query rounds from a seeded generator (``learner.rounds``: for descriptor models the trainable
-queries in a random order, in chunks of ``refresh_every``; for JIST ``refreshes`` random samples). Before each round the learner mines triplets with the current model
-(``learner.mine``, no gradients); batches of them go through ``learner.batch_loss``, one optimiser step each.
-After each epoch the learner validates the model on its own split; the best epoch by validation
-Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable state (model, optimizer,
-scheduler, the learner's own state such as a miner cache, trainable loss parameters, history), committed by an
-atomically written pointer (``train_state.json``), so a killed run resumed with the same settings reaches the
-same weights.
+queries in a random order, in chunks of ``refresh_every``; for JIST ``refreshes`` random samples). Before each round
+the learner mines triplets with the current model (``learner.mine``, no gradients); batches of them go through
+``learner.batch_loss``, one optimiser step each. After each epoch the learner validates the model on its own split;
+the best epoch by validation Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable
+state (model, optimizer, scheduler, the learner's own state such as a miner cache, trainable loss parameters,
+history), committed by an atomically written pointer (``train_state.json``), so a killed run resumed with the same
+settings reaches the same weights.
 
 What differs between models lives behind ``SequenceLearner``: building the model (and a loss with parameters),
 the optimiser, mining, the loss of a batch, validation, and the model folder.
