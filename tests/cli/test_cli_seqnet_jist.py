@@ -32,7 +32,7 @@ SEQNET_ARGS = ["--train-frames", "0:90", "--val-frames", "90:120", "--radius", "
 JIST_ARGS = ["--train-frames", "0:30", "--val-frames", "30:40", "--radius", "25m", "--pos-radius", "10m",
              "--backbone", "efficientnet-lite0", "--out-dim", "32", "-L", "3", "--epochs", "1", "--refreshes", "1",
              "--max-iterations", "2", "--batch-size", "2", "--images-per-batch", "8", "--image-size", "64x48",
-             "--cell-size", "20", "--min-images", "2"]
+             "--cell-size", "15", "--min-images", "2"]
 KS = (1, 5, 10)
 
 
@@ -144,7 +144,7 @@ def test_train_jist_writes_a_loadable_model(jist_run):
     config = json.loads((out / "config.json").read_text())
     assert config["image_size"] == [64, 48] and config["config"]["seq_length"] == 3
     assert config["config"]["trainable_stages"] == ["stage7", "head"]  # efficientnet-lite0's default
-    assert (config["training"]["grouping"]["cell_m"], config["training"]["max_iterations"]) == (20.0, 2)
+    assert (config["training"]["grouping"]["cell_m"], config["training"]["max_iterations"]) == (15.0, 2)
     assert model.dim == 32 and len((out / "history.csv").read_text().splitlines()) == 3  # header, epochs 0 and 1
 
 
@@ -209,13 +209,16 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
                                    "a second seqnet model"),
         "hvpr with a jist model": ([*match, "--model", jist_run[0], "--method", "hvpr"], "use --method jist"),
         "single at another length": ([*match, "--method", "single", "-L", "5"], "uses L = 1"),
+        "cells wider than negatives": (["train", "jist", *images, *JIST_ARGS, "--cell-size", "20"],
+                                       "wider than the negative radius 25m"),
+        "hue beyond half a turn": (["train", "jist", *images, *JIST_ARGS, "--hue", "0.7"], "hue must be in [0, 0.5]"),
     }
 
 
 CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model", "jist model, matching",
          "jist model on descriptors", "missing model folder", "unknown model format", "frame radius with positions",
          "mixed radius units", "jist on descriptors", "seqnet w longer than L", "two models of one kind",
-         "hvpr with a jist model", "single at another length"]
+         "hvpr with a jist model", "single at another length", "cells wider than negatives", "hue beyond half a turn"]
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -219,7 +219,7 @@ def test_other_length_and_shuffled_frames(data, run):
 
 def test_bad_input_is_one_line_error(data, tmp_path):
     no_positions = dataclasses.replace(data.reference, positions=None)
-    raises_one_line("needs positions", train_jist, dataclasses.replace(data, reference=no_positions), CONFIG,
+    raises_one_line("needs images with positions", train_jist, dataclasses.replace(data, reference=no_positions), CONFIG,
                     SETTINGS, tmp_path / "a", backbone_factory=TinyBackbone)
     missing = dataclasses.replace(
         data.val_reference, image_paths=tuple(Path(tmp_path) / f"gone{i}.jpg" for i in range(len(data.val_reference)))

@@ -247,3 +247,19 @@ def test_cli_train_in_frames_then_test_in_metres_on_another_dataset(monkeypatch,
     assert code == 0, err
     result = json.loads(out)
     assert result["queries_evaluated"] == 78 and result["settings"]["ground_truth_rule"] == "within 6 m"
+
+
+def test_the_untrained_epoch_is_kept_only_when_asked(tmp_path):
+    """With a step too small to change recall every epoch ties epoch 0: the trained epoch 1 is kept unless
+    ``select_untrained``; with no epoch to train, the untrained model is the one written."""
+    from dataclasses import replace
+
+    data = small_data()
+    still = replace(SMALL, epochs=2, lr=1e-12)
+    trained = train_seqmatchnet(data, TransformConfig(16), still, tmp_path / "trained")
+    assert [r.recall for r in trained.history[1:]] == [trained.history[0].recall] * 2
+    assert trained.best_epoch == 1 and json.loads((tmp_path / "trained" / "config.json").read_text())["epoch"] == 1
+    untrained = train_seqmatchnet(data, TransformConfig(16), replace(still, select_untrained=True), tmp_path / "asked")
+    assert untrained.best_epoch == 0
+    nothing = train_seqmatchnet(data, TransformConfig(16), replace(still, epochs=0), tmp_path / "none")
+    assert nothing.best_epoch == 0 and (tmp_path / "none" / "config.json").is_file()

@@ -36,6 +36,11 @@ def data_options(kind: str) -> list[Callable]:
     ]
 
 
+SELECT_UNTRAINED = click.option(
+    "--select-untrained", is_flag=True,
+    help="Let the untrained model (epoch 0) be the one kept when it validates best.  [default: trained epochs only]")
+
+
 def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetSettings, model_options: list[Callable]):
     """The options of a model trained on frame descriptors (data, sequence, mining, optimisation, patchnorm), with
     the defaults of its settings class, plus ``model_options`` (its own) before --seed."""
@@ -71,6 +76,7 @@ def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetS
                      help="Keep the checkpoint with the best validation Recall@K for this K."),
         click.option("--k", "ks", default=",".join(map(str, defaults.ks)), show_default=True,
                      help="Recall@K values reported."),
+        SELECT_UNTRAINED,
         *model_options,
         click.option("--seed", default=defaults.seed, show_default=True, type=int),
         click.option("--device", default="cpu", show_default=True),
@@ -111,7 +117,8 @@ def settings_from_options(o: dict, kind: type = SeqMatchNetSettings, **model_fie
         margin=o["margin"], negatives=o["negatives"], negative_pool=pool_size, refresh_every=o["refresh_every"],
         batch_size=o["batch_size"], epochs=o["epochs"], optimizer=o["optimizer"], lr=o["lr"],
         momentum=o["momentum"], weight_decay=o["weight_decay"], lr_step=o["lr_step"], lr_gamma=o["lr_gamma"],
-        select_k=o["select_k"], ks=parse_ks(o["ks"]), seed=o["seed"], device=o["device"], **model_fields,
+        select_k=o["select_k"], ks=parse_ks(o["ks"]), select_untrained=o["select_untrained"], seed=o["seed"],
+        device=o["device"], **model_fields,
     )
 
 
@@ -234,6 +241,13 @@ jist_options = with_options([
     click.option("--select", "select_k", default=JIST_RUN.select_k, show_default=True, type=int,
                  help="Keep the epoch with the best validation Recall@K for this K (one of --k)."),
     click.option("--k", "ks", default=",".join(map(str, JIST_RUN.ks)), show_default=True, help="Recall@K values reported."),
+    SELECT_UNTRAINED,
+    click.option("--jitter", default=JIST_RUN.jitter, show_default=True, type=float,
+                 help="Classification images: brightness, contrast and saturation factors in [1 - J, 1 + J]."),
+    click.option("--hue", default=JIST_RUN.hue, show_default=True, type=float,
+                 help="Classification images: hue turned by up to this fraction of a turn."),
+    click.option("--crop-scale", default=JIST_RUN.crop_scale, show_default=True, type=float,
+                 help="Classification images: random crops keep this share of the area or more (1: no crop)."),
     click.option("--seed", default=JIST_RUN.seed, show_default=True, type=int),
     click.option("--device", default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
 ])
@@ -249,7 +263,8 @@ def jist_values(o: dict) -> dict[str, Any]:
         "max_iterations": o["max_iterations"], "batch_size": o["batch_size"],
         "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
         "min_images": o["min_images"], "select_k": o["select_k"], "ks": parse_ks(o["ks"]), "device": o["device"],
-        "seed": o["seed"],
+        "seed": o["seed"], "select_untrained": o["select_untrained"], "jitter": o["jitter"], "hue": o["hue"],
+        "crop_scale": o["crop_scale"],
     }
 
 

@@ -3,7 +3,10 @@ as a learner of the one training loop (``trainer.train_sequence_model``).
 
 Per step (digest section 3.7): one batch of mined sequence triplets (query window, nearest positive reference
 window, K hardest negatives outside the negative radius) and one class-balanced batch of single images from ONE
-CosPlace group, each group with its own CosFace head (``JistLoss``, the loss's trainable parameters). The loss is
+CosPlace group, each group with its own CosFace head (``JistLoss``, the loss's trainable parameters). The classes
+hold every training traversal's images of a place (reference and query: all conditions), augmented as CosPlace's
+(``training.augment``), so the classifier too learns what survives a change of condition; CosPlace cells may not
+be wider than the negative radius (frames of one class would be negatives of each other in the triplet loss). The loss is
 ``jist_losses(...)["total"]``; one Adam optimiser with a model group (``config.lr``) and a group for the heads
 (``config.classifier_lr``). An epoch has ``refreshes`` mining rounds (the reference's sub-epochs), each over
 ``queries_per_refresh`` random trainable queries and a pool of ``negative_pool`` reference windows: the frames
@@ -14,8 +17,9 @@ the triplets with a kernel over those window descriptors. Validation is the pipe
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +38,7 @@ from seqvpr.models.jist import (
 )
 from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
 from seqvpr.sequences.windows import SequenceSpec, window_frames
+from seqvpr.training.augment import augment_images
 from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members
 from seqvpr.training.settings import CellGrouping, JistTrainSettings
 from seqvpr.training.losses import euclidean, triplet_hinge
@@ -53,12 +58,12 @@ def train_jist(
     resume: bool = False,
     monitor: TrainingMonitor | None = None,
     backbone_factory: Callable[[], nn.Module] | None = None,
-    classification: Traversal | None = None,
+    classification: Sequence[Traversal] | None = None,
 ) -> TrainResult:
     """Train JIST jointly (see the module docstring); the best epoch by validation R@select_k goes to ``out_dir``
-    (``models.jist.load_jist`` reads it), with ``history.csv`` and the resumable state. ``classification`` is the
-    traversal whose single images feed the CosPlace branch (default: the training reference); ``backbone_factory``
-    builds an injected backbone (tests). Runs with the same seed are identical on CPU."""
+    (``models.jist.load_jist`` reads it), with ``history.csv`` and the resumable state. ``classification``: the
+    traversals whose single images feed the CosPlace branch (default: the training reference and query);
+    ``backbone_factory`` builds an injected backbone (tests). Runs with the same seed are identical on CPU."""
     learner = JistLearner(config, settings, backbone_factory, classification)
     return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 
@@ -83,6 +88,46 @@ def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
         raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
                           f"(a frame radius is for frame-aligned traversals without positions)")
     return frame_positions(traversal)
+
+
+# --- the classification images ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ClassificationImages:
+    """The single images the CosPlace branch classifies, with their positions [N, 2] and headings [N] (None
+    unless every traversal has them)."""
+
+    paths: list[Path]
+    positions: np.ndarray
+    headings: np.ndarray | None
+
+
+def classification_images(traversals: Sequence[Traversal]) -> ClassificationImages:
+    """Every image of the traversals (all conditions of each place), in traversal order."""
+    for traversal in traversals:
+        if traversal.positions is None or traversal.image_paths is None:
+            raise SeqvprError(f"{traversal.source or traversal.name}: JIST's classification needs images with "
+                              f"positions (metres, or frames placed along the route by jist_positions)")
+    headings = [t.headings for t in traversals]
+    return ClassificationImages(
+        [Path(p) for t in traversals for p in t.image_paths],
+        np.concatenate([np.asarray(t.positions, dtype=np.float64) for t in traversals]),
+        None if any(h is None for h in headings) else np.concatenate([np.asarray(h, np.float64) for h in headings]),
+    )
+
+
+def check_cells(grouping: CellGrouping, negative: Radius) -> None:
+    """CosPlace cells must fit inside the negative radius: two images of one class (up to a cell's diagonal
+    apart in metres, a cell's length in frames) may not be negatives of each other for the triplet loss."""
+    widest = grouping.cell_m * (math.sqrt(2.0) if negative.unit == "m" else 1.0)
+    if widest > negative.value:
+        what = f"diagonal {widest:g}{negative.unit}" if negative.unit == "m" else f"{widest:g} frames"
+        raise SeqvprError(
+            f"CosPlace cells of {grouping.cell_m:g}{negative.unit} ({what}) are wider than the negative radius "
+            f"{negative}: images of one class would be negatives of each other; use a cell size of at most "
+            f"{negative.value / (widest / grouping.cell_m):g}{negative.unit} (--cell-size) or a larger --neg-radius"
+        )
 
 
 # --- the loss: sequence triplets + CosFace classification per group ----------------------------------------------
@@ -214,7 +259,7 @@ class JistLearner(SequenceLearner):
 
     def __init__(
         self, config: JistConfig, settings: JistTrainSettings,
-        backbone_factory: Callable[[], nn.Module] | None = None, classification: Traversal | None = None,
+        backbone_factory: Callable[[], nn.Module] | None = None, classification: Sequence[Traversal] | None = None,
     ) -> None:
         self.jist, self.spec = config, training_spec(config.seq_length)
         self.backbone_factory, self.classification = backbone_factory, classification
@@ -226,16 +271,15 @@ class JistLearner(SequenceLearner):
     def check_data(self, data: TrainingData) -> None:
         for name, traversal in data.traversals().items():
             check_images_exist(traversal, name)
-        images = self.classification or data.reference
-        if images.positions is None:
-            raise SeqvprError(f"{images.source or 'classification'}: JIST training needs positions (metres, or "
-                              f"frames placed along the route by jist_positions)")
-        check_images_exist(images, "classification")
+        for traversal in self.classification or ():
+            check_images_exist(traversal, "classification")
+        classification_images(self.classification or (data.reference, data.query))
 
     def prepare(self, context: TrainingContext, settings: JistTrainSettings) -> None:
         self.context, self._settings = context, settings
-        images = self.classification or context.data.reference
-        self.class_ids, self.group_ids = assign_classes(images.positions, images.headings, settings.grouping)
+        check_cells(settings.grouping, context.data.negative_radius)
+        self.images = classification_images(self.classification or (context.data.reference, context.data.query))
+        self.class_ids, self.group_ids = assign_classes(self.images.positions, self.images.headings, settings.grouping)
         self.groups = used_groups(self.group_ids)
         self.reference_rows = np.flatnonzero(context.reference_starts >= 0)
         self.encoded = np.zeros(len(context.reference_starts), dtype=bool)
@@ -257,8 +301,11 @@ class JistLearner(SequenceLearner):
         ]), None
 
     def rounds(self, trainable: np.ndarray, rng: np.random.Generator, settings: JistTrainSettings) -> list[np.ndarray]:
+        """``refreshes`` uniform samples of the trainable queries, in the drawn (random) order, as the reference's:
+        batches of consecutive triplets then mix places along the route, and a ``max_iterations`` cap keeps a
+        random subset rather than the start of the route."""
         size = min(settings.queries_per_refresh, len(trainable))
-        return [np.sort(rng.choice(trainable, size=size, replace=False)) for _ in range(settings.refreshes)]
+        return [rng.choice(trainable, size=size, replace=False) for _ in range(settings.refreshes)]
 
     def mine(self, model: JistModel, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
         """One refresh (digest 3.6): a pool of reference windows; the frames it and the queries' positives use
@@ -304,12 +351,14 @@ class JistLearner(SequenceLearner):
         self, model: JistModel, loss: JistLoss, batch: Sequence[Triplet], step: Step, rng: np.random.Generator,
         settings: JistTrainSettings,
     ) -> dict[str, torch.Tensor]:
-        """The joint loss of one step: the batch's windows and a classification batch of this step's group."""
+        """The joint loss of one step: the batch's windows and an augmented classification batch of this step's
+        group."""
         group = self.groups[(step.index if settings.group_per == "iteration" else step.epoch - 1) % len(self.groups)]
         rows, labels, _ = classification_batch(self.class_ids, self.group_ids, group, settings.images_per_batch, rng)
-        images = self.classification or self.context.data.reference
         device = str(self.context.device)
-        tensors = self._triplet_images(batch) + (self.store.batch([images.image_paths[i] for i in rows], device),)
+        images = self.store.batch([self.images.paths[i] for i in rows], device)
+        images = augment_images(images, rng, settings.jitter, settings.hue, settings.crop_scale)
+        tensors = self._triplet_images(batch) + (images,)
         return jist_losses(model, loss.head(group), *tensors, torch.as_tensor(labels, device=device), self.jist)
 
     def _triplet_images(self, batch: Sequence[Triplet]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -51,6 +51,16 @@ def check_optimizer_settings(settings: Any) -> None:
         raise SeqvprError(f"learning rate must be a positive number, got {settings.lr}")
 
 
+def check_augmentation(jitter: float, hue: float, crop_scale: float) -> None:
+    """CosPlace-style augmentation strengths: jitter in [0, 1], hue in [0, 0.5] of a turn, crop area in (0, 1]."""
+    if not (math.isfinite(jitter) and 0 <= jitter <= 1):
+        raise SeqvprError(f"jitter must be in [0, 1], got {jitter}")
+    if not (math.isfinite(hue) and 0 <= hue <= 0.5):
+        raise SeqvprError(f"hue must be in [0, 0.5] (a fraction of a turn), got {hue}")
+    if not (math.isfinite(crop_scale) and 0 < crop_scale <= 1):
+        raise SeqvprError(f"crop_scale must be in (0, 1] (the smallest share of the area a crop keeps), got {crop_scale}")
+
+
 def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
     """Frames of a window a distance uses: all of them (seqmatch) or the current frame only (single)."""
     if method == "seqmatch":
@@ -109,6 +119,7 @@ class SeqMatchNetSettings(SettingsRecord):
     lr_gamma: float = 0.5
     select_k: int = 1
     ks: tuple[int, ...] = (1, 5, 10, 20)
+    select_untrained: bool = False
     seed: int = 123
     device: str = "cpu"
 
@@ -132,7 +143,8 @@ class SeqNetSettings(SettingsRecord):
     * ``negatives`` 10 hardest from ``negative_pool`` 1000 random candidates + the query's cached negatives,
       violating-margin filter (§2.2 hard-coded nNeg/nNegSample, §2.5);
     * ``refresh_every`` None: the mining features are computed once per epoch (``--cacheRefreshRate 0``, §2.2);
-    * best epoch by validation Recall@5 (``select_k`` 5, §2.5); ``seed`` 123 (§2.2).
+    * best epoch by validation Recall@5 (``select_k`` 5, §2.5) among the trained epochs (the untrained epoch 0 only
+      with ``select_untrained``); ``seed`` 123 (§2.2).
 
     Deviations (deliberate): windows never cross a segment break (§5 item 1; the spec's boundary rule decides
     edge frames); validation runs on its own split, never the test set (§5 item 2); the negative cache lives in
@@ -158,6 +170,7 @@ class SeqNetSettings(SettingsRecord):
     lr_gamma: float = 0.5
     select_k: int = 5
     ks: tuple[int, ...] = (1, 5, 10, 20)
+    select_untrained: bool = False
     seed: int = 123
     device: str = "cpu"
 
@@ -179,7 +192,11 @@ class SeqNetSettings(SettingsRecord):
 class JistTrainSettings(SettingsRecord):
     """Schedule, batches, mining and runtime of a JIST run. Reference values (digest 3.2, 3.6, 3.7): 5 epochs x 10
     refreshes, 1000 queries / 3000 pool windows per refresh, 4 triplets x 5 negatives, 64 classification images,
-    groups rotated per epoch, AMP. ``max_iterations`` caps the steps of one refresh (None: all triplets)."""
+    groups rotated per epoch, AMP. ``max_iterations`` caps the steps of one refresh (None: all triplets).
+
+    The classification images are augmented as CosPlace's are: colour jitter (brightness, contrast and saturation
+    factors in [1 - ``jitter``, 1 + ``jitter``], hue turned by up to ``hue`` of a turn) and a random crop keeping
+    ``crop_scale`` to 1 of the area, resized back; ``jitter`` 0, ``hue`` 0 and ``crop_scale`` 1 switch it off."""
 
     epochs: int = 5
     refreshes: int = 10
@@ -193,8 +210,12 @@ class JistTrainSettings(SettingsRecord):
     height: int = 480
     grouping: CellGrouping = field(default_factory=CellGrouping)
     group_per: str = "iteration"
+    jitter: float = 0.7
+    hue: float = 0.5
+    crop_scale: float = 0.5
     select_k: int = 5
     ks: tuple[int, ...] = (1, 5, 10)
+    select_untrained: bool = False
     infer_batch: int = 32
     device: str = "cpu"
     amp: bool = True
@@ -213,6 +234,7 @@ class JistTrainSettings(SettingsRecord):
             raise SeqvprError(f"group_per must be 'iteration' or 'epoch', got {self.group_per!r}")
         if self.select_k not in self.ks:
             raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
+        check_augmentation(self.jitter, self.hue, self.crop_scale)
 
     def resume_key(self) -> dict[str, Any]:
         """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""

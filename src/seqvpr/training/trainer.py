@@ -131,6 +131,7 @@ class LoopSettings(Protocol):
     epochs: int
     select_k: int
     ks: tuple[int, ...]
+    select_untrained: bool
     seed: int
     device: str
 
@@ -254,7 +255,8 @@ def train_sequence_model(
 
     ``out_dir`` then holds the model folder files, ``history.csv``, and the resumable state of the last finished
     epoch. ``resume`` continues from that state (a run killed before its first state starts over, so
-    ``resume=True`` is always safe to pass). Epoch 0 is the untrained model; ties keep the earlier epoch.
+    ``resume=True`` is always safe to pass). Epoch 0 is the untrained model: validated and recorded, but kept only
+    when ``settings.select_untrained`` is set or no epoch is trained; ties keep the earlier epoch.
     """
     out = Path(out_dir)
     monitor = monitor or SilentMonitor()
@@ -266,8 +268,10 @@ def train_sequence_model(
         raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
     else:
         history = [run.validate_record(0)]
-        best_epoch, best_recall = 0, history[0].recall
-        run.state.save_best(out, 0, best_recall)
+        best_epoch, best_recall = -1, {k: -1.0 for k in history[0].recall}  # below any recall: epoch 1 replaces it
+        if settings.select_untrained or settings.epochs == 0:
+            best_epoch, best_recall = 0, history[0].recall
+            run.state.save_best(out, 0, best_recall)
         run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(history[0])
     select = run.settings.select_k
