@@ -129,7 +129,8 @@ LOADED = "import sys; print(sorted({m.split('.')[0] for m in sys.modules} & set(
                                   ["train", "seqmatchnet", "--help"], ["ablate", "seqmatchnet", "--help"],
                                   ["benchmark", "--help"], ["demo", "--help"], ["extract", "--help"],
                                   ["eval", "--help"], ["match", "-r", "a", "-q", "b", "--k", "x"],
-                                  ["match", "--method", "magic"]])
+                                  ["match", "--method", "magic"],
+                                  ["extract", "a", "--descriptor", "torchscript:missing.pt", "--out", "b.npz"]])
 def test_help_and_option_errors_import_no_heavy_library(args):
     code = f"""
 import sys

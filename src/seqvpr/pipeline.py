@@ -23,6 +23,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 from seqvpr.features.extraction import (
     BACKBONES,
+    TORCHSCRIPT,
     Extractor,
     ExtractorConfig,
     build_extractor,
@@ -39,6 +40,7 @@ if TYPE_CHECKING:
 
 ProgressFactory = Callable[[int, str], Callable[[int], None]]
 DESCRIPTORS = ("patchnorm", *BACKBONES)
+TORCHSCRIPT_PREFIX = f"{TORCHSCRIPT}:"  # ``torchscript:PATH``: a user's exported encoder
 
 
 @dataclass(frozen=True)
@@ -80,24 +82,34 @@ def describe(
 ) -> Traversal:
     """The traversal with descriptors: kept if it has them, else computed from its images.
 
-    ``descriptor`` is ``patchnorm`` (weight-free thumbnails, ``config``) or a backbone name (with ``extractor``'s
+    ``descriptor`` is ``patchnorm`` (weight-free thumbnails, ``config``), a backbone name (with ``extractor``'s
     weights, pooling and input size; ``model``, if given, is that extractor already built, e.g. a NetVLAD head
-    from ``netvlad_extractor``). With ``skip_bad`` unreadable images are dropped from the traversal.
+    from ``netvlad_extractor``) or ``torchscript:PATH``, a user's exported encoder (``extractor``'s input size,
+    mean and std). With ``skip_bad`` unreadable images are dropped from the traversal.
     """
     if traversal.descriptors is not None:
         return traversal
-    if descriptor not in DESCRIPTORS:
-        raise SeqvprError(f"descriptor {descriptor!r} is not known (choose from: {', '.join(DESCRIPTORS)})")
+    if descriptor != "patchnorm":
+        extractor = descriptor_config(descriptor, extractor)  # an unknown name fails before any image is read
     assert traversal.image_paths is not None
     tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
     if descriptor == "patchnorm":
         return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
-    extraction = extract_descriptors(
-        traversal.image_paths, replace(extractor, backbone=descriptor), device=device, cache_dir=cache_dir,
-        skip_bad=skip_bad, progress=tick, extractor=model,
-    )
+    extraction = extract_descriptors(traversal.image_paths, extractor, device=device, cache_dir=cache_dir,
+                                     skip_bad=skip_bad, progress=tick, extractor=model)
     kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
     return kept.with_descriptors(extraction.descriptors)
+
+
+def descriptor_config(descriptor: str, extractor: ExtractorConfig) -> ExtractorConfig:
+    """The extractor configuration of a descriptor name (a backbone, or ``torchscript:PATH``: that file), the
+    rest from ``extractor``; an unknown name is a one-line error."""
+    if descriptor.startswith(TORCHSCRIPT_PREFIX) and descriptor != TORCHSCRIPT_PREFIX:
+        return replace(extractor, backbone=TORCHSCRIPT, weights=descriptor.removeprefix(TORCHSCRIPT_PREFIX))
+    if descriptor not in BACKBONES:
+        raise SeqvprError(f"descriptor {descriptor!r} is not known (choose from: {', '.join(DESCRIPTORS)}, "
+                          f"{TORCHSCRIPT_PREFIX}PATH)")
+    return replace(extractor, backbone=descriptor)
 
 
 def dropped_frames(original: Traversal, kept: Traversal) -> list[str]:
@@ -119,6 +131,7 @@ def describe_pair(
     reference images (the query's when only it has images), and shared by both."""
     extractor = extraction.get("extractor")
     if descriptor != "patchnorm" and extractor is not None and extractor.pooling == "netvlad":
+        extractor = descriptor_config(descriptor, extractor)  # the backbone the descriptor names
         images = reference.image_paths if reference.image_paths is not None else query.image_paths
         if images is not None:
             extraction["model"] = netvlad_extractor(extractor, images, extraction.get("device", "cpu"), progress)

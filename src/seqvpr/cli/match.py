@@ -134,6 +134,7 @@ def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str,
         "ground_truth": o["gt_file"], "ground_truth_rule": rule, "descriptor": descriptor, "method": method,
         "index": None if METHODS[method].family == "matching" else o["index_kind"], "rerank": o["rerank"],
         "pooling": o["pooling"], "pca_dim": o["pca_dim"], "no_positive": o["no_positive"],
+        "image_normalization": o["normalize"] if descriptor.startswith("torchscript:") else None,
         "model": folders[0] if len(folders) == 1 else folders or None,
         "model_kind": kinds[0] if len(kinds) == 1 else kinds or None, **match,
     }
@@ -187,6 +188,7 @@ def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive
 Examples:
   seqvpr extract images/ --out ref.npz
   seqvpr extract images/ --descriptor resnet50 --weights cosplace_r50.pth --image-size 512x384 --out ref.npz
+  seqvpr extract images/ --descriptor torchscript:megaloc.pt --image-size 322x322 --out ref.npz
   seqvpr match --reference ref.npz --query qry.npz --radius 25m -L 5
 """)
 @click.argument("images")

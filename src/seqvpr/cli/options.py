@@ -4,15 +4,17 @@ stay fast."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import click
 
 from seqvpr.errors import SeqvprError
 
-#: how images become descriptors: patch-normalised thumbnails or one of the backbones
+#: how images become descriptors: patch-normalised thumbnails, one of the backbones, or torchscript:PATH
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
 DESCRIPTORS = ("patchnorm", *BACKBONES)
+TORCHSCRIPT_PREFIX = "torchscript:"
 POOLINGS = ("gem", "netvlad")
 
 
@@ -77,6 +79,35 @@ def parse_thumbnail(text: str, option: str = "--thumbnail") -> tuple[int, int]:
         raise SeqvprError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 64x32") from None
 
 
+def parse_descriptor(text: str) -> str:
+    """A --descriptor value: a known name, or ``torchscript:PATH`` naming an existing file."""
+    if text in DESCRIPTORS:
+        return text
+    if not text.startswith(TORCHSCRIPT_PREFIX):
+        raise SeqvprError(f"--descriptor {text!r}: choose from {', '.join(DESCRIPTORS)} or {TORCHSCRIPT_PREFIX}PATH")
+    path = Path(text.removeprefix(TORCHSCRIPT_PREFIX))
+    if not path.is_file():
+        raise SeqvprError(f"--descriptor {text!r}: {path}: no such model file")
+    return text
+
+
+def parse_normalize(text: str) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    """``imagenet`` (None, None: the extractor's default), ``none`` (pixels in [0, 1] as they are) or
+    ``R,G,B/R,G,B`` -> (mean, std) of a TorchScript encoder's input, three values each, std positive."""
+    if text.lower() == "imagenet":
+        return None, None
+    if text.lower() == "none":
+        return (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    try:
+        mean, std = (tuple(float(x) for x in part.split(",")) for part in text.split("/"))
+        if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+            raise ValueError
+        return mean, std
+    except ValueError:
+        raise SeqvprError(f"--normalize {text!r}: expected imagenet, none or MEAN/STD as R,G,B/R,G,B "
+                          "(e.g. 0.5,0.5,0.5/0.5,0.5,0.5), std positive") from None
+
+
 def parse_stages(text: str | None) -> tuple[str, ...] | None:
     """``stage7,head`` -> ('stage7', 'head'); nothing -> None (the backbone's default)."""
     stages = tuple(s.strip() for s in (text or "").split(",") if s.strip())
@@ -84,8 +115,11 @@ def parse_stages(text: str | None) -> tuple[str, ...] | None:
 
 
 extraction_options = with_options([
-    click.option("--descriptor", type=click.Choice(list(DESCRIPTORS)), default="patchnorm", show_default=True,
-                 help="How images become descriptors (descriptor files are used as they are)."),
+    click.option("--descriptor", default="patchnorm", show_default=True, metavar="NAME|torchscript:PATH",
+                 callback=lambda _ctx, _param, value: parse_descriptor(value),
+                 help=f"How images become descriptors: {', '.join(DESCRIPTORS)}, or torchscript:PATH, your own "
+                      "encoder (a TorchScript or torch.export file: normalised [B,3,H,W] images -> [B,D] "
+                      "descriptors, used as returned). Descriptor files are used as they are."),
     click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT."),
     click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels."),
     click.option("--weights", default="imagenet", show_default=True,
@@ -93,7 +127,11 @@ extraction_options = with_options([
     click.option("--pooling", type=click.Choice(list(POOLINGS)), default="gem", show_default=True,
                  help="Backbone pooling: GeM, or NetVLAD with clusters from k-means of local features."),
     click.option("--clusters", default=64, show_default=True, type=int, help="netvlad: number of clusters."),
-    click.option("--image-size", default="320x240", show_default=True, help="Backbone input WIDTHxHEIGHT."),
+    click.option("--image-size", default="320x240", show_default=True,
+                 help="Backbone or torchscript encoder input WIDTHxHEIGHT (images are resized to it)."),
+    click.option("--normalize", default="imagenet", show_default=True,
+                 help="torchscript: input normalisation: imagenet (its mean and std), none (pixels in [0, 1]) or "
+                      "MEAN/STD as R,G,B/R,G,B."),
     click.option("--batch-size", "extract_batch", default=32, show_default=True, type=int,
                  help="Images per backbone batch."),
     click.option("--cache-dir", type=click.Path(), help="Cache extracted descriptors here (keyed by model and images)."),
@@ -109,13 +147,26 @@ def extraction_settings(o: dict[str, Any], device: str = "cpu") -> tuple[str, An
     from seqvpr.features.patchnorm import PatchNormConfig
 
     descriptor = o["descriptor"]
-    backbone = descriptor if descriptor != "patchnorm" else "efficientnet-lite0"
-    config = ExtractorConfig(backbone, o["weights"], o["pooling"], image_width, image_height, o["extract_batch"],
-                             o["clusters"])
+    backbone, weights, mean, std = _encoder(descriptor, o["weights"], o["normalize"])
+    config = ExtractorConfig(backbone, weights, o["pooling"], image_width, image_height, o["extract_batch"],
+                             o["clusters"], mean, std)
     return descriptor, PatchNormConfig(width, height, o["patch"]), {
         "extractor": config, "device": device, "cache_dir": o["cache_dir"], "skip_bad": o["skip_bad"],
     }
 
 
-EXTRACTION_KEYS = ("descriptor", "thumbnail", "patch", "weights", "pooling", "clusters", "image_size", "extract_batch",
-                   "cache_dir", "skip_bad")
+def _encoder(descriptor: str, weights: str, normalize: str) -> tuple[str, str, Any, Any]:
+    """Backbone, weights, mean and std of the extractor: a TorchScript file with --normalize's mean and std, or a
+    built-in backbone with --weights (and its own normalisation)."""
+    if descriptor.startswith(TORCHSCRIPT_PREFIX):
+        if weights != "imagenet":
+            raise SeqvprError(f"--weights does not apply to {TORCHSCRIPT_PREFIX}PATH (the model file holds its weights)")
+        return "torchscript", descriptor.removeprefix(TORCHSCRIPT_PREFIX), *parse_normalize(normalize)
+    if normalize.lower() != "imagenet":
+        raise SeqvprError(f"--normalize applies to {TORCHSCRIPT_PREFIX}PATH only ({descriptor} normalises as it was "
+                          "trained)")
+    return (descriptor if descriptor != "patchnorm" else "efficientnet-lite0"), weights, None, None
+
+
+EXTRACTION_KEYS = ("descriptor", "thumbnail", "patch", "weights", "pooling", "clusters", "image_size", "normalize",
+                   "extract_batch", "cache_dir", "skip_bad")

@@ -1,8 +1,10 @@
-"""Images -> descriptors with a backbone and a pooling head: batched, with progress, cached and resumable.
+"""Images -> descriptors with a backbone and a pooling head, or a user's TorchScript encoder: batched, with
+progress, cached and resumable.
 
-The cache key covers the extractor configuration, the weights file (path, size, mtime) and the image list (path,
-size, mtime of every image), so a changed model or image set never reuses a stale cache. Rows are written to a
-partial file as batches finish; an interrupted run continues from the last written batch.
+The cache key covers the extractor configuration, the weights file (path, size, mtime; for a TorchScript encoder
+its model file) and the image list (path, size, mtime of every image), so a changed model or image set never reuses
+a stale cache. Rows are written to a partial file as batches finish; an interrupted run continues from the last
+written batch.
 """
 
 from __future__ import annotations
@@ -23,11 +25,13 @@ from torch import nn
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
 from seqvpr.features.pooling import GeM, NetVLAD
+from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
+TORCHSCRIPT = "torchscript"  # a user's exported encoder: its file is the config's ``weights``
 POOLINGS = ("gem", "netvlad")
 CPU_MICRO_BATCH = 2  # images per forward pass on CPU: large batches of depthwise convolutions are slower there
 
@@ -35,7 +39,12 @@ CPU_MICRO_BATCH = 2  # images per forward pass on CPU: large batches of depthwis
 @dataclass(frozen=True)
 class ExtractorConfig:
     """Backbone, its weights ('imagenet' or a checkpoint path), pooling ('gem' or 'netvlad' with ``clusters``),
-    input size (width, height) and batch size (images read per step; on CPU they go through in micro-batches)."""
+    input size (width, height) and batch size (images read per step; on CPU they go through in micro-batches).
+
+    Backbone ``torchscript`` is a user's exported encoder: ``weights`` is its TorchScript or ``torch.export`` file,
+    ``mean``/``std`` its input normalisation (default ImageNet's; built-in backbones use their own and take none),
+    and it returns descriptors itself (no pooling head).
+    """
 
     backbone: str = "efficientnet-lite0"
     weights: str | None = "imagenet"
@@ -44,16 +53,41 @@ class ExtractorConfig:
     height: int = 240
     batch_size: int = 32
     clusters: int = 64
+    mean: tuple[float, float, float] | None = None
+    std: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        if self.backbone not in BACKBONES:
-            raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(BACKBONES)})")
+        if self.backbone not in (*BACKBONES, TORCHSCRIPT):
+            raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(BACKBONES)}, "
+                              f"{TORCHSCRIPT})")
+        self._check_normalization()
         if self.pooling not in POOLINGS:
             raise SeqvprError(f"pooling {self.pooling!r} is not known (choose from: {', '.join(POOLINGS)})")
         if min(self.width, self.height, self.batch_size) < 1:
             raise SeqvprError("image size and batch size must be positive")
         if self.clusters < 2:
             raise SeqvprError(f"NetVLAD needs at least 2 clusters, got {self.clusters}")
+
+    def _check_normalization(self) -> None:
+        """A TorchScript encoder has a model file, no pooling head and a 3-channel mean and positive std; a
+        built-in backbone takes no mean/std (it normalises as it was trained)."""
+        if self.backbone != TORCHSCRIPT:
+            if self.mean is not None or self.std is not None:
+                raise SeqvprError(f"mean/std apply to a {TORCHSCRIPT} encoder only ({self.backbone} has its own)")
+            return
+        if self.weights in (None, "imagenet"):
+            raise SeqvprError(f"a {TORCHSCRIPT} encoder needs its model file as weights, got {self.weights!r}")
+        if self.pooling != "gem":
+            raise SeqvprError(
+                f"a {TORCHSCRIPT} encoder returns descriptors itself; pooling {self.pooling!r} does not apply"
+            )
+        mean, std = self.normalization()
+        if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+            raise SeqvprError(f"mean and std need 3 values each and std must be positive, got {mean} and {std}")
+
+    def normalization(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """A TorchScript encoder's input mean and std (ImageNet's unless set)."""
+        return tuple(self.mean or IMAGENET_MEAN), tuple(self.std or IMAGENET_STD)
 
 
 class Extractor(nn.Module):
@@ -79,8 +113,19 @@ class Extractor(nn.Module):
         return self.pooling(self.feature_map(images))
 
 
+def build_encoder(config: ExtractorConfig) -> nn.Module:
+    """The model a configuration describes, images in [0, 1] -> descriptors: a TorchScript encoder loaded from
+    its file, else ``build_extractor``'s backbone and pooling head."""
+    if config.backbone == TORCHSCRIPT:
+        return load_encoder(str(config.weights), *config.normalization()).eval()
+    return build_extractor(config)
+
+
 def build_extractor(config: ExtractorConfig) -> Extractor:
-    """The extractor a configuration describes, in eval mode (a NetVLAD head still needs ``init_netvlad``)."""
+    """The backbone + pooling extractor a configuration describes, in eval mode (a NetVLAD head still needs
+    ``init_netvlad``); a TorchScript encoder is ``build_encoder``'s."""
+    if config.backbone == TORCHSCRIPT:
+        raise SeqvprError(f"a {TORCHSCRIPT} encoder has no backbone and pooling head (use build_encoder)")
     if config.backbone == "efficientnet-lite0":
         net = backbones.efficientnet_lite0(config.weights)
         mean, std = backbones.LITE_MEAN, backbones.LITE_STD
@@ -165,8 +210,11 @@ class Extraction:
 
 def cache_key(config: ExtractorConfig, paths: Sequence[Path], head: str = "") -> str:
     """A digest of the configuration, the weights file, the pooling head's state (``head``, from ``model_digest``)
-    and every image's path, size and mtime."""
-    settings = {k: v for k, v in asdict(config).items() if k != "batch_size"}  # batching does not change rows
+    and every image's path, size and mtime; a TorchScript encoder's normalisation is in it as used."""
+    # batching does not change rows; a built-in backbone's normalisation is part of the backbone
+    settings = {k: v for k, v in asdict(config).items() if k not in ("batch_size", "mean", "std")}
+    if config.backbone == TORCHSCRIPT:
+        settings["normalization"] = config.normalization()
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode() + head.encode())
     for path in _weights_files(config) + list(paths):
         stat = os.stat(path) if os.path.exists(path) else None
@@ -189,7 +237,7 @@ def extract_descriptors(
     cache_dir: str | Path | None = None,
     skip_bad: bool = False,
     progress: Callable[[int], None] | None = None,
-    extractor: Extractor | None = None,
+    extractor: nn.Module | None = None,
 ) -> Extraction:
     """Descriptors [N, D] of the images, in batches; reused from ``cache_dir`` when nothing changed.
 
@@ -215,10 +263,11 @@ def extract_descriptors(
 
 
 def _extraction_key(
-    config: ExtractorConfig, paths: list[Path], cache_dir: str | Path | None, extractor: Extractor | None
+    config: ExtractorConfig, paths: list[Path], cache_dir: str | Path | None, extractor: nn.Module | None
 ) -> str | None:
     """The cache key of this extraction (covering a NetVLAD head's state), or None when nothing is cached."""
-    head = model_digest(extractor.pooling) if extractor is not None and config.pooling == "netvlad" else ""
+    netvlad = extractor.pooling if isinstance(extractor, Extractor) and config.pooling == "netvlad" else None
+    head = model_digest(netvlad) if netvlad is not None else ""
     return cache_key(config, paths, head) if cache_dir is not None else None
 
 
@@ -233,10 +282,11 @@ def _load_cached(final: Path | None, paths: list[Path], progress: Callable[[int]
         return Extraction(cached["descriptors"], cached["rows"], skipped, final)
 
 
-def _prepare_model(config: ExtractorConfig, extractor: Extractor | None, device: str) -> Extractor:
-    """The given (or newly built) extractor on the device, channels-last on CPU where that is faster."""
-    model = (extractor or build_extractor(config)).to(device)
-    if device == "cpu" or str(device).startswith("cpu"):
+def _prepare_model(config: ExtractorConfig, extractor: nn.Module | None, device: str) -> nn.Module:
+    """The given (or newly built) model on the device; a built-in backbone channels-last on CPU (faster there), a
+    TorchScript encoder as it was exported."""
+    model = (extractor or build_encoder(config)).to(device)
+    if config.backbone != TORCHSCRIPT and str(device).startswith("cpu"):
         model = model.to(memory_format=torch.channels_last)
     return model
 
@@ -260,7 +310,7 @@ def _load_batch(
 
 
 def _extract_remaining(
-    model: Extractor,
+    model: nn.Module,
     paths: list[Path],
     config: ExtractorConfig,
     part: _Partial,
@@ -299,7 +349,7 @@ def _assemble(paths: list[Path], part: _Partial, final: Path | None) -> Extracti
     return result
 
 
-def _describe_batch(model: Extractor, images: list[torch.Tensor], device: str) -> np.ndarray:
+def _describe_batch(model: nn.Module, images: list[torch.Tensor], device: str) -> np.ndarray:
     """Descriptors [n, D] of one batch of loaded images."""
     parts = [model(chunk).cpu() for chunk in _micro_batches(torch.stack(images), device)]
     return torch.cat(parts).numpy().astype(np.float32)
