@@ -296,3 +296,37 @@ def test_jist_checkpoint_missing_or_extra_key_is_named(tmp_path):
                     tmp_path / "c")
     assert not any((tmp_path / name).exists() for name in "abc")
 
+
+def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsys, tmp_path):
+    from seqvpr.data.sources import load_pair
+    from seqvpr.methods import describe_for_models, run_method
+    from seqvpr.pipeline import MatchSettings
+    from seqvpr.sequences.windows import SequenceSpec
+
+    torch.save(upstream_cosplace_state(seed=5, out_dim=32), tmp_path / "r18_cosplace.pth")
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "import", tmp_path / "r18_cosplace.pth",
+                                   "--out", tmp_path / "m")
+    assert code == 0 and stdout.startswith("cosplace model:"), stderr
+    ref, qry = image_folder(tmp_path / "ref", 10, 64, 48, seed=6), image_folder(tmp_path / "qry", 10, 64, 48, seed=7)
+    common = ["-r", ref, "-q", qry, "--radius", "3m", "--model", tmp_path / "m", "--image-size", "64x48", "--json"]
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "match", *common, "--out", tmp_path / "o")
+    assert code == 0, stderr
+    settings = json.loads(stdout)["settings"]
+    assert (settings["method"], settings["descriptor"], settings["model_kind"]) == ("single", "cosplace", "cosplace")
+    assert settings["image_size"] == [64, 48] and settings["sequence"]["length"] == 1
+    model = load_trained_model(tmp_path / "m")  # the library: the encoder's frames, single-image retrieval
+    frames = describe_for_models(*load_pair(ref, qry), {"cosplace": model}, None, image_size=(64, 48))
+    np.testing.assert_allclose(frames[1].descriptors, plain_descriptors(upstream_cosplace_state(5, 32), qry).numpy(),
+                               atol=1e-5, rtol=0)
+    expected = run_method("single", *frames, MatchSettings(SequenceSpec(1), k=20), {"cosplace": model})
+    rows = (tmp_path / "o" / "predictions.csv").read_text().splitlines()[1:]
+    assert [[int(i) for i in row.split(",")[2].split()] for row in rows] == expected.topk.indices.tolist()
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "match", *common, "--method", "matching", "-L", "3",
+                                   "--out", tmp_path / "o3")
+    assert code == 0 and json.loads(stdout)["settings"]["sequence"]["length"] == 3, stderr
+    torch.save(upstream_jist_state(), tmp_path / "jist.pth")
+    import_checkpoint(tmp_path / "jist.pth", tmp_path / "jist")
+    code, _, stderr = run_cli(monkeypatch, capsys, "match", *common, "--model", tmp_path / "jist",
+                              "--out", tmp_path / "x")
+    assert code == 2 and "a JIST --model and a CosPlace --model both describe the images" in stderr
+    assert stderr.count("\n") == 1 and not (tmp_path / "x").exists()
