@@ -154,6 +154,7 @@ def model_folders(tmp_path_factory) -> dict[str, Path]:
     from seqvpr.data.sources import save_traversal_npz
     from seqvpr.data.traversal import Traversal
     from seqvpr.models.configs import JistConfig, TransformConfig
+    from seqvpr.models.cosplace import build_cosplace, save_cosplace
     from seqvpr.models.jist import build_jist, save_jist
     from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
     from seqvpr.models.seqnet import save_seqnet
@@ -174,14 +175,16 @@ def model_folders(tmp_path_factory) -> dict[str, Path]:
     save_seqnet(root / "seqnet", SeqNet(8, 8, 2), {"sequence": {"length": 3}})
     config = JistConfig(backbone="efficientnet-lite0", out_dim=16, seq_length=3)
     save_jist(root / "jist", build_jist(config), config, {"image_size": [32, 24]})
-    return {"root": root, **{k: root / k for k in ("seqmatchnet", "seqnet", "jist")}}
+    save_cosplace(root / "cosplace", build_cosplace("resnet18", 16), "resnet18", {"image_size": [32, 24]})
+    return {"root": root, **{k: root / k for k in ("seqmatchnet", "seqnet", "jist", "cosplace")}}
 
 
-@pytest.mark.parametrize("kind", ["seqmatchnet", "seqnet", "jist"])
+@pytest.mark.parametrize("kind", ["seqmatchnet", "seqnet", "jist", "cosplace"])
 def test_loading_and_matching_with_any_model_imports_no_training_and_no_renderer(model_folders, kind, tmp_path):
     root = model_folders["root"]
-    ref, qry = (root / "ref_images", root / "qry_images") if kind == "jist" else (root / "ref.npz", root / "qry.npz")
-    args = ["match", "-r", str(ref), "-q", str(qry), "--radius", "3m" if kind == "jist" else "1f",
+    images = kind in ("jist", "cosplace")
+    ref, qry = (root / "ref_images", root / "qry_images") if images else (root / "ref.npz", root / "qry.npz")
+    args = ["match", "-r", str(ref), "-q", str(qry), "--radius", "3m" if images else "1f",
             "--model", str(model_folders[kind]), "--json", "--out", str(tmp_path / "out")]
     code = f"""
 import json, sys
@@ -197,7 +200,7 @@ print(model.kind, model.length)
 print(sorted(m for m in sys.modules if m.startswith("seqvpr.training") or m == "seqvpr.synthetic.world"))
 """
     lines = python(code).splitlines()
-    assert '"recall"' in lines[0] and lines[1] == f"{kind} 3" and lines[2] == "[]"
+    assert '"recall"' in lines[0] and lines[1] == f"{kind} {1 if kind == 'cosplace' else 3}" and lines[2] == "[]"
 
 
 def long_functions() -> list[str]:

@@ -12,7 +12,10 @@ import pytest
 from seqvpr.cli.match import match
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
 from seqvpr.experiments.benchmark import read_config
-from seqvpr.methods import METHODS, check_models, implied_method, models_used, run_length, run_method
+from seqvpr.methods import (
+    IMAGE_MODELS, IMPLIED_METHODS, METHODS, MODEL_TITLES, check_models, implied_method, models_used, run_length,
+    run_method,
+)
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
 from seqvpr.models.seqmatchnet import FrameTransform
@@ -92,6 +95,31 @@ def test_models_and_methods_that_do_not_go_together_are_one_line_errors():
     raises_one_line("use --method jist", check_models, METHODS["matching"], jist)
     raises_one_line("--rerank N needs", run_method, "matching", None, None, SETTINGS, rerank=5)
     raises_one_line("method 'magic' is not known", run_method, "magic", None, None, SETTINGS)
+
+
+def test_model_tables_agree_with_the_registry():
+    from seqvpr.models.registry import MODEL_KINDS
+
+    assert MODEL_TITLES == {name: kind.title for name, kind in MODEL_KINDS.items()}
+    assert IMPLIED_METHODS == {name: kind.method for name, kind in MODEL_KINDS.items()}
+    assert set(IMPLIED_METHODS.values()) <= set(METHODS)
+    assert set(IMAGE_MODELS) == {name for name, kind in MODEL_KINDS.items() if kind.consumes == "images"}
+
+
+def test_a_cosplace_model_describes_frames_for_any_method_but_jist():
+    cosplace = {"cosplace": trained("cosplace", SeqNet(4, 4, 1), length=1)}
+    assert implied_method(cosplace) == "single"
+    assert implied_method({**cosplace, "seqmatchnet": SMN}) == "seqmatchnet"
+    assert implied_method({**cosplace, "seqnet": SEQNET}) == "seqnet"
+    for name in ("single", "matching", "seqgem", "delta", "hvpr", "seqmatchnet", "seqnet"):
+        check_models(METHODS[name], {**cosplace, **{k: m for k, m in (("seqmatchnet", SMN), ("seqnet", SEQNET))
+                                                    if METHODS[name].needs == k}})
+    raises_one_line("needs a JIST --model", check_models, METHODS["jist"], cosplace)
+    jist = {"jist": trained("jist", SeqNet(4, 4, 1))}
+    raises_one_line("a JIST --model and a CosPlace --model both describe the images", check_models, METHODS["jist"],
+                    {**jist, **cosplace})
+    assert run_length(METHODS["matching"], {**cosplace, "seqmatchnet": trained("seqmatchnet", SMN.module, 3)}) == 3
+    assert run_length(METHODS["seqgem"], cosplace) == 1 and run_length(METHODS["single"], cosplace) == 1
 
 
 def test_implied_method_length_and_models_used():

@@ -5,8 +5,9 @@ A method is frame-level sequence matching (``single``, ``matching``, ``seqmatchn
 descriptor per window (``smoothing``, ``delta``, ``concat``, ``seqgem``, ``seqgem-signed``, ``seqnet``, ``jist``),
 or hierarchical (``hvpr``: a retrieval shortlist re-ranked by exact sequence distance). Trained models come in as
 ``TrainedModel``s keyed by kind: a SeqMatchNet model transforms the frames that sequence matching compares (the
-matching methods and every re-ranking); SeqNet and JIST give their own sequence descriptors. Sequence-descriptor
-methods pool the frames as described (JIST's frames come from its own encoder: ``describe_for_models``).
+matching methods and every re-ranking); SeqNet and JIST give their own sequence descriptors; a CosPlace model is a
+frame encoder only. Sequence-descriptor methods pool the frames as described: the model that consumes images (JIST's
+encoder, or CosPlace, at most one of them) describes them, ``describe_for_models``.
 
 Adding a method: one ``Method`` record in ``METHODS`` and, when no family fits, a branch of ``run_method``; the
 CLI's ``--method`` choices and the benchmark's accepted methods are ``METHODS``.
@@ -27,7 +28,11 @@ if TYPE_CHECKING:
     from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
 
 Family = Literal["matching", "retrieval", "hierarchical"]
-MODEL_TITLES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST"}
+MODEL_TITLES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST", "cosplace": "CosPlace"}
+#: the method each model kind implies, the first kind given in this order deciding (the registry's ``method``)
+IMPLIED_METHODS = {"jist": "jist", "seqnet": "seqnet", "seqmatchnet": "seqmatchnet", "cosplace": "single"}
+#: the kinds that describe the images themselves (the registry's ``consumes="images"``); one per run at most
+IMAGE_MODELS = ("jist", "cosplace")
 HVPR_SHORTLIST = 20  # HVPR's default shortlist length (the top N re-ranked)
 
 
@@ -44,13 +49,14 @@ class Method:
     length: int | None = None
 
     def accepts(self, kind: str) -> bool:
-        """Whether a model of ``kind`` can be given to this method (its own, or a SeqMatchNet transform for the
-        frames it matches or re-ranks; JIST's frames are its own descriptors, so nothing else goes with it)."""
+        """Whether a model of ``kind`` can be given to this method: its own, a CosPlace encoder describing the
+        frames, a SeqMatchNet transform for the frames it matches or re-ranks, a SeqNet shortlist for ``hvpr``.
+        JIST's frames are its own encoder's, so nothing else goes with it."""
         if kind == self.needs:
             return True
         if self.needs == "jist" or kind == "jist":
             return False
-        return kind == "seqmatchnet" or (self.family == "hierarchical" and kind == "seqnet")
+        return kind in ("cosplace", "seqmatchnet") or (self.family == "hierarchical" and kind == "seqnet")
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
@@ -78,15 +84,20 @@ def get_method(name: str) -> Method:
 
 
 def implied_method(models: Mapping[str, TrainedModel]) -> str:
-    """The method a set of models implies: JIST's or SeqNet's own, SeqMatchNet's, or plain sequence matching."""
-    for kind in ("jist", "seqnet", "seqmatchnet"):
+    """The method a set of models implies: JIST's or SeqNet's own, SeqMatchNet's, single-image retrieval for a
+    CosPlace encoder alone, or plain sequence matching."""
+    for kind, method in IMPLIED_METHODS.items():
         if kind in models:
-            return kind
+            return method
     return "matching"
 
 
 def check_models(method: Method, models: Mapping[str, TrainedModel]) -> None:
     """A method and models that do not go together are a one-line error."""
+    describing = [kind for kind in IMAGE_MODELS if kind in models]
+    if len(describing) > 1:
+        titles = " and a ".join(f"{MODEL_TITLES[kind]} --model" for kind in describing)
+        raise SeqvprError(f"a {titles} both describe the images: give one of them")
     if method.needs is not None and method.needs not in models:
         given = next(iter(models), None)
         found = "no --model" if given is None else f"a {MODEL_TITLES[given]} --model"
@@ -113,12 +124,12 @@ def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0, le
 
 def run_length(method: Method, models: Mapping[str, TrainedModel]) -> int:
     """The sequence length a method runs at when none is asked for: its own fixed one, its model's (the one it
-    needs, else the first given), else 1."""
+    needs, else the first given that does not describe images), else 1."""
     if method.length is not None:
         return method.length
     if method.needs in models:
         return models[method.needs].length
-    return next(iter(models.values())).length if models else 1
+    return next((model.length for kind, model in models.items() if kind not in IMAGE_MODELS), 1)
 
 
 def models_used(name: str, shortlist: str = "seqnet") -> tuple[str, ...]:
@@ -190,20 +201,28 @@ def transformed_frames(
     return transform_traversal(reference, module, device), transform_traversal(query, module, device)
 
 
+def image_model(models: Mapping[str, TrainedModel]) -> TrainedModel | None:
+    """The model that describes the images itself (JIST's encoder, CosPlace), if one is given."""
+    return next((models[kind] for kind in IMAGE_MODELS if kind in models), None)
+
+
 def describe_for_models(
     reference: Traversal,
     query: Traversal,
     models: Mapping[str, TrainedModel],
     describe_pair: Callable[[Traversal, Traversal], tuple[Traversal, Traversal]],
     device: str = "cpu",
+    image_size: tuple[int, int] | None = None,
 ) -> tuple[Traversal, Traversal]:
-    """Frame descriptors of both traversals: a JIST model's encoder reads the images at its image size; anything
-    else is ``describe_pair`` (e.g. patch normalisation or a backbone, as the caller chose)."""
-    if "jist" not in models:
+    """Frame descriptors of both traversals: the model that consumes images (JIST's encoder, CosPlace) reads them
+    at its image size, or at ``image_size`` (width, height) when given; without one, ``describe_pair`` (e.g. patch
+    normalisation or a backbone, as the caller chose)."""
+    model = image_model(models)
+    if model is None:
         return describe_pair(reference, query)
-    from seqvpr.models.jist import ImageStore, describe_with_jist
+    from seqvpr.models.jist import ImageStore, describe_images
 
-    model = models["jist"]
-    store = ImageStore(*model.image_size)
-    return tuple(describe_with_jist(model.module, t, *model.image_size, device, store=store)  # type: ignore[return-value]
+    width, height = image_size or model.image_size
+    store = ImageStore(width, height)
+    return tuple(describe_images(model.module, t, width, height, device, store=store)  # type: ignore[return-value]
                  for t in (reference, query))

@@ -8,7 +8,9 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import extraction_options, extraction_settings, parse_ks, parse_size, parse_velocities
+from seqvpr.cli.options import (
+    extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail, parse_velocities,
+)
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.methods import METHODS
@@ -20,6 +22,7 @@ Examples:
   seqvpr match --reference dataset.toml --query dataset.toml --json
   seqvpr match --reference ref.npz --query qry.npz --radius 25m --velocities 0.8:1.2:0.1
   seqvpr match -r ref.npz -q qry.npz --radius 25m --model runs/seqnet --model runs/seqmatchnet --method hvpr
+  seqvpr match -r day/ -q night/ --radius 25m --model runs/cosplace-r18 --method matching -L 5
 """
 
 
@@ -30,9 +33,11 @@ Examples:
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
               help="Window around the frame (centred) or ending at it (causal, for online use).")
 @click.option("--model", "model_dirs", type=click.Path(), multiple=True,
-              help="A seqvpr train --out folder (repeatable, one per kind): SeqMatchNet transforms the frames that "
-                   "sequence matching compares; SeqNet and JIST give sequence descriptors (--method seqnet / jist, "
-                   "implied), JIST describing the images itself.")
+              help="A seqvpr train --out or seqvpr import --out folder (repeatable, one per kind): SeqMatchNet "
+                   "transforms the frames that sequence matching compares; SeqNet and JIST give sequence descriptors "
+                   "(--method seqnet / jist, implied); JIST and CosPlace describe the images themselves, at the "
+                   "folder's image size unless --image-size is given (CosPlace implies --method single; any other "
+                   "method but jist runs on its frames).")
 @click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
               help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
 @click.option("--velocities", default="1", show_default=True,
@@ -71,7 +76,7 @@ def match(**o: Any) -> None:
     if o["seq_len"] is not None:
         SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
     from seqvpr.data.sources import load_pair
-    from seqvpr.methods import run_length, run_method
+    from seqvpr.methods import image_model, run_length, run_method
     from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
 
     models, method = _models_and_method(o)
@@ -84,8 +89,11 @@ def match(**o: Any) -> None:
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
                         progress=tqdm_progress)
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
-    descriptor = "jist" if "jist" in models else o["descriptor"] if has_images else "file"
+    image = image_model(models)
+    descriptor = image.kind if image else o["descriptor"] if has_images else "file"
     run = _run_settings(o, method, models, descriptor, gt.description, settings.as_dict())
+    if image:
+        run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
 
 
@@ -108,7 +116,8 @@ def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
 
 
 def _frames(reference, query, models: dict, o: dict[str, Any]):
-    """Frame descriptors for the method: the models' (JIST) or the extraction options', then PCA-whitened if asked."""
+    """Frame descriptors for the method: the image model's (JIST, CosPlace) or the extraction options', then
+    PCA-whitened if asked."""
     from seqvpr.methods import describe_for_models
     from seqvpr.pipeline import describe_pair, whiten_pair
 
@@ -116,6 +125,7 @@ def _frames(reference, query, models: dict, o: dict[str, Any]):
     reference, query = describe_for_models(
         reference, query, models,
         lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), o["device"],
+        _image_size(o),
     )
     if not o["pca_dim"]:
         return reference, query
@@ -123,6 +133,16 @@ def _frames(reference, query, models: dict, o: dict[str, Any]):
     if used < o["pca_dim"]:
         click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
     return reference, query
+
+
+def _image_size(o: dict[str, Any]) -> tuple[int, int] | None:
+    """--image-size when given on the command line (it overrides a model's own image size), else None."""
+    from click.core import ParameterSource
+
+    source = click.get_current_context().get_parameter_source("image_size")
+    if source in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None):
+        return None
+    return parse_thumbnail(o["image_size"], "--image-size")
 
 
 def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str, rule: str, match: dict) -> dict:

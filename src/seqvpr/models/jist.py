@@ -259,37 +259,43 @@ class ImageStore:
 
 @torch.no_grad()
 def encode_frames(
-    model: JistModel, store: ImageStore, paths: Sequence[Path], device: str, batch: int = 32
+    model: nn.Module, store: ImageStore, paths: Sequence[Path], device: str, batch: int = 32
 ) -> torch.Tensor:
-    """Frame descriptors [N, D] of the images (eval mode, no grad), each image encoded once."""
-    was_training = model.training
-    model.eval()
+    """Frame descriptors [N, D] of the images (eval mode, no grad), each image encoded once, by a frame encoder
+    (images [B, 3, H, W] in [0, 1] -> [B, D]: CosPlace's) or a JIST model's encoder."""
+    encoder = model.encoder if isinstance(model, JistModel) else model
+    was_training = encoder.training
+    encoder.eval()
     try:
-        parts = [model.frames(store.batch(paths[i : i + batch], device)) for i in range(0, len(paths), batch)]
+        parts = [encoder(store.batch(paths[i : i + batch], device)) for i in range(0, len(paths), batch)]
     finally:
-        model.train(was_training)
+        encoder.train(was_training)
     return torch.cat(parts).float()
 
 
 def check_images_exist(traversal: Traversal, what: str) -> None:
     """Fail with one line when the traversal has no images or one of them is missing."""
     if traversal.image_paths is None:
-        raise SeqvprError(f"{what}: JIST needs images, this traversal has descriptors only")
+        raise SeqvprError(f"{what}: the model describes images, this traversal has descriptors only")
     for path in traversal.image_paths:
         if not Path(path).is_file():
             raise SeqvprError(f"{what}: image {path} does not exist")
 
 
-def describe_with_jist(
-    model: JistModel, traversal: Traversal, width: int, height: int, device: str = "cpu",
+def describe_images(
+    model: nn.Module, traversal: Traversal, width: int, height: int, device: str = "cpu",
     store: ImageStore | None = None, batch: int = 32,
 ) -> Traversal:
-    """The traversal with JIST frame descriptors (its encoder, images at ``width`` x ``height``); pooling them with
-    ``model.sequence_pool`` (``retrieve_traversals(..., "seqgem", model=model.sequence_pool)``) gives JIST's
-    sequence descriptors."""
+    """The traversal with the frame descriptors of a frame encoder (CosPlace) or a JIST model's encoder, images at
+    ``width`` x ``height``. Pooling JIST's frames with ``model.sequence_pool`` (``retrieve_traversals(...,
+    "seqgem", model=model.sequence_pool)``) gives JIST's sequence descriptors."""
     check_images_exist(traversal, traversal.source or traversal.name)
     store = store or ImageStore(width, height)
     return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())
+
+
+#: JIST's frames are its encoder's (the name the training and its tests use)
+describe_with_jist = describe_images
 
 
 # --- model folder ------------------------------------------------------------------------------------------------

@@ -3,12 +3,14 @@
 Containers: a raw ``state_dict``; SeqNet/SeqMatchNet training checkpoints (``{"epoch", "state_dict", "recalls",
 "best_score", ...}``, whose numpy float64 scalars load through an allow-list, never through unrestricted
 unpickling); CosPlace/JIST training checkpoints (``model_state_dict``). Prefixes ``module.`` (DataParallel) and
-``pool.module.`` (SeqMatchNet on several GPUs) are removed. Kinds converted so far: SeqNet (``pool.0.conv.*``,
-any w) and SeqMatchNet (``pool.1.conv.*``, kernel 1 = the per-frame transform ``normalize(W x + B)``, with
-upstream's forward: no input normalisation). A missing or unexpected key, or a wrong shape, is a one-line error
-naming it; the folder records the source file and its sha256. JIST (``JIST_r18_512_seqgem.pth``, ``best_model.pth``:
-the 123 CosPlace keys under ``model.`` plus ``seq_gem.p``) becomes a JIST folder with upstream's forward: SeqGeM
-without final normalisation (searched by exact L2), images at 480 x 640.
+``pool.module.`` (SeqMatchNet on several GPUs) are removed. Kinds: SeqNet (``pool.0.conv.*``, any w) and
+SeqMatchNet (``pool.1.conv.*``, kernel 1 = the per-frame transform ``normalize(W x + B)``, with upstream's forward:
+no input normalisation); CosPlace (``*_cosplace.pth``: ``backbone.0/1/4..7.*``, ``aggregation.1.p``,
+``aggregation.3.*``; ResNet-18 or -50 by the head's input size) becomes a frame encoder folder, images at 512 x 384;
+JIST (``JIST_r18_512_seqgem.pth``, ``best_model.pth``: the CosPlace keys under ``model.`` plus ``seq_gem.p``) a JIST
+folder with upstream's forward: SeqGeM without final normalisation (searched by exact L2), images at 480 x 640.
+A missing or unexpected key, or a wrong shape, is a one-line error naming it as in the file; the folder records
+the source file and its sha256.
 """
 
 from __future__ import annotations
@@ -30,7 +32,6 @@ KINDS_KEYS = {
     "seqnet": ("pool.0.conv.weight", "pool.0.conv.bias"),
     "seqmatchnet": ("pool.1.conv.weight", "pool.1.conv.bias"),
 }
-NOT_YET = {"aggregation.3.weight": "CosPlace"}
 JIST_POOL, JIST_PREFIX = "seq_gem.p", "model."
 #: JIST's test-time input: 480 x 640 (H x W) with ImageNet normalisation
 JIST_IMAGE_SIZE = (640, 480)
@@ -89,8 +90,9 @@ def state_dict_of(content: dict[str, Any], path: Path) -> dict[str, torch.Tensor
 
 
 def detect_kind(state: dict[str, torch.Tensor], path: Path) -> str:
-    """The published model a state dict is, by its keys; exactly its keys, or a one-line error naming one."""
-    if JIST_POOL in state:
+    """The published model a state dict is, by its keys (SeqNet and SeqMatchNet checked strictly here; JIST and
+    CosPlace by ``cosplace_state``), or a one-line error naming a key."""
+    if JIST_POOL in state or any(k.startswith(JIST_PREFIX) for k in state):
         return "jist"
     for kind, keys in KINDS_KEYS.items():
         if keys[0] in state:
@@ -100,10 +102,10 @@ def detect_kind(state: dict[str, torch.Tensor], path: Path) -> str:
                 which = f"unexpected key {unexpected[0]!r}" if unexpected else f"missing key {missing[0]!r}"
                 raise SeqvprError(f"{path}: a {kind} checkpoint with an {which}")
             return kind
-    for key, name in NOT_YET.items():
-        if any(k.endswith(key) for k in state):
-            raise SeqvprError(f"{path}: a {name} checkpoint; importing {name} files is not available yet")
-    raise SeqvprError(f"{path}: not a SeqNet or SeqMatchNet checkpoint (no key {' or '.join(k[0] for k in KINDS_KEYS.values())!r})")
+    if any(k.startswith(("backbone.", "aggregation.")) for k in state):
+        return "cosplace"
+    raise SeqvprError(f"{path}: not a SeqNet, SeqMatchNet, CosPlace or JIST checkpoint (no key "
+                      f"{' or '.join(k[0] for k in KINDS_KEYS.values())!r}, 'aggregation.3.weight' or {JIST_POOL!r})")
 
 
 def read_flags(path: str | Path | None) -> dict[str, Any]:
@@ -145,7 +147,7 @@ def file_sha256(path: Path) -> str:
 
 
 def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path | None = None) -> ImportedModel:
-    """Convert a published SeqNet or SeqMatchNet checkpoint into a seqvpr model folder ``out``."""
+    """Convert a published SeqNet, SeqMatchNet, CosPlace or JIST checkpoint into a seqvpr model folder ``out``."""
     from seqvpr.models.configs import TransformConfig
     from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
     from seqvpr.models.seqnet import save_seqnet
@@ -155,14 +157,16 @@ def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path 
     state = state_dict_of(read_container(path), path)
     kind, flags = detect_kind(state, path), read_flags(flags_path)
     sha = file_sha256(path)
+    source = {"source": {"file": str(path), "sha256": sha, "flags": flags or None}}
     if kind == "jist":
-        source = {"source": {"file": str(path), "sha256": sha, "flags": flags or None}}
         save_published_jist(state, out, int(flags.get("seq_length") or 5), source, path)
+        return ImportedModel(kind, Path(out), sha)
+    if kind == "cosplace":
+        save_published_cosplace(state, out, source, path)
         return ImportedModel(kind, Path(out), sha)
     prefix = KINDS_KEYS[kind][0].rsplit(".", 1)[0]
     out_dim, in_dim, w = conv_shapes(state, prefix, path)
     check_flag(flags, "outDims", out_dim, path, flags_path)
-    source = {"source": {"file": str(path), "sha256": sha, "flags": flags or None}}
     if kind == "seqnet":
         check_flag(flags, "w", w, path, flags_path)
         model = SeqNet(in_dim, out_dim, w)
@@ -179,51 +183,60 @@ def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path 
     return ImportedModel(kind, Path(out), sha)
 
 
-def jist_state(state: dict[str, torch.Tensor], model: torch.nn.Module, path: Path) -> dict[str, torch.Tensor]:
-    """A published JIST state dict (the CosPlace keys under ``model.``, plus ``seq_gem.p``) in the seqvpr JIST
-    model's names, strictly: every file key has a place and every model parameter a file key."""
-    from seqvpr.features.backbones import COSPLACE_CHILDREN
+def cosplace_state(
+    state: dict[str, torch.Tensor], model: torch.nn.Module, path: Path, title: str = "CosPlace", *,
+    prefix: str = "", target: str = "", extra: dict[str, str] | None = None,
+) -> dict[str, torch.Tensor]:
+    """A published state dict in ``model``'s names, strictly: the CosPlace keys (under ``prefix``: JIST's
+    ``model.``) go to the frame encoder (under ``target``: JIST's ``encoder.``), ``extra`` maps further file keys
+    (JIST's ``seq_gem.p``). Every file key needs a place of its shape and every model parameter a file key; the
+    first that does not is a one-line error naming the key as in the file."""
+    from seqvpr.models.cosplace import INPUT_BUFFERS, seqvpr_name, upstream_key
 
-    heads = {"aggregation.1.p": "encoder.gem.p", "aggregation.3.weight": "encoder.fc.weight",
-             "aggregation.3.bias": "encoder.fc.bias"}
-    mapped: dict[str, torch.Tensor] = {"sequence_pool.p": state[JIST_POOL]}
+    extra = extra or {}
+    expected, mapped = model.state_dict(), {}
     for key, value in state.items():
-        if key == JIST_POOL:
-            continue
-        name = key.removeprefix(JIST_PREFIX)
-        child, _, rest = name.removeprefix("backbone.").partition(".")
-        if name in heads:
-            mapped[heads[name]] = value
-        elif name.startswith("backbone.") and child in COSPLACE_CHILDREN:
-            mapped[f"encoder.backbone.{COSPLACE_CHILDREN[child]}.{rest}"] = value
-        else:
-            raise SeqvprError(f"{path}: a JIST checkpoint with an unexpected key {key!r}")
-    expected = model.state_dict()
-    for name, value in mapped.items():
+        name = extra.get(key) or (seqvpr_name(key[len(prefix):]) if key.startswith(prefix) else None)
+        name = name if name is None or key in extra else target + name
         if name not in expected:
-            raise SeqvprError(f"{path}: a JIST checkpoint with an unexpected key for {name!r}")
-        if value.numel() != expected[name].numel():
-            raise SeqvprError(f"{path}: {name} has shape {tuple(value.shape)}, the model needs {tuple(expected[name].shape)}")
-        mapped[name] = value.reshape(expected[name].shape)
-    buffers = {"encoder.mean", "encoder.std"}  # seqvpr's input normalisation, not in the file
+            raise SeqvprError(f"{path}: a {title} checkpoint with an unexpected key {key!r}")
+        need = expected[name].shape
+        if value.shape != need and not value.numel() == expected[name].numel() == 1:
+            raise SeqvprError(f"{path}: {key} has shape {tuple(value.shape)}, the model needs {tuple(need)}")
+        mapped[name] = value.reshape(need)
+    buffers = {target + name for name in INPUT_BUFFERS}  # seqvpr's input normalisation, not in the file
     missing = [name for name in expected if name not in mapped and name not in buffers]
     if missing:
-        raise SeqvprError(f"{path}: a JIST checkpoint with a missing key {upstream_jist_key(missing[0], heads)!r}")
+        inverse = {v: k for k, v in extra.items()}
+        first = inverse.get(missing[0]) or prefix + upstream_key(missing[0].removeprefix(target))
+        raise SeqvprError(f"{path}: a {title} checkpoint with a missing key {first!r}")
     return {**{name: expected[name] for name in buffers}, **mapped}
 
 
-def upstream_jist_key(name: str, heads: dict[str, str]) -> str:
-    """The upstream key of a seqvpr JIST parameter name (for naming a missing key as the file would)."""
-    from seqvpr.features.backbones import COSPLACE_CHILDREN
+def head_backbone(state: dict[str, torch.Tensor], prefix: str, path: Path, title: str) -> tuple[str, int]:
+    """The ResNet (by the CosPlace head's input size: 512 -> ResNet-18, 2048 -> ResNet-50) and the output size."""
+    from seqvpr.models.cosplace import BACKBONE_OF_CHANNELS
 
-    if name == "sequence_pool.p":
-        return JIST_POOL
-    inverse = {v: k for k, v in heads.items()}
-    if name in inverse:
-        return JIST_PREFIX + inverse[name]
-    child, _, rest = name.removeprefix("encoder.backbone.").partition(".")
-    index = {v: k for k, v in COSPLACE_CHILDREN.items()}.get(child, child)
-    return f"{JIST_PREFIX}backbone.{index}.{rest}"
+    key = prefix + "aggregation.3.weight"
+    head = state.get(key)
+    if head is None:
+        raise SeqvprError(f"{path}: a {title} checkpoint with a missing key {key!r}")
+    backbone = BACKBONE_OF_CHANNELS.get(int(head.shape[1])) if head.ndim == 2 else None
+    if backbone is None:
+        raise SeqvprError(f"{path}: {key} has shape {tuple(head.shape)}; expected [dim, 512] (ResNet-18) or "
+                          f"[dim, 2048] (ResNet-50)")
+    return backbone, int(head.shape[0])
+
+
+def save_published_cosplace(state: dict[str, torch.Tensor], out: str | Path, source: dict, path: Path) -> Path:
+    """The CosPlace encoder of a published file (ResNet-18/50 by the head's input size) with upstream's forward;
+    images at ``cosplace.DEFAULT_IMAGE_SIZE`` (recorded in the folder)."""
+    from seqvpr.models.cosplace import DEFAULT_IMAGE_SIZE, build_cosplace, save_cosplace
+
+    backbone, out_dim = head_backbone(state, "", path, "CosPlace")
+    encoder = build_cosplace(backbone, out_dim)
+    encoder.load_state_dict(cosplace_state(state, encoder, path), strict=True)
+    return save_cosplace(out, encoder, backbone, {"image_size": list(DEFAULT_IMAGE_SIZE), **source})
 
 
 def save_published_jist(
@@ -235,14 +248,11 @@ def save_published_jist(
     from seqvpr.models.jist import build_jist, save_jist
     from seqvpr.sequences.descriptors import SeqGeM
 
-    head = state.get(JIST_PREFIX + "aggregation.3.weight")
-    if head is None or head.ndim != 2:
-        raise SeqvprError(f"{path}: a JIST checkpoint with a missing key {JIST_PREFIX + 'aggregation.3.weight'!r}")
-    backbone = {512: "resnet18", 2048: "resnet50"}.get(int(head.shape[1]))
-    if backbone is None:
-        raise SeqvprError(f"{path}: aggregation.3.weight takes {head.shape[1]}-D features; expected 512 or 2048")
-    config = JistConfig(backbone=backbone, out_dim=int(head.shape[0]), seq_length=length)
+    backbone, out_dim = head_backbone(state, JIST_PREFIX, path, "JIST")
+    config = JistConfig(backbone=backbone, out_dim=out_dim, seq_length=length)
     model = build_jist(config, SeqGeM(normalize=False))
-    model.load_state_dict(jist_state(state, model, path), strict=True)
+    mapped = cosplace_state(state, model, path, "JIST", prefix=JIST_PREFIX, target="encoder.",
+                            extra={JIST_POOL: "sequence_pool.p"})
+    model.load_state_dict(mapped, strict=True)
     return save_jist(out, model, config, {"image_size": list(JIST_IMAGE_SIZE), "sequence": {"length": length},
                                           **source})

@@ -15,13 +15,14 @@ from typing import Any, Literal
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.models import jist, seqmatchnet, seqnet
+from seqvpr.models import cosplace, jist, seqmatchnet, seqnet
 from seqvpr.models.files import CONFIG_FILE, read_model_config
 
 
 @dataclass(frozen=True)
 class TrainedModel:
-    """A loaded model folder: its kind, the module (eval mode), its sequence length and (JIST) image size."""
+    """A loaded model folder: its kind, the module (eval mode), its sequence length and, for a model that consumes
+    images (JIST, CosPlace: a single-image frame encoder of length 1), the image size it reads them at."""
 
     kind: str
     module: torch.nn.Module
@@ -54,14 +55,23 @@ def _load_seqnet(folder: Path, device: str) -> TrainedModel:
     return TrainedModel("seqnet", module, int(config.get("L") or module.w), folder)
 
 
-def _load_jist(folder: Path, device: str) -> TrainedModel:
-    meta = read_model_config(folder, jist.FORMAT, "JIST")
-    module = jist.load_jist(folder)
+def _on_device(module: torch.nn.Module, device: str) -> torch.nn.Module:
     try:
-        module = module.to(device)
+        return module.to(device)
     except (RuntimeError, AssertionError) as error:
         raise SeqvprError(f"device {device!r} is not usable here ({str(error).splitlines()[0]})") from None
+
+
+def _load_jist(folder: Path, device: str) -> TrainedModel:
+    meta = read_model_config(folder, jist.FORMAT, "JIST")
+    module = _on_device(jist.load_jist(folder), device)
     return TrainedModel("jist", module, int(meta["config"]["seq_length"]), folder, jist.jist_image_size(meta))
+
+
+def _load_cosplace(folder: Path, device: str) -> TrainedModel:
+    encoder, meta = cosplace.load_cosplace(folder)
+    encoder = _on_device(encoder, device)
+    return TrainedModel("cosplace", encoder, 1, folder, cosplace.cosplace_image_size(meta))
 
 
 MODEL_KINDS: dict[str, ModelKind] = {kind.name: kind for kind in (
@@ -69,6 +79,7 @@ MODEL_KINDS: dict[str, ModelKind] = {kind.name: kind for kind in (
               seqmatchnet.save_seqmatchnet, _load_seqmatchnet),
     ModelKind("seqnet", "SeqNet", seqnet.FORMAT, "descriptors", "seqnet", seqnet.save_seqnet, _load_seqnet),
     ModelKind("jist", "JIST", jist.FORMAT, "images", "jist", jist.save_jist, _load_jist),
+    ModelKind("cosplace", "CosPlace", cosplace.FORMAT, "images", "single", cosplace.save_cosplace, _load_cosplace),
 )}
 
 
