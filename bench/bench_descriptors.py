@@ -2,12 +2,14 @@
 
 Run from the repository root with ../shared/data beside the checkout (about 10 minutes on 2 cores):
 
-    .venv/bin/python bench/bench_descriptors.py [--data ../shared/data] [--cache-dir runs/desc-cache]
+    .venv/bin/python bench/bench_descriptors.py [--data ../shared/data] [--cache-dir runs/desc-cache] [--only NAME]
 
 Datasets (reference, query, ground truth):
 
 * corridor: ``ref/`` vs ``query/`` (111 frames each, 160x120), VPR-Bench ground truth file (+-2 frames);
-* nordland_64x32: summer vs winter, frames [17, 2000), +-1 frame.
+* nordland_64x32: summer vs winter, frames [17, 2000), +-1 frame;
+* gardenspoint_walking: the real colour images, ``day_left/`` vs ``night_right/`` (200 frames each, day/night and
+  left/right at once), +-2 frames, read at 384x216 (16:9, as the images).
 
 Descriptors: EfficientNet-Lite0 (packaged ImageNet weights) + GeM; EfficientNet-Lite0 + NetVLAD (64 clusters,
 k-means over the reference's local features) + PCA-whitening fitted on the reference (to 4096 dimensions or
@@ -76,11 +78,13 @@ DESCRIPTORS = (
 
 
 def datasets(root: Path) -> list[Dataset]:
-    corridor, nordland = root / "corridor", root / "nordland_64x32"
+    corridor, nordland, walking = root / "corridor", root / "nordland_64x32", root / "gardenspoint_walking"
     return [
         Dataset("corridor", str(corridor / "ref"), str(corridor / "query"), (None, None), None,
                 str(corridor / "ground_truth_new.npy"), (320, 240)),
         Dataset("nordland_64x32", str(nordland / "summer"), str(nordland / "winter"), (17, 2000), "1f", None, (256, 128)),
+        Dataset("gardenspoint_walking", str(walking / "day_left"), str(walking / "night_right"), (None, None), "2f",
+                None, (384, 216)),
     ]
 
 
@@ -111,11 +115,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     parser.add_argument("--cache-dir", default=None, help="extraction cache (reused across runs)")
+    parser.add_argument("--only", action="append", help="run only this dataset (repeatable)")
     args = parser.parse_args()
     root = Path(args.data)
     if not root.is_dir():
         sys.exit(f"{root}: no such folder (the shared datasets)")
     for data in datasets(root):
+        if args.only and data.name not in args.only:
+            continue
         print(f"\n### {data.name}\n")
         print("| descriptor | dim | L=1 R@1 | R@5 | R@20 | L=5 R@1 | R@5 | R@20 |")
         print("|---|---|---|---|---|---|---|---|")
