@@ -113,3 +113,19 @@ def test_model_bad_input_is_one_line():
     raises_one_line("unknown backbone stage 'layer4'", build_jist, JistConfig(), MeanPool(), backbone=TinyBackbone())
     raises_one_line("trainable_stages", JistConfig, trainable_stages="layer4")
     raises_one_line("positive integer", JistConfig, seq_length=0)
+
+
+def test_seqgem_normalisation_switch_is_built_saved_and_loaded(tmp_path):
+    """``seqgem_normalize=False`` gives upstream's unnormalised SeqGeM, and the folder keeps it."""
+    from seqvpr.models.jist import JistConfig, build_jist, load_jist, save_jist
+
+    config = JistConfig(backbone="resnet18", out_dim=16, seq_length=3, seqgem_normalize=False)
+    torch.manual_seed(0)
+    model = build_jist(config)
+    assert model.sequence_pool.normalize is False
+    frames = torch.rand(2, 3, 16)
+    pooled = model.pool(torch.nn.functional.normalize(frames, dim=-1))
+    assert not torch.allclose(pooled.norm(dim=-1), torch.ones(2))
+    save_jist(tmp_path / "m", model, config, {"image_size": [64, 48]})
+    assert load_jist(tmp_path / "m").sequence_pool.normalize is False
+    assert build_jist(JistConfig(backbone="resnet18", out_dim=16)).sequence_pool.normalize is True

@@ -235,6 +235,8 @@ jist_options = with_options([
                  help="CosPlace class cells, in the radius unit (metres, or frames with a frame radius)."),
     click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=int,
                  help="Images a CosPlace class needs to be used."),
+    click.option("--seqgem-normalize/--no-seqgem-normalize", default=JIST_DEFAULTS.seqgem_normalize, show_default=True,
+                 help="L2-normalise SeqGeM's sequence descriptor (--no-seqgem-normalize: upstream JIST's forward)."),
     click.option("--lr", default=JIST_DEFAULTS.lr, show_default=True, type=float, help="Adam learning rate of the model."),
     click.option("--classifier-lr", default=JIST_DEFAULTS.classifier_lr, show_default=True, type=float,
                  help="Adam learning rate of the CosFace classifiers."),
@@ -264,7 +266,7 @@ def jist_values(o: dict) -> dict[str, Any]:
         "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
         "min_images": o["min_images"], "select_k": o["select_k"], "ks": parse_ks(o["ks"]), "device": o["device"],
         "seed": o["seed"], "select_untrained": o["select_untrained"], "jitter": o["jitter"], "hue": o["hue"],
-        "crop_scale": o["crop_scale"],
+        "crop_scale": o["crop_scale"], "seqgem_normalize": o["seqgem_normalize"],
     }
 
 

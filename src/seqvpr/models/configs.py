@@ -70,7 +70,8 @@ class JistConfig:
     ``stage1``..``stage7``, ``head`` for EfficientNet-Lite0; the top-level child names for an injected backbone.
     None (or empty) is the backbone's default, ``DEFAULT_STAGES``: its last stage.
     ``weights``: None (random, for tests), a checkpoint path (torchvision or CosPlace keys; a CosPlace file also
-    fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only).
+    fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only). ``seqgem_normalize``: L2-normalise the
+    SeqGeM output (seqvpr's default); False is upstream's forward, searched by plain L2 as the reference does.
     """
 
     backbone: str = "resnet18"
@@ -85,6 +86,7 @@ class JistConfig:
     classifier_lr: float = 1e-2
     cosface_s: float = 30.0
     cosface_m: float = 0.4
+    seqgem_normalize: bool = True
 
     def __post_init__(self) -> None:
         if self.backbone not in JIST_BACKBONES:

@@ -200,7 +200,7 @@ def build_jist(
 ) -> JistModel:
     """The JIST model a configuration describes, in eval mode, frozen but for ``config.trainable_stages``.
 
-    ``sequence_pool`` defaults to ``seqvpr.sequences.descriptors.SeqGeM()``; ``backbone`` injects another image
+    ``sequence_pool`` defaults to SeqGeM (normalised as ``config.seqgem_normalize`` says); ``backbone`` injects another image
     backbone (ImageNet normalisation; ``config.backbone``/``weights`` are then not used).
     """
     if backbone is None:
@@ -214,7 +214,7 @@ def build_jist(
     if sequence_pool is None:
         from seqvpr.sequences.descriptors import SeqGeM
 
-        sequence_pool = SeqGeM()
+        sequence_pool = SeqGeM(normalize=config.seqgem_normalize)
     return JistModel(encoder, sequence_pool).eval()
 
 

@@ -246,11 +246,10 @@ def save_published_jist(
     without final normalisation, images at 480 x 640."""
     from seqvpr.models.configs import JistConfig
     from seqvpr.models.jist import build_jist, save_jist
-    from seqvpr.sequences.descriptors import SeqGeM
 
     backbone, out_dim = head_backbone(state, JIST_PREFIX, path, "JIST")
-    config = JistConfig(backbone=backbone, out_dim=out_dim, seq_length=length)
-    model = build_jist(config, SeqGeM(normalize=False))
+    config = JistConfig(backbone=backbone, out_dim=out_dim, seq_length=length, seqgem_normalize=False)
+    model = build_jist(config)
     mapped = cosplace_state(state, model, path, "JIST", prefix=JIST_PREFIX, target="encoder.",
                             extra={JIST_POOL: "sequence_pool.p"})
     model.load_state_dict(mapped, strict=True)
