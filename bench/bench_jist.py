@@ -124,6 +124,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=10, help="Steps per refresh (max_iterations).")
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--stages", default="stage6,stage7,head")
+    parser.add_argument("--select", type=int, default=5, choices=KS, help="Keep the epoch with the best validation R@K.")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     started = time.perf_counter()
@@ -137,7 +138,7 @@ def main() -> None:
         "backbone": "efficientnet-lite0", "weights": "imagenet", "trainable_stages": args.stages.split(","),
         "lr": args.lr, "width": width, "height": height, "epochs": args.epochs, "refreshes": args.refreshes,
         "max_iterations": args.iterations, "queries_per_refresh": 4 * args.iterations, "negative_pool": 1000,
-        "cell_m": cell, "min_images": 4, "seed": args.seed, "ks": list(KS),
+        "cell_m": cell, "min_images": 4, "seed": args.seed, "ks": list(KS), "select_k": args.select,
     }
     config, settings = jist_setup(values, LENGTH)
     data = training_data("jist", train, validation, radius)
