@@ -68,6 +68,8 @@ def read_container(path: str | Path) -> dict[str, Any]:
             content = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as error:
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if first.startswith("Weights only load failed"):  # torch's advice to unpickle anything is not ours to give
+            first = "not a torch file, or it holds objects beyond tensors and numpy scalars"
         raise SeqvprError(f"{path}: not a loadable checkpoint ({first[:200]})") from None
     if not isinstance(content, dict):
         raise SeqvprError(f"{path}: holds a {type(content).__name__}, not a state dict or checkpoint")
