@@ -49,11 +49,11 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.methods import describe_for_models, run_method
 from seqvpr.models.jist import build_jist, save_jist
-from seqvpr.models.registry import TrainedModel, load_trained_model
+from seqvpr.models.registry import load_trained_model
 from seqvpr.pipeline import MatchSettings, describe, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.data import training_data
-from seqvpr.training.jist import jist_setup, train_jist
+from seqvpr.training.jist import jist_positions, jist_setup, train_jist
 
 KS = (1, 5, 10)
 LENGTH = 5
@@ -79,6 +79,13 @@ def gardenspoint_pairs(data: Path) -> tuple[tuple, tuple, tuple, Radius]:
     whole = load_pair(str(folder / "day_left"), str(folder / "night_right"))
     cut = lambda frames: tuple(slice_frame_range(t, frames, frames) for t in whole)  # noqa: E731
     return cut("0:100"), cut("100:130"), cut("130:200"), Radius(2.0, "frames")
+
+
+def gardenspoint_extra(data: Path, name: str) -> Traversal:
+    """A third Gardens Point traversal's training frames (0-99), for the classification branch only."""
+    folder = data / "gardenspoint_walking"
+    traversal = load_pair(str(folder / "day_left"), str(folder / name))[1]
+    return slice_frame_range(traversal, "0:100", "0:100")
 
 
 def score(method: str, reference: Traversal, query: Traversal, radius: Radius, models: dict) -> Evaluation:
@@ -126,6 +133,9 @@ def main() -> None:
     parser.add_argument("--stages", default="stage6,stage7,head")
     parser.add_argument("--select", type=int, default=5, choices=KS, help="Keep the epoch with the best validation R@K.")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--extra", default=None,
+                        help="gardenspoint: another traversal (day_right) whose training frames join the "
+                             "classification branch's images (all conditions of a place).")
     args = parser.parse_args()
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -142,7 +152,11 @@ def main() -> None:
     }
     config, settings = jist_setup(values, LENGTH)
     data = training_data("jist", train, validation, radius)
-    result = train_jist(data, config, settings, args.out / "run", resume=True)
+    classification = None
+    if args.extra:
+        extra = jist_positions(gardenspoint_extra(args.data, args.extra), radius)
+        classification = (data.reference, data.query, extra)
+    result = train_jist(data, config, settings, args.out / "run", resume=True, classification=classification)
     trained_seconds = time.perf_counter() - started
     extractor = ExtractorConfig("efficientnet-lite0", "imagenet", width=width, height=height)
     described = tuple(describe(t, "efficientnet-lite0", extractor=extractor) for t in test)
@@ -157,7 +171,7 @@ def main() -> None:
                for r in result.history]
     report = (f"{args.dataset}: {cpu_model()}, {torch.get_num_threads()} threads, "
               f"{time.perf_counter() - started:.0f} s in all ({trained_seconds:.0f} s to train)\n\n{text}\n\n"
-              f"settings: {json.dumps(values)}\nmodel: {json.dumps(asdict(config))}\nhistory: {json.dumps(history)}\n")
+              f"settings: {json.dumps(values)}\nclassification extra: {args.extra}\nmodel: {json.dumps(asdict(config))}\nhistory: {json.dumps(history)}\n")
     (args.out / "results.md").write_text(report)
     print(report)
 

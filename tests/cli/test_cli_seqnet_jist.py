@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from seqvpr.cli import cli
 from seqvpr.cli.train import train_jist_command, train_seqmatchnet_command, train_seqnet_command
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
-from seqvpr.training.data import training_data, training_pairs
+from seqvpr.training.data import classification_traversals, training_data, training_pairs
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.synthetic.routes import generate_route
 from seqvpr.synthetic.world import write_demo_world
@@ -181,6 +181,26 @@ def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_pat
     np.testing.assert_array_equal(data.reference.positions[:, 0], np.arange(30))
 
 
+def test_class_images_add_a_traversals_training_frames_placed_as_the_pair(world, tmp_path):
+    """``--class-images``: a third frame-aligned traversal's --train-frames join the classification images, placed
+    along the route as the training pair is (its frame i at position i); no extra source keeps the default."""
+    folders = {}
+    for key in ("train_reference", "train_query", "test_query"):
+        folders[key] = tmp_path / key
+        folders[key].mkdir()
+        for image in sorted(world[key].glob("*.jpg")):
+            shutil.copy(image, folders[key] / image.name)
+    train, validation, _ = training_pairs(str(folders["train_reference"]), str(folders["train_query"]), "5:30",
+                                          "30:40", lambda r, q: (r, q))
+    data = training_data("jist", train, validation, parse_radius("1f"))
+    assert classification_traversals(data, (), "5:30") is None
+    traversals = classification_traversals(data, [str(folders["test_query"])], "5:30", frames="0:38")
+    assert traversals[:2] == (data.reference, data.query) and len(traversals) == 3
+    extra = traversals[2]
+    np.testing.assert_array_equal(extra.positions[:, 0], np.arange(5, 30))
+    assert [Path(p).name for p in extra.image_paths] == sorted(p.name for p in world["test_query"].glob("*.jpg"))[5:30]
+
+
 # --- one-line errors, no output -------------------------------------------------------------------------------------
 
 
@@ -212,13 +232,16 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
         "cells wider than negatives": (["train", "jist", *images, *JIST_ARGS, "--cell-size", "20"],
                                        "wider than the negative radius 25m"),
         "hue beyond half a turn": (["train", "jist", *images, *JIST_ARGS, "--hue", "0.7"], "hue must be in [0, 0.5]"),
+        "missing class images": (["train", "jist", *images, *JIST_ARGS, "--class-images", tmp_path / "nowhere"],
+                                 f"{tmp_path / 'nowhere'}: no such file or folder"),
     }
 
 
 CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model", "jist model, matching",
          "jist model on descriptors", "missing model folder", "unknown model format", "frame radius with positions",
          "mixed radius units", "jist on descriptors", "seqnet w longer than L", "two models of one kind",
-         "hvpr with a jist model", "single at another length", "cells wider than negatives", "hue beyond half a turn"]
+         "hvpr with a jist model", "single at another length", "cells wider than negatives", "hue beyond half a turn",
+         "missing class images"]
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -231,6 +231,10 @@ jist_options = with_options([
                  help="Single images per iteration for the CosPlace classification branch."),
     click.option("--image-size", default=f"{JIST_RUN.width}x{JIST_RUN.height}", show_default=True,
                  help="Image size WIDTHxHEIGHT for training and for seqvpr match --model."),
+    click.option("--class-images", "class_images", multiple=True, metavar="SOURCE",
+                 help="Another traversal of the training route (another condition; frame-aligned, or with positions) "
+                      "whose --train-frames images join the CosPlace classification branch. Repeatable.  "
+                      "[default: the training reference and query only]"),
     click.option("--cell-size", default=CellGrouping.cell_m, show_default=True, type=float,
                  help="CosPlace class cells, in the radius unit (metres, or frames with a frame radius)."),
     click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=int,
@@ -288,7 +292,7 @@ def train_jist_command(out_dir, resume, **o) -> None:
     """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
     single images, from the traversals' images (best epoch by validation Recall@K)."""
     from seqvpr.data.groundtruth import parse_radius
-    from seqvpr.training.data import training_data, training_pairs
+    from seqvpr.training.data import classification_traversals, training_data, training_pairs
     from seqvpr.training.jist import jist_setup, train_jist
 
     config, settings = jist_setup(jist_values(o))
@@ -298,7 +302,9 @@ def train_jist_command(out_dir, resume, **o) -> None:
     )
     radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
     data = training_data("jist", train_pair, validation, *radii)
-    result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor())
+    classification = classification_traversals(data, o["class_images"], o["train_frames"], o["frames"])
+    result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor(),
+                        classification=classification)
     echo_best(result.best_epoch, result.best_recall, result.folder)
 
 

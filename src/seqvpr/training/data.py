@@ -4,10 +4,10 @@ negative-radius default of each kind, and JIST's positions for frame-aligned ima
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from seqvpr.data.groundtruth import Radius
-from seqvpr.data.sources import load_pair
+from seqvpr.data.sources import load_pair, load_traversal
 from seqvpr.data.traversal import Traversal, check_disjoint, slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.training.settings import NEGATIVE_RADIUS_FACTOR
@@ -67,3 +67,18 @@ def training_pairs(
     train = tuple(slice_frame_range(t, train_frames, "--train-frames") for t in whole)
     validation = tuple(slice_frame_range(t, val_frames, "--val-frames") for t in val_whole)
     return train, validation, whole  # type: ignore[return-value]
+
+
+def classification_traversals(
+    data: TrainingData, sources: Sequence[str], train_frames: str, frames: str | None = None
+) -> tuple[Traversal, ...] | None:
+    """JIST's classification traversals: the training pair plus the ``train_frames`` of other traversals of the
+    same route (more conditions of each place), placed as the pair is (``jist_positions``); None without others
+    (the learner's default, the pair)."""
+    if not sources:
+        return None
+    from seqvpr.training.jist import jist_positions
+
+    extra = [slice_frame_range(slice_frame_range(load_traversal(s, "query"), frames), train_frames, "--train-frames")
+             for s in sources]
+    return (data.reference, data.query, *(jist_positions(t, data.val_radius) for t in extra))
