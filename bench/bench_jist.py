@@ -12,7 +12,9 @@ Datasets and splits:
   whole test route (another part of the city). Radius 10 m (positives), negatives outside 25 m.
 * ``gardenspoint``: the real colour images of Gardens Point Walking, reference ``day_left``, query
   ``night_right`` (day/night and left/right at once), frame-aligned: training frames 0-99, selection 100-129,
-  test 130-199, radius 2 frames (negatives outside 5), as the benchmark's Gardens Point split.
+  test 130-199 (``--fold a``, the benchmark's Gardens Point split) or training 100-199, selection 70-99, test 0-69
+  (``--fold b``), radius 2 frames (negatives outside 5). ``--extra day_right`` adds the third traversal's training
+  frames to the classification branch.
 
 Every row is scored on the test pair at L = 5 through ``run_method`` (what ``seqvpr match`` runs):
 
@@ -73,19 +75,24 @@ def demo_pairs(out: Path) -> tuple[tuple, tuple, tuple, Radius]:
     return train, validation, test, Radius(10.0, "m")
 
 
-def gardenspoint_pairs(data: Path) -> tuple[tuple, tuple, tuple, Radius]:
+#: Gardens Point folds: training, selection and test frames (fold b mirrors fold a along the walk)
+GP_FOLDS = {"a": ("0:100", "100:130", "130:200"), "b": ("100:200", "70:100", "0:70")}
+
+
+def gardenspoint_pairs(data: Path, fold: str) -> tuple[tuple, tuple, tuple, Radius]:
     """Train, validation and test pairs of Gardens Point Walking (day_left reference, night_right query)."""
     folder = data / "gardenspoint_walking"
     whole = load_pair(str(folder / "day_left"), str(folder / "night_right"))
     cut = lambda frames: tuple(slice_frame_range(t, frames, frames) for t in whole)  # noqa: E731
-    return cut("0:100"), cut("100:130"), cut("130:200"), Radius(2.0, "frames")
+    train, select, test = GP_FOLDS[fold]
+    return cut(train), cut(select), cut(test), Radius(2.0, "frames")
 
 
-def gardenspoint_extra(data: Path, name: str) -> Traversal:
-    """A third Gardens Point traversal's training frames (0-99), for the classification branch only."""
+def gardenspoint_extra(data: Path, name: str, fold: str) -> Traversal:
+    """A third Gardens Point traversal's training frames, for the classification branch only."""
     folder = data / "gardenspoint_walking"
     traversal = load_pair(str(folder / "day_left"), str(folder / name))[1]
-    return slice_frame_range(traversal, "0:100", "0:100")
+    return slice_frame_range(traversal, GP_FOLDS[fold][0], "training frames")
 
 
 def score(method: str, reference: Traversal, query: Traversal, radius: Radius, models: dict) -> Evaluation:
@@ -130,9 +137,12 @@ def main() -> None:
     parser.add_argument("--refreshes", type=int, default=6)
     parser.add_argument("--iterations", type=int, default=10, help="Steps per refresh (max_iterations).")
     parser.add_argument("--lr", type=float, default=1e-4)
-    parser.add_argument("--stages", default="stage6,stage7,head")
+    parser.add_argument("--stages", default="stage6,stage7,head", help="Backbone stages to train (comma list).")
     parser.add_argument("--select", type=int, default=5, choices=KS, help="Keep the epoch with the best validation R@K.")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fold", choices=sorted(GP_FOLDS), default="a",
+                        help="gardenspoint: a = train 0-99, select 100-129, test 130-199; b = train 100-199, "
+                             "select 70-99, test 0-69.")
     parser.add_argument("--extra", default=None,
                         help="gardenspoint: another traversal (day_right) whose training frames join the "
                              "classification branch's images (all conditions of a place).")
@@ -142,7 +152,7 @@ def main() -> None:
     if args.dataset == "demo":
         (train, validation, test, radius), size, cell = demo_pairs(args.out), args.size or "160x120", 10.0
     else:
-        (train, validation, test, radius), size, cell = gardenspoint_pairs(args.data), args.size or "256x144", 4.0
+        (train, validation, test, radius), size, cell = gardenspoint_pairs(args.data, args.fold), args.size or "256x144", 4.0
     width, height = (int(v) for v in size.split("x"))
     values = {
         "backbone": "efficientnet-lite0", "weights": "imagenet", "trainable_stages": args.stages.split(","),
@@ -154,7 +164,7 @@ def main() -> None:
     data = training_data("jist", train, validation, radius)
     classification = None
     if args.extra:
-        extra = jist_positions(gardenspoint_extra(args.data, args.extra), radius)
+        extra = jist_positions(gardenspoint_extra(args.data, args.extra, args.fold), radius)
         classification = (data.reference, data.query, extra)
     result = train_jist(data, config, settings, args.out / "run", resume=True, classification=classification)
     trained_seconds = time.perf_counter() - started
@@ -171,7 +181,7 @@ def main() -> None:
                for r in result.history]
     report = (f"{args.dataset}: {cpu_model()}, {torch.get_num_threads()} threads, "
               f"{time.perf_counter() - started:.0f} s in all ({trained_seconds:.0f} s to train)\n\n{text}\n\n"
-              f"settings: {json.dumps(values)}\nclassification extra: {args.extra}\nmodel: {json.dumps(asdict(config))}\nhistory: {json.dumps(history)}\n")
+              f"settings: {json.dumps(values)}\nfold: {args.fold}, classification extra: {args.extra}\nmodel: {json.dumps(asdict(config))}\nhistory: {json.dumps(history)}\n")
     (args.out / "results.md").write_text(report)
     print(report)
 
