@@ -164,14 +164,20 @@ def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
     assert (settings["method"], settings["descriptor"], settings["sequence"]["length"]) == ("jist", "jist", 3)
 
 
-def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_path):
-    """Image folders without positions (Nordland-like): --radius 1f counts frames, negatives outside 2.5 frames."""
+def image_folders(world: dict[str, Path], tmp_path: Path, keys: tuple[str, ...]) -> dict[str, Path]:
+    """Copies of the world's traversals as bare image folders (frame-aligned, no positions)."""
     folders = {}
-    for key in ("train_reference", "train_query"):
+    for key in keys:
         folders[key] = tmp_path / key
         folders[key].mkdir()
         for image in sorted(world[key].glob("*.jpg")):
             shutil.copy(image, folders[key] / image.name)
+    return folders
+
+
+def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_path):
+    """Image folders without positions (Nordland-like): --radius 1f counts frames, negatives outside 2.5 frames."""
+    folders = image_folders(world, tmp_path, ("train_reference", "train_query"))
     train, validation, _ = training_pairs(str(folders["train_reference"]), str(folders["train_query"]), "0:30",
                                           "30:40", lambda r, q: (r, q))
     data = training_data("jist", train, validation, parse_radius("1f"))
@@ -184,12 +190,7 @@ def test_frame_radius_places_frame_aligned_images_along_the_route(world, tmp_pat
 def test_class_images_add_a_traversals_training_frames_placed_as_the_pair(world, tmp_path):
     """``--class-images``: a third frame-aligned traversal's --train-frames join the classification images, placed
     along the route as the training pair is (its frame i at position i); no extra source keeps the default."""
-    folders = {}
-    for key in ("train_reference", "train_query", "test_query"):
-        folders[key] = tmp_path / key
-        folders[key].mkdir()
-        for image in sorted(world[key].glob("*.jpg")):
-            shutil.copy(image, folders[key] / image.name)
+    folders = image_folders(world, tmp_path, ("train_reference", "train_query", "test_query"))
     train, validation, _ = training_pairs(str(folders["train_reference"]), str(folders["train_query"]), "5:30",
                                           "30:40", lambda r, q: (r, q))
     data = training_data("jist", train, validation, parse_radius("1f"))
