@@ -54,8 +54,8 @@ from seqvpr.models.jist import build_jist, save_jist
 from seqvpr.models.registry import load_trained_model
 from seqvpr.pipeline import MatchSettings, describe, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.training.data import training_data
-from seqvpr.training.jist import jist_positions, jist_setup, train_jist
+from seqvpr.training.data import classification_traversals, training_data
+from seqvpr.training.jist import jist_setup, train_jist
 
 KS = (1, 5, 10)
 LENGTH = 5
@@ -86,13 +86,6 @@ def gardenspoint_pairs(data: Path, fold: str) -> tuple[tuple, tuple, tuple, Radi
     cut = lambda frames: tuple(slice_frame_range(t, frames, frames) for t in whole)  # noqa: E731
     train, select, test = GP_FOLDS[fold]
     return cut(train), cut(select), cut(test), Radius(2.0, "frames")
-
-
-def gardenspoint_extra(data: Path, name: str, fold: str) -> Traversal:
-    """A third Gardens Point traversal's training frames, for the classification branch only."""
-    folder = data / "gardenspoint_walking"
-    traversal = load_pair(str(folder / "day_left"), str(folder / name))[1]
-    return slice_frame_range(traversal, GP_FOLDS[fold][0], "training frames")
 
 
 def score(method: str, reference: Traversal, query: Traversal, radius: Radius, models: dict) -> Evaluation:
@@ -162,10 +155,8 @@ def main() -> None:
     }
     config, settings = jist_setup(values, LENGTH)
     data = training_data("jist", train, validation, radius)
-    classification = None
-    if args.extra:
-        extra = jist_positions(gardenspoint_extra(args.data, args.extra, args.fold), radius)
-        classification = (data.reference, data.query, extra)
+    extra = [str(args.data / "gardenspoint_walking" / args.extra)] if args.extra else []
+    classification = classification_traversals(data, extra, GP_FOLDS[args.fold][0])
     result = train_jist(data, config, settings, args.out / "run", resume=True, classification=classification)
     trained_seconds = time.perf_counter() - started
     extractor = ExtractorConfig("efficientnet-lite0", "imagenet", width=width, height=height)
