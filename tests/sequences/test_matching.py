@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.matching import block_shape, frame_distances, sequence_distance_matrix, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
 
@@ -71,6 +71,44 @@ def test_blocked_topk_matches_full_matrix(problem, k, budget_rows):
         assert_same(got, expected, 1e-9)
         ok = top.indices[i] >= 0
         assert_same(got[ok], row[top.indices[i][ok]], 1e-9)  # GEMM distances: absolute error near zero
+
+
+@settings(max_examples=100, deadline=None)
+@given(problems(), st.integers(1, 6), st.integers(1, 40))
+def test_reference_chunks_give_the_unchunked_topk(problem, k, chunk):
+    q, r, spec, q_seg, r_seg = problem
+    try:
+        whole = sequence_topk(torch.tensor(q), torch.tensor(r), spec, k, q_seg, r_seg)
+    except SeqvprError:
+        return
+    chunked = sequence_topk(torch.tensor(q), torch.tensor(r), spec, k, q_seg, r_seg, chunk=chunk)
+    assert_same(chunked.distances, whole.distances, 1e-12)
+    finite = np.isfinite(whole.distances)
+    slow = oracle_matrix(q, r, spec, q_seg, r_seg)
+    rows = np.nonzero(finite)[0]
+    assert_same(slow[rows, chunked.indices[finite]], whole.distances[finite], 1e-9)
+
+
+def test_a_memmapped_reference_is_read_in_chunks_with_the_same_result(tmp_path):
+    rng = np.random.default_rng(3)
+    reference = rng.standard_normal((3000, 16)).astype(np.float32)
+    query = torch.tensor(rng.standard_normal((40, 16)).astype(np.float32))
+    np.save(tmp_path / "r.npy", reference)
+    mapped = np.load(tmp_path / "r.npy", mmap_mode="r")
+    segments = np.repeat(np.arange(6), 500)
+    spec = SequenceSpec(5, boundary="shift", velocities=(0.8, 1.0, 1.25))
+    whole = sequence_topk(query, torch.tensor(reference), spec, 7, None, segments)
+    budget = 2 * 4 * 60 * 1200  # 40 query rows (+ halo) by about 1,000 reference columns
+    chunked = sequence_topk(query, mapped, spec, 7, None, segments, memory_budget=budget)
+    np.testing.assert_array_equal(chunked.indices, whole.indices)
+    np.testing.assert_allclose(chunked.distances, whole.distances, rtol=1e-6)
+
+
+def test_block_shape_keeps_an_in_memory_reference_whole_and_chunks_a_mapped_one():
+    spec = SequenceSpec(5)
+    assert block_shape(1000, 10**6, spec, 4, 2 * 1024**3) == (260, 10**6)
+    rows, columns = block_shape(1000, 10**6, spec, 4, 2 * 1024**3, in_memory=False)
+    assert rows == 1000 and 2 * 4 * (rows + 8) * (columns + 10) <= 2 * 1024**3 and columns > 200_000
 
 
 def test_fused_and_strided_agree_on_a_large_matrix():

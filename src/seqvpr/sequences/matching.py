@@ -200,7 +200,7 @@ class TopK:
 
 def sequence_topk(
     query: torch.Tensor,
-    reference: torch.Tensor,
+    reference: ReferenceRows,
     spec: SequenceSpec,
     k: int,
     query_segments: np.ndarray | None = None,
@@ -208,11 +208,15 @@ def sequence_topk(
     *,
     memory_budget: int | None = None,
     progress: ProgressFn | None = None,
+    chunk: int | None = None,
 ) -> TopK:
-    """Top-K references per query by sequence distance, computed in query blocks with a halo of L - 1 rows.
+    """Top-K references per query by sequence distance, computed in query blocks (with a halo of L - 1 rows) and,
+    when the budget asks for it, reference chunks (with a halo of the longest window on both sides).
 
     With ``memory_budget`` (bytes) no block's distance matrix exceeds the budget, so the full
-    n_query x n_reference matrix is never held. Descriptors are rows of ``query`` and ``reference``.
+    n_query x n_reference matrix is never held. ``reference`` is a tensor or an array of rows; an ``np.memmap``
+    is read one chunk at a time (converted to the query's dtype and device), so a map on disk is never loaded
+    whole; ``chunk`` fixes the reference frames per chunk. Descriptors are used as given (normalise them before).
     """
     n_q, n_r = len(query), len(reference)
     q_seg, r_seg = _segments(query_segments, n_q), _segments(reference_segments, n_r)
@@ -222,15 +226,14 @@ def sequence_topk(
     k = min(k, n_r)
     indices = np.full((n_q, k), -1, dtype=np.int64)
     distances = np.full((n_q, k), np.inf, dtype=np.float64)
-    block = _block_rows(n_q, n_r, spec.length, query.element_size(), memory_budget)
-    for begin in range(0, n_q, block):
-        end = min(begin + block, n_q)
+    rows, columns = block_shape(n_q, n_r, spec, query.element_size(), memory_budget, in_memory=_in_memory(reference))
+    if chunk is not None:
+        columns = max(1, min(int(chunk), n_r))
+    for begin in range(0, n_q, rows):
+        end = min(begin + rows, n_q)
         starts = q_starts[begin:end]
         if (starts >= 0).any():
-            best = _block_sequence_rows(query, reference, spec, starts, r_seg, begin, end)
-            values, picked = torch.topk(best, k, dim=1, largest=False, sorted=True)
-            values = values.double().cpu().numpy()
-            picked = picked.cpu().numpy()
+            values, picked = _chunked_topk(query, reference, spec, starts, r_seg, k, columns)
             picked[~np.isfinite(values)] = -1
             indices[begin:end], distances[begin:end] = picked, values
         if progress is not None:
@@ -238,19 +241,71 @@ def sequence_topk(
     return TopK(indices, distances, q_starts >= 0)
 
 
-def _block_rows(n_q: int, n_r: int, length: int, itemsize: int, budget: int | None) -> int:
-    """Query rows per block so that a block's matrices (about two copies) fit in ``budget`` bytes."""
+#: reference rows ``sequence_topk`` reads: a tensor, or an array (an ``np.memmap`` is read chunk by chunk)
+ReferenceRows = torch.Tensor | np.ndarray
+MIN_CHUNK = 8192  # reference columns a chunk keeps before query blocks are made smaller
+
+
+def _in_memory(reference: ReferenceRows) -> bool:
+    return not isinstance(reference, np.memmap)
+
+
+def block_shape(
+    n_q: int, n_r: int, spec: SequenceSpec, itemsize: int, budget: int | None, *, in_memory: bool = True
+) -> tuple[int, int]:
+    """Query rows and reference columns per block so that a block's matrices (about two copies, halos included)
+    fit in ``budget`` bytes: every column when the reference is in memory and at least one query row fits with all
+    of them, else chunks of at least ``MIN_CHUNK`` columns (fewer query rows per block if need be)."""
+    length, halo = spec.length, 2 * max_span(spec)
     if budget is None:
-        return n_q
-    rows = budget // (2 * max(n_r, 1) * itemsize) - 2 * (length - 1)
+        return n_q, n_r
+    cells = budget // (2 * itemsize)
+    whole = cells // max(n_r, 1) - 2 * (length - 1)
+    if whole >= 1 and (in_memory or whole >= n_q):
+        return int(min(whole, n_q)), n_r
+    columns = min(n_r, MIN_CHUNK)
+    rows = min(n_q, cells // (columns + halo) - 2 * (length - 1))
     if rows < 1:
         raise SeqvprError(
-            f"memory budget of {budget} bytes is too small for {n_r} reference frames at sequence length {length}"
+            f"memory budget of {budget} bytes is too small for {columns} reference frames at sequence length {length}"
         )
-    return int(min(rows, n_q))
+    columns = max(columns, min(n_r, cells // (rows + 2 * (length - 1)) - halo))
+    return int(rows), int(columns)
 
 
-def _block_sequence_rows(query, reference, spec, starts, r_seg, begin, end) -> torch.Tensor:
+def _chunked_topk(query, reference, spec, starts, r_seg, k, columns) -> tuple[np.ndarray, np.ndarray]:
+    """The K best (distances, reference rows) of a query block over reference chunks of ``columns`` frames.
+
+    A chunk is described with ``max_span`` frames of halo on each side, so every window of its own columns, and
+    its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference."""
+    n_r, halo = len(reference), max_span(spec)
+    best_values: torch.Tensor | None = None
+    best_rows: torch.Tensor | None = None
+    for first in range(0, n_r, columns):
+        last = min(first + columns, n_r)
+        lo, hi = max(0, first - halo), min(n_r, last + halo)
+        block = _reference_block(reference, lo, hi, query)
+        rows = _block_sequence_rows(query, block, spec, starts, r_seg[lo:hi])[:, first - lo : last - lo]
+        values, picked = torch.topk(rows, min(k, last - first), dim=1, largest=False, sorted=True)
+        picked = picked + first
+        if best_values is not None:
+            merged = torch.cat([best_values, values], 1)
+            values, order = torch.topk(merged, min(k, merged.shape[1]), dim=1, largest=False, sorted=True)
+            picked = torch.cat([best_rows, picked], 1).gather(1, order)
+        best_values, best_rows = values, picked
+    assert best_values is not None and best_rows is not None
+    return best_values.double().cpu().numpy(), best_rows.cpu().numpy()
+
+
+def _reference_block(reference: ReferenceRows, lo: int, hi: int, like: torch.Tensor) -> torch.Tensor:
+    """Reference rows [lo, hi) as a tensor of ``like``'s dtype and device (a view when they already are)."""
+    rows = reference[lo:hi]
+    if isinstance(rows, torch.Tensor):
+        return rows.to(device=like.device, dtype=like.dtype)
+    return torch.as_tensor(np.array(rows), dtype=like.dtype, device=like.device)  # a writable copy of the chunk
+
+
+def _block_sequence_rows(query, reference, spec, starts, r_seg) -> torch.Tensor:
     """Sequence distances of queries [begin, end) (+inf rows for queries without a window)."""
     valid = starts >= 0
     if valid.all():
