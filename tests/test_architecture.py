@@ -23,7 +23,7 @@ LAYERS = {
     "seqvpr.pipeline": 4,
     "seqvpr.training": 5,
     "seqvpr.methods": 6,
-    "seqvpr.experiments": 7,
+    "seqvpr.experiments": 7, "seqvpr.maps": 7,
     "seqvpr.cli": 8,
 }
 HEAVY = ("torch", "numba", "faiss", "matplotlib", "scipy")
@@ -105,7 +105,8 @@ def test_imports_point_down_the_layers_and_form_no_cycle():
 
 def test_cli_command_modules_share_only_options_and_progress():
     graph = import_graph()
-    commands = ("seqvpr.cli.match", "seqvpr.cli.train", "seqvpr.cli.experiments", "seqvpr.cli.published")
+    commands = ("seqvpr.cli.match", "seqvpr.cli.train", "seqvpr.cli.experiments", "seqvpr.cli.published",
+                "seqvpr.cli.maps")
     for module in commands:
         assert {m for m in graph[module] if m.startswith("seqvpr.cli")} <= {"seqvpr.cli.options", "seqvpr.cli.progress"}
 

@@ -189,7 +189,9 @@ def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
     if dtype is None:
         raise SeqvprError(f"dtype must be float32 or float64, got {settings.dtype!r}")
     try:
-        tensor = torch.as_tensor(np.ascontiguousarray(traversal.descriptors), dtype=dtype).to(settings.device)
+        array = traversal.descriptors
+        array = np.ascontiguousarray(array) if array.flags.writeable else np.array(array)  # a read-only map: a copy
+        tensor = torch.as_tensor(array, dtype=dtype).to(settings.device)
     except (RuntimeError, AssertionError) as error:
         raise SeqvprError(f"device {settings.device!r} is not usable here ({str(error).splitlines()[0]})") from None
     if settings.normalize:
@@ -203,8 +205,10 @@ def match_traversals(
     settings: MatchSettings = MatchSettings(),
     progress: ProgressFactory | None = None,
 ) -> MatchResult:
-    """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments)."""
-    ref = _as_tensor(reference, settings)
+    """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments).
+    A memory-mapped reference (a saved map's) is read chunk by chunk, as stored: ``seqvpr.maps`` checks that it
+    was normalised as ``settings`` ask."""
+    ref = reference.descriptors if isinstance(reference.descriptors, np.memmap) else _as_tensor(reference, settings)
     qry = _as_tensor(query, settings)
     if ref.shape[1] != qry.shape[1]:
         raise SeqvprError(

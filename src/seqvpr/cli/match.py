@@ -23,11 +23,15 @@ Examples:
   seqvpr match --reference ref.npz --query qry.npz --radius 25m --velocities 0.8:1.2:0.1
   seqvpr match -r ref.npz -q qry.npz --radius 25m --model runs/seqnet --model runs/seqmatchnet --method hvpr
   seqvpr match -r day/ -q night/ --radius 25m --model runs/cosplace-r18 --method matching -L 5
+  seqvpr match --map maps/summer -q winter.npy --radius 1f -L 5
 """
 
 
 @click.command(epilog=MATCH_EPILOG)
-@click.option("--reference", "-r", required=True, help="Reference traversal: descriptor file, image folder, .db or .toml.")
+@click.option("--reference", "-r", help="Reference traversal: descriptor file, image folder, .db or .toml.")
+@click.option("--map", "map_dir", type=click.Path(),
+              help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described "
+                   "as the map was, and frame matching reads the map in chunks.")
 @click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
 @click.option("--seq-len", "-L", type=int, help="Frames per sequence window.  [default: 1, or the --model's L]")
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
@@ -79,7 +83,11 @@ def match(**o: Any) -> None:
     from seqvpr.methods import image_model, run_length, run_method
     from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
 
+    if bool(o["map_dir"]) == bool(o["reference"]):
+        raise SeqvprError("give the reference as --reference or as --map (one of them)")
     models, method = _models_and_method(o)
+    if o["map_dir"]:
+        return _match_map(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"])
     has_images = reference.image_paths is not None
@@ -95,6 +103,42 @@ def match(**o: Any) -> None:
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
+
+
+def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
+    """``match --map``: the query against a saved map, described as the map was."""
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.maps import match_map, open_map
+    from seqvpr.methods import run_length
+    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
+    from seqvpr.sequences.windows import SequenceSpec
+
+    saved = open_map(o["map_dir"])
+    _check_map_options(o, saved.info.description["descriptor"])
+    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"])
+    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
+    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
+    result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
+                       progress=tqdm_progress, cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
+    evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
+    run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
+                        gt.description, settings.as_dict())
+    run["map"] = o["map_dir"]
+    _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (saved.frames, result.query))
+
+
+def _check_map_options(o: dict[str, Any], built: str) -> None:
+    """With --map the map decides how frames are described: a different --descriptor, or --pca-dim, is an error."""
+    from click.core import ParameterSource
+
+    if o["pca_dim"]:
+        raise SeqvprError("--pca-dim does not apply to --map (build the map from whitened descriptors instead)")
+    source = click.get_current_context().get_parameter_source("descriptor")
+    if source not in (ParameterSource.DEFAULT, None) and o["descriptor"] != built:
+        raise SeqvprError(f"--descriptor {o['descriptor']} differs from the map's {built} descriptors "
+                          f"({o['map_dir']}): leave it out, the map decides")
 
 
 def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:

@@ -1,0 +1,100 @@
+"""``seqvpr map build`` and ``seqvpr map info``: parse, call ``seqvpr.maps``, print."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import click
+
+from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail
+from seqvpr.cli.progress import tqdm_progress
+from seqvpr.errors import SeqvprError
+
+BUILD_EPILOG = """\b
+Examples:
+  seqvpr map build summer.npy --out maps/summer
+  seqvpr map build day/ --descriptor efficientnet-lite0 --image-size 320x240 --dtype float16 --out maps/day
+  seqvpr map build drive1/ drive2/ --model runs/jist --out maps/city
+  seqvpr match --map maps/summer --query winter.npy --seq-len 5 --radius 1f
+"""
+
+
+@click.group(name="map")
+def map_group() -> None:
+    """Build a reference map once (described, saved, memory-mapped) and inspect it; match with --map."""
+
+
+@map_group.command(epilog=BUILD_EPILOG)
+@click.argument("sources", nargs=-1, required=True)
+@click.option("--out", "out_dir", required=True, type=click.Path(), help="The map folder to write.")
+@click.option("--frames", help="Keep source frames START:STOP of every source (e.g. 17:2000).")
+@click.option("--model", "model_dirs", type=click.Path(), multiple=True,
+              help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform "
+                   "the stored frames go through (repeatable, one per kind); match the map with the same ones.")
+@extraction_options
+@click.option("--dtype", type=click.Choice(["float32", "float16"]), default="float32", show_default=True,
+              help="How the descriptors are stored (float16 halves the map).")
+@click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
+@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
+          no_normalize: bool, device: str, **o: Any) -> None:
+    """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
+    from seqvpr.maps import build_map
+
+    description, extraction = _description(o, device)
+    models = _models(model_dirs, device)
+    saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=not no_normalize,
+                      device=device, progress=tqdm_progress, frames=frames, **extraction)
+    info = saved.info
+    click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
+               f"{info.description['descriptor']} descriptors, {info.dtype}")
+
+
+@map_group.command()
+@click.argument("map_dir", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print map.json as one JSON object.")
+def info(map_dir: str, as_json: bool) -> None:
+    """Print what a map holds: frames, dimension, storage, how it was described, its sources and files."""
+    from seqvpr.maps import open_map
+
+    saved = open_map(map_dir)
+    values = saved.info.to_json()
+    if as_json:
+        click.echo(json.dumps(values))
+        return
+    for key in ("format", "version", "count", "dim", "dtype", "metric", "normalized", "library_version", "created"):
+        click.echo(f"{key + ':':17}{values[key]}")
+    click.echo(f"{'descriptor:':17}{json.dumps(values['description'])}")
+    click.echo(f"{'model:':17}{json.dumps(values['model'])}")
+    click.echo(f"{'columns:':17}{', '.join(values['columns']) or '-'}")
+    click.echo(f"{'index:':17}{json.dumps(values['index'])}")
+    click.echo(f"{'descriptors:':17}{saved.descriptors.nbytes / 2**20:.1f} MiB, {saved.info.count} x {saved.info.dim}")
+    for source in values["sources"]:
+        click.echo(f"  source {source['source']} ({source['name']}): rows {source['first']}.."
+                   f"{source['first'] + source['frames'] - 1}")
+
+
+def _description(o: dict[str, Any], device: str):
+    """The FrameDescription of the extraction options, and describe()'s remaining keyword arguments."""
+    from seqvpr.maps import FrameDescription
+
+    descriptor, patchnorm, extraction = extraction_settings(o, device)
+    extractor = extraction.pop("extractor")
+    extraction.pop("device")
+    source = click.get_current_context().get_parameter_source("image_size")
+    size = None if source in (click.core.ParameterSource.DEFAULT, None) else parse_thumbnail(o["image_size"])
+    return FrameDescription(descriptor, patchnorm, extractor, size), extraction
+
+
+def _models(folders: tuple[str, ...], device: str) -> dict:
+    """The --model folders loaded by kind (one per kind)."""
+    from seqvpr.models.registry import load_trained_model, model_kind
+
+    models: dict = {}
+    for folder in folders:
+        kind = model_kind(folder).name
+        if kind in models:
+            raise SeqvprError(f"--model {folder}: a second {kind} model (give one --model per kind)")
+        models[kind] = load_trained_model(folder, device)
+    return models

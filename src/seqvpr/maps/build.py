@@ -1,0 +1,123 @@
+"""Building a map: sources described once (descriptor files as they are, images through a descriptor or an image
+model, optionally through a SeqMatchNet transform), laid end to end and saved (``files.write_map``).
+
+The same ``FrameDescription`` describes a query later, so a query is always described as its map was.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqvpr.data.sources import load_traversal
+from seqvpr.data.traversal import Traversal, slice_frame_range
+from seqvpr.errors import SeqvprError
+from seqvpr.features.extraction import ExtractorConfig
+from seqvpr.features.patchnorm import PatchNormConfig
+from seqvpr.maps.files import MapInfo, SavedMap, concatenate_traversals, map_sources, open_map, write_map
+from seqvpr.methods import image_model, transformed_frames
+from seqvpr.models.files import MODEL_FILE
+from seqvpr.models.published import file_sha256
+from seqvpr.models.registry import TrainedModel
+from seqvpr.pipeline import ProgressFactory, describe
+
+#: model kinds whose output a map stores: image encoders (the frames) and SeqMatchNet (the transformed frames)
+STORED_KINDS = ("jist", "cosplace", "seqmatchnet")
+
+
+@dataclass(frozen=True)
+class FrameDescription:
+    """How images become frame descriptors: ``patchnorm``, a backbone or ``torchscript:PATH`` with their settings
+    (an image model given at build time describes them instead, at ``image_size``)."""
+
+    descriptor: str = "patchnorm"
+    patchnorm: PatchNormConfig = field(default_factory=PatchNormConfig)
+    extractor: ExtractorConfig = field(default_factory=ExtractorConfig)
+    image_size: tuple[int, int] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"descriptor": self.descriptor, "patchnorm": asdict(self.patchnorm), "extractor": asdict(self.extractor),
+                "image_size": None if self.image_size is None else list(self.image_size)}
+
+    @classmethod
+    def from_json(cls, values: dict[str, Any]) -> FrameDescription:
+        extractor = {k: tuple(v) if isinstance(v, list) else v for k, v in values["extractor"].items()}
+        size = values.get("image_size")
+        return cls(values["descriptor"], PatchNormConfig(**values["patchnorm"]), ExtractorConfig(**extractor),
+                   None if size is None else (int(size[0]), int(size[1])))
+
+
+def describe_frames(
+    traversal: Traversal,
+    description: FrameDescription,
+    models: Mapping[str, TrainedModel],
+    device: str = "cpu",
+    progress: ProgressFactory | None = None,
+    **extraction: Any,
+) -> Traversal:
+    """Frame descriptors of one traversal: kept when it holds them, else its images through the image model among
+    ``models`` (JIST's encoder, CosPlace) or ``description``'s descriptor (``extraction``: cache_dir, skip_bad)."""
+    if traversal.descriptors is not None:
+        return traversal
+    model = image_model(models)
+    if model is not None:
+        from seqvpr.models.jist import describe_images
+
+        width, height = description.image_size or model.image_size
+        return describe_images(model.module, traversal, width, height, device)
+    if description.extractor.pooling == "netvlad":
+        raise SeqvprError("a map cannot use NetVLAD pooling yet (its clusters are fitted to one run's images)")
+    return describe(traversal, description.descriptor, description.patchnorm, progress,
+                    extractor=description.extractor, device=device, **extraction)
+
+
+def model_records(models: Mapping[str, TrainedModel]) -> dict[str, Any] | None:
+    """What ``map.json`` says of the models a map's frames went through: kind, folder and weights' sha256."""
+    stored = {kind: models[kind] for kind in STORED_KINDS if kind in models}
+    if not stored:
+        return None
+    return {kind: {"folder": str(m.folder), "sha256": file_sha256(Path(m.folder) / MODEL_FILE)}
+            for kind, m in stored.items()}
+
+
+def build_map(
+    sources: Sequence[str],
+    out: str | Path,
+    description: FrameDescription = FrameDescription(),
+    models: Mapping[str, TrainedModel] | None = None,
+    *,
+    dtype: str = "float32",
+    normalize: bool = True,
+    device: str = "cpu",
+    progress: ProgressFactory | None = None,
+    frames: str | None = None,
+    **extraction: Any,
+) -> SavedMap:
+    """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames through a SeqMatchNet model if given, L2-normalise them (as matching
+    does) unless told not to, and save them as one map (each source its own segments)."""
+    models = dict(models or {})
+    unusable = [kind for kind in models if kind not in STORED_KINDS]
+    if unusable:
+        raise SeqvprError(f"a {unusable[0]} model does not describe or transform frames; give it to seqvpr match")
+    described = []
+    for source in sources:
+        traversal = slice_frame_range(load_traversal(source, "reference"), frames)
+        traversal = describe_frames(traversal, description, models, device, progress, **extraction)
+        described.append(transformed_frames(traversal, traversal, models, device)[0])
+    whole = concatenate_traversals(described, Path(out).name)
+    assert whole.descriptors is not None
+    vectors = np.asarray(whole.descriptors, dtype=np.float32)
+    if normalize:
+        import torch
+
+        vectors = torch.nn.functional.normalize(torch.from_numpy(vectors), dim=1).numpy()
+    recorded = description.descriptor if image_model(models) is None else image_model(models).kind
+    info = MapInfo(len(whole), int(vectors.shape[1]), dtype, normalize,
+                   {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},
+                   map_sources(described, list(sources)), model_records(models))
+    write_map(out, whole.with_descriptors(vectors), info)
+    return open_map(out)

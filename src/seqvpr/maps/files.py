@@ -1,0 +1,188 @@
+"""A saved map: plain files in one folder, written atomically and opened memory-mapped.
+
+    MAP/map.json          format, version, count, dimension, dtype, metric, normalisation, how the frames were
+                          described (descriptor, settings, model kind and sha256), sources, library version, time
+    MAP/descriptors.npy   [N, D] float32 or float16 frame descriptors (memory-mappable)
+    MAP/segments.npy      [N] int64 segment id (a window never spans two; each source has its own)
+    MAP/sources.npy       [N] int32 row of map.json's ``sources`` each frame came from
+    MAP/frame_index.npy   [N] int64 the frame's index in its source (survives --frames slicing)
+    MAP/positions.npy     [N, 2] float64 easting, northing in metres (only when every source has positions)
+    MAP/timestamps.npy    [N] float64 seconds (only when every source has them); likewise headings.npy (degrees)
+    MAP/names.txt         one image path per frame (only when every source is images)
+
+``map.json`` is written last, inside a temporary folder that is renamed to MAP when complete, so a half-built
+map never carries the name.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.io import atomic_folder
+
+MAP_FORMAT = "seqvpr-map"
+MAP_VERSION = 1
+INFO_FILE = "map.json"
+DESCRIPTORS_FILE = "descriptors.npy"
+DTYPES = ("float32", "float16")
+OPTIONAL_COLUMNS = ("positions", "timestamps", "headings")
+
+
+@dataclass(frozen=True)
+class MapSource:
+    """One source of a map: what the user named, the traversal's name, and its rows ``[first, first + frames)``."""
+
+    source: str
+    name: str
+    first: int
+    frames: int
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """``map.json``: everything needed to use the map without its sources, and to refuse a mismatched query."""
+
+    count: int
+    dim: int
+    dtype: str
+    normalized: bool
+    description: dict[str, Any]
+    sources: tuple[MapSource, ...]
+    model: dict[str, Any] | None = None
+    metric: str = "euclidean"
+    format: str = MAP_FORMAT
+    version: int = MAP_VERSION
+    library_version: str = ""
+    created: str = ""
+    index: dict[str, Any] | None = None
+    columns: tuple[str, ...] = field(default=())
+
+    def to_json(self) -> dict[str, Any]:
+        values = asdict(self)
+        values["sources"] = [asdict(s) for s in self.sources]
+        return values
+
+
+def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Traversal:
+    """One traversal of several described ones, each keeping its own segments (a window never spans two)."""
+    if not traversals:
+        raise SeqvprError("a map needs at least one source")
+    dims = {t.descriptors.shape[1] for t in traversals if t.descriptors is not None}
+    if any(t.descriptors is None for t in traversals) or len(dims) != 1:
+        raise SeqvprError(f"map sources must all be described with one dimension, got {sorted(dims)}")
+    segments, offset = [], 0
+    for t in traversals:
+        segments.append(np.unique(t.segment_ids, return_inverse=True)[1] + offset)
+        offset = int(segments[-1].max()) + 1
+    column = lambda attr: (np.concatenate([getattr(t, attr) for t in traversals])  # noqa: E731
+                           if all(getattr(t, attr) is not None for t in traversals) else None)
+    paths = (tuple(p for t in traversals for p in t.image_paths)
+             if all(t.image_paths is not None for t in traversals) else None)
+    return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
+                     np.concatenate([t.descriptors for t in traversals]), paths, column("positions"),
+                     column("timestamps"), column("headings"), source=name)
+
+
+def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSource, ...]:
+    """The ``sources`` records of traversals laid end to end."""
+    firsts = np.cumsum([0] + [len(t) for t in traversals])
+    return tuple(MapSource(str(s), t.name, int(f), len(t)) for s, t, f in zip(sources, traversals, firsts))
+
+
+def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
+    """Write a map folder atomically: the descriptors in ``info.dtype``, the per-frame table, ``map.json`` last."""
+    from seqvpr import __version__
+
+    if info.dtype not in DTYPES:
+        raise SeqvprError(f"map dtype must be one of {', '.join(DTYPES)}, got {info.dtype!r}")
+    assert frames.descriptors is not None
+    columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns})
+    with atomic_folder(folder) as tmp:
+        np.save(tmp / DESCRIPTORS_FILE, np.ascontiguousarray(frames.descriptors, dtype=info.dtype))
+        np.save(tmp / "segments.npy", frames.segment_ids.astype(np.int64))
+        np.save(tmp / "frame_index.npy", frames.frame_index.astype(np.int64))
+        np.save(tmp / "sources.npy", np.repeat(np.arange(len(info.sources), dtype=np.int32),
+                                               [s.frames for s in info.sources]))
+        for column in columns:
+            np.save(tmp / f"{column}.npy", np.asarray(getattr(frames, column), dtype=np.float64))
+        if frames.image_paths is not None:
+            (tmp / "names.txt").write_text("".join(f"{p}\n" for p in frames.image_paths))
+        (tmp / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
+    return Path(folder)
+
+
+@dataclass(frozen=True)
+class SavedMap:
+    """An opened map: its info, its descriptors memory-mapped (never read whole) and its frames as a Traversal
+    whose ``descriptors`` are that memory map."""
+
+    folder: Path
+    info: MapInfo
+    frames: Traversal
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        assert self.frames.descriptors is not None
+        return self.frames.descriptors
+
+
+def read_map_info(folder: str | Path) -> MapInfo:
+    """``map.json`` of a map folder, checked: a missing file, another format or an unknown version is one line."""
+    folder = Path(folder)
+    path = folder / INFO_FILE
+    if not folder.is_dir():
+        raise SeqvprError(f"{folder}: no such map folder")
+    if not path.is_file():
+        raise SeqvprError(f"{folder}: not a seqvpr map (no {INFO_FILE}; a half-built map has none)")
+    try:
+        values = json.loads(path.read_text())
+        if values.get("format") != MAP_FORMAT:
+            raise SeqvprError(f"{path}: not a seqvpr map (format {values.get('format')!r})")
+        if values.get("version") != MAP_VERSION:
+            raise SeqvprError(f"{path}: map format version {values.get('version')!r} is not known "
+                              f"(this seqvpr reads version {MAP_VERSION})")
+        values["sources"] = tuple(MapSource(**s) for s in values["sources"])
+        values["columns"] = tuple(values.get("columns", ()))
+        return MapInfo(**values)
+    except (ValueError, TypeError, KeyError, AttributeError) as error:
+        raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
+
+
+def open_map(folder: str | Path) -> SavedMap:
+    """Open a saved map: descriptors memory-mapped read-only, the per-frame table read, every file checked."""
+    folder = Path(folder)
+    info = read_map_info(folder)
+    descriptors = _load_column(folder, DESCRIPTORS_FILE, (info.count, info.dim), info.dtype, mmap=True)
+    column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
+    optional = {c: column(c, (info.count, 2) if c == "positions" else (info.count,), "float64") for c in info.columns}
+    names = folder / "names.txt"
+    paths = tuple(Path(line) for line in names.read_text().splitlines()) if names.is_file() else None
+    if paths is not None and len(paths) != info.count:
+        raise SeqvprError(f"{names}: {len(paths)} names for {info.count} frames")
+    frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
+                       column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder), **optional)
+    return SavedMap(folder, info, frames)
+
+
+def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mmap: bool = False) -> np.ndarray:
+    """One ``.npy`` of the map, checked against the shape and dtype ``map.json`` promises."""
+    path = folder / name
+    if not path.is_file():
+        raise SeqvprError(f"{path}: missing map file")
+    try:
+        array = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:
+        raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
+    if array.shape != shape or array.dtype != np.dtype(dtype):
+        raise SeqvprError(f"{path}: holds {array.dtype} {array.shape}, the map needs {dtype} {shape}")
+    return array
