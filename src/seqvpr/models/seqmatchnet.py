@@ -66,11 +66,12 @@ def apply_transform(
 ) -> np.ndarray:
     """Transformed descriptors [N, out_dim] as float32 numpy, computed in batches without gradients."""
     model = model.to(device).eval()
-    source = torch.as_tensor(np.asarray(descriptors) if not torch.is_tensor(descriptors) else descriptors)
-    out = np.empty((len(source), model.config.output_dim), dtype=np.float32)
+    out = np.empty((len(descriptors), model.config.output_dim), dtype=np.float32)
     with torch.no_grad():
-        for begin in range(0, len(source), batch_size):
-            batch = source[begin : begin + batch_size].to(device=device, dtype=torch.float32)
+        for begin in range(0, len(descriptors), batch_size):
+            rows = descriptors[begin : begin + batch_size]  # a batch at a time: a memory-mapped map is never copied
+            rows = rows if torch.is_tensor(rows) else torch.from_numpy(np.array(rows, dtype=np.float32))
+            batch = rows.to(device=device, dtype=torch.float32)
             out[begin : begin + batch_size] = model(batch).cpu().numpy()
     return out
 

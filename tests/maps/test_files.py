@@ -1,0 +1,91 @@
+"""The map folder: written atomically, opened memory-mapped, every missing or broken file one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from seqvpr.data.sources import save_traversal_npz
+from seqvpr.data.traversal import Traversal
+from seqvpr.maps import build_map, open_map
+from seqvpr.maps.files import concatenate_traversals
+from seqvpr.synthetic.routes import generate_route
+from tests.helpers import raises_one_line
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sources")
+    reference, query = generate_route(n_frames=80, dim=12, seed=2)
+    save_traversal_npz(folder / "ref.npz", reference)
+    save_traversal_npz(folder / "qry.npz", query)
+    return folder / "ref.npz", folder / "qry.npz", reference
+
+
+def test_a_map_holds_the_normalised_frames_memory_mapped_with_their_table(sources, tmp_path):
+    ref, _, reference = sources
+    saved = build_map([str(ref)], tmp_path / "m")
+    assert isinstance(saved.descriptors, np.memmap) and saved.descriptors.dtype == np.float32
+    expected = reference.descriptors / np.linalg.norm(reference.descriptors, axis=1, keepdims=True)
+    np.testing.assert_allclose(saved.descriptors, expected, rtol=1e-6)
+    np.testing.assert_array_equal(saved.frames.positions, reference.positions)
+    np.testing.assert_array_equal(saved.frames.frame_index, reference.frame_index)
+    info = json.loads((tmp_path / "m" / "map.json").read_text())
+    assert (info["format"], info["version"], info["count"], info["dim"], info["normalized"]) == ("seqvpr-map", 1, 80, 12, True)
+    assert info["sources"] == [{"source": str(ref), "name": "ref", "first": 0, "frames": 80}]
+    assert info["columns"] == ["positions", "timestamps"] and info["library_version"] and info["created"]
+
+
+def test_float16_halves_the_descriptor_file(sources, tmp_path):
+    ref = sources[0]
+    wide, half = build_map([str(ref)], tmp_path / "f32"), build_map([str(ref)], tmp_path / "f16", dtype="float16")
+    assert half.descriptors.dtype == np.float16 and half.descriptors.nbytes * 2 == wide.descriptors.nbytes
+    np.testing.assert_allclose(half.descriptors.astype(np.float32), wide.descriptors, atol=1e-3)
+
+
+def test_several_sources_keep_their_own_segments(sources, tmp_path):
+    ref, qry, _ = sources
+    saved = build_map([str(ref), str(qry)], tmp_path / "two")
+    segments = np.asarray(saved.frames.segment_ids)
+    assert set(segments[:80]).isdisjoint(segments[80:])
+    assert [(s.first, s.frames) for s in saved.info.sources] == [(0, 80), (80, 80)]
+    assert np.load(tmp_path / "two" / "sources.npy").tolist() == [0] * 80 + [1] * 80
+
+
+def test_concatenation_renumbers_segments_and_drops_columns_one_source_lacks():
+    a = Traversal.from_descriptors(np.ones((4, 3)), positions=np.zeros((4, 2)), segment_ids=np.array([5, 5, 7, 7]))
+    b = Traversal.from_descriptors(np.ones((3, 3)), segment_ids=np.array([5, 5, 5]))
+    both = concatenate_traversals([a, b])
+    assert both.segment_ids.tolist() == [0, 0, 1, 1, 2, 2, 2] and both.positions is None
+
+
+def test_a_failed_build_leaves_no_map(sources, tmp_path):
+    raises_one_line("no such file", build_map, [str(sources[0]), str(tmp_path / "missing.npy")], tmp_path / "m")
+    assert not (tmp_path / "m").exists() and list(tmp_path.iterdir()) == []
+
+
+def test_broken_maps_are_one_line_errors(sources, tmp_path):
+    folder = tmp_path / "m"
+    build_map([str(sources[0])], folder)
+    info = folder / "map.json"
+    good = info.read_text()
+    info.write_text(good.replace('"version": 1', '"version": 9'))
+    raises_one_line("version 9 is not known", open_map, folder)
+    info.write_text(good.replace('"seqvpr-map"', '"other"'))
+    raises_one_line("not a seqvpr map", open_map, folder)
+    info.write_text("{")
+    raises_one_line("malformed map description", open_map, folder)
+    info.unlink()
+    raises_one_line("not a seqvpr map (no map.json", open_map, folder)
+    raises_one_line("no such map folder", open_map, tmp_path / "nothing")
+    info.write_text(good)
+    data = (folder / "descriptors.npy").read_bytes()
+    (folder / "descriptors.npy").write_bytes(data[: len(data) // 2])
+    raises_one_line("descriptors.npy: unreadable or truncated", open_map, folder)
+    (folder / "descriptors.npy").write_bytes(data)
+    np.save(folder / "segments.npy", np.zeros(3, np.int64))
+    raises_one_line("segments.npy: holds int64 (3,), the map needs int64 (80,)", open_map, folder)
+    (folder / "segments.npy").unlink()
+    raises_one_line("segments.npy: missing map file", open_map, folder)
