@@ -1,0 +1,64 @@
+"""``seqvpr map build``, ``seqvpr map info`` and ``seqvpr match --map`` as a user runs them."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from seqvpr.data.sources import save_traversal_npz
+from seqvpr.synthetic.routes import generate_route
+from tests.helpers import run_cli
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("route")
+    reference, query = generate_route(n_frames=100, dim=16, seed=5)
+    save_traversal_npz(folder / "ref.npz", reference)
+    save_traversal_npz(folder / "qry.npz", query)
+    return folder
+
+
+def test_build_info_and_match_give_the_direct_predictions(route, tmp_path, monkeypatch, capsys):
+    code, out, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")
+    assert code == 0, err
+    assert "100 frames from 1 source(s), 16-D file descriptors, float32" in out
+    code, out, _ = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "m")
+    assert code == 0 and "count:           100" in out and "positions, timestamps" in out
+    code, out, _ = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "m", "--json")
+    assert json.loads(out)["dim"] == 16
+    for length in ("1", "5"):
+        common = ("-q", route / "qry.npz", "-L", length, "--radius", "10m")
+        code, out, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", *common, "--out", tmp_path / "a")
+        assert code == 0, err
+        code, direct, err = run_cli(monkeypatch, capsys, "match", "-r", route / "ref.npz", *common,
+                                    "--out", tmp_path / "b")
+        assert code == 0, err
+        assert (tmp_path / "a" / "predictions.csv").read_text() == (tmp_path / "b" / "predictions.csv").read_text()
+        assert out.splitlines()[4:-1] == direct.splitlines()[4:-1]  # the recall table
+        run = json.loads((tmp_path / "a" / "run.json").read_text())
+        assert run["settings"]["map"] == str(tmp_path / "m") and run["settings"]["descriptor"] == "file"
+
+
+@pytest.mark.parametrize("args, message", [
+    (("-r", "REF", "--map", "MAP"), "give the reference as --reference or as --map (one of them)"),
+    (("--map", "MAP", "--descriptor", "resnet18"), "--descriptor resnet18 differs from the map's file descriptors"),
+    (("--map", "MAP", "--pca-dim", "4"), "--pca-dim does not apply to --map"),
+    (("--map", "NOMAP"), "not a seqvpr map (no map.json"),
+])
+def test_bad_map_options_are_one_line_with_exit_2(route, tmp_path, monkeypatch, capsys, args, message):
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")
+    assert code == 0
+    (tmp_path / "half").mkdir()  # a half-built map: no map.json
+    names = {"REF": route / "ref.npz", "MAP": tmp_path / "m", "NOMAP": tmp_path / "half"}
+    code, out, err = run_cli(monkeypatch, capsys, "match", *[names.get(a, a) for a in args], "-q", route / "qry.npz",
+                             "--radius", "10m", "--out", tmp_path / "o")
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_bad_source_leaves_no_map_folder(route, tmp_path, monkeypatch, capsys):
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", tmp_path / "nope.npy",
+                           "--out", tmp_path / "m")
+    assert code == 2 and "nope.npy: no such file" in err and not (tmp_path / "m").exists()
