@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import block_shape, frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.matching import BLOCK_BYTES, block_shape, frame_distances, sequence_distance_matrix, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
 
@@ -104,11 +104,17 @@ def test_a_memmapped_reference_is_read_in_chunks_with_the_same_result(tmp_path):
     np.testing.assert_allclose(chunked.distances, whole.distances, rtol=1e-6)
 
 
-def test_block_shape_keeps_an_in_memory_reference_whole_and_chunks_a_mapped_one():
+def test_block_shape_keeps_blocks_efficient_and_within_the_budget():
     spec = SequenceSpec(5)
-    assert block_shape(1000, 10**6, spec, 4, 2 * 1024**3) == (260, 10**6)
-    rows, columns = block_shape(1000, 10**6, spec, 4, 2 * 1024**3, in_memory=False)
-    assert rows == 1000 and 2 * 4 * (rows + 8) * (columns + 10) <= 2 * 1024**3 and columns > 200_000
+    assert block_shape(1000, 5000, spec, 4, 2 * 1024**3) == (1000, 5000)  # small: one block
+    for in_memory in (True, False):
+        rows, columns = block_shape(1000, 10**6, spec, 4, 2 * 1024**3, in_memory=in_memory)
+        assert rows == 1000 and columns >= 8192  # a large reference is chunked, all queries in one GEMM
+        assert 2 * 4 * (rows + 8) * (columns + 10) <= BLOCK_BYTES
+    rows, columns = block_shape(1000, 10**6, spec, 4, 100_000)  # a tiny budget still fits
+    assert 2 * 4 * (rows + 8) * (columns + 10) <= 100_000
+    with pytest.raises(SeqvprError, match="too small"):
+        block_shape(10, 10, spec, 4, 100)
 
 
 def test_fused_and_strided_agree_on_a_large_matrix():

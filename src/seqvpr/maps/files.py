@@ -180,7 +180,8 @@ def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mm
     if not path.is_file():
         raise SeqvprError(f"{path}: missing map file")
     try:
-        array = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+        # copy-on-write: chunks are zero-copy tensor views, and nothing written ever reaches the file
+        array = np.load(path, mmap_mode="c" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
     if array.shape != shape or array.dtype != np.dtype(dtype):

@@ -141,3 +141,62 @@ def _rows_or_pad(d: np.ndarray, start: int, length: int) -> np.ndarray:
     rows = d[start : start + length]
     block[: len(rows)] = rows
     return block
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _distances_from_dots(g, query_sq, reference_sq, floor):
+    for i in prange(g.shape[0]):
+        row = g[i]
+        qi = query_sq[i]
+        for j in range(row.shape[0]):
+            v = qi + reference_sq[j] - 2.0 * row[j]
+            row[j] = np.sqrt(v if v > floor else floor)
+
+
+def distances_from_dots_(g: np.ndarray, query_sq: np.ndarray, reference_sq: np.ndarray, floor: float = 1e-12) -> None:
+    """Overwrite the dot products ``g`` [n, m] with Euclidean distances ``sqrt(max(|q|^2 + |r|^2 - 2 g, floor))``
+    in one parallel pass (no n x m temporary of squared norms)."""
+    _distances_from_dots(g, query_sq.astype(g.dtype), reference_sq.astype(g.dtype), g.dtype.type(floor))
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _squared_norms(x, out):
+    for i in prange(x.shape[0]):
+        total = 0.0
+        for j in range(x.shape[1]):
+            total += x[i, j] * x[i, j]
+        out[i] = total
+
+
+def squared_norms(x: np.ndarray) -> np.ndarray:
+    """Row sums of squares [n] of a C-contiguous [n, d] matrix, summed in float64 without a temporary matrix."""
+    out = np.empty(len(x), dtype=np.float64)
+    _squared_norms(np.ascontiguousarray(x), out)
+    return out
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _topk_update(rows, first, values, indices):
+    k = values.shape[1]
+    for i in prange(rows.shape[0]):
+        row = rows[i]
+        best, where = values[i], indices[i]
+        threshold = best[k - 1]
+        for j in range(row.shape[0]):
+            v = row[j]
+            if v < threshold:
+                p = k - 1
+                while p > 0 and best[p - 1] > v:
+                    best[p] = best[p - 1]
+                    where[p] = where[p - 1]
+                    p -= 1
+                best[p] = v
+                where[p] = first + j
+                threshold = best[k - 1]
+
+
+def topk_update_(rows: np.ndarray, first: int, values: np.ndarray, indices: np.ndarray) -> None:
+    """Merge the columns of ``rows`` [n, w] (column j is index ``first + j``) into the running K smallest
+    ``values``/``indices`` [n, K] (sorted ascending; +inf/-1 where empty). A value enters only if strictly smaller
+    than the K-th, and columns come in index order, so ties keep the lower index whatever the chunking."""
+    _topk_update(rows, first, values, indices)

@@ -22,12 +22,20 @@ from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_ste
 ProgressFn = Callable[[int], None]
 
 
-def frame_distances(query: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """Euclidean distances [n_query, n_reference] via one GEMM; clamped so rounding never gives NaN."""
+def frame_distances(query: torch.Tensor, reference: torch.Tensor, workspace: Workspace | None = None) -> torch.Tensor:
+    """Euclidean distances [n_query, n_reference] via one GEMM; clamped so rounding never gives NaN. On CPU the
+    result may live in ``workspace``'s buffer (reused block after block)."""
     if query.shape[1] != reference.shape[1]:
         raise SeqvprError(
             f"descriptor dimensions differ: query has {query.shape[1]}, reference has {reference.shape[1]}"
         )
+    if _fusable_gemm(query, reference):
+        from seqvpr.sequences._fused import distances_from_dots_, squared_norms
+
+        dots = workspace.matrix(len(query), len(reference), query) if workspace else None
+        dots = torch.mm(query, reference.T, out=dots)
+        distances_from_dots_(dots.numpy(), squared_norms(query.numpy()), squared_norms(reference.numpy()))
+        return dots
     squared = torch.addmm(
         (query * query).sum(1, keepdim=True) + (reference * reference).sum(1)[None, :],
         query,
@@ -35,6 +43,28 @@ def frame_distances(query: torch.Tensor, reference: torch.Tensor) -> torch.Tenso
         alpha=-2.0,
     )
     return squared.clamp_(min=1e-12).sqrt_()
+
+
+class Workspace:
+    """A buffer reused for the distance blocks of one top-K pass: a fresh large tensor per block costs its page
+    faults every time (measured: a third of the GEMM's time at 1M references)."""
+
+    def __init__(self) -> None:
+        self._buffer: torch.Tensor | None = None
+
+    def matrix(self, rows: int, columns: int, like: torch.Tensor) -> torch.Tensor:
+        """A contiguous [rows, columns] tensor of ``like``'s dtype and device, from the buffer (grown if needed)."""
+        size = rows * columns
+        buffer = self._buffer
+        if buffer is None or buffer.numel() < size or buffer.dtype != like.dtype or buffer.device != like.device:
+            buffer = self._buffer = torch.empty(size, dtype=like.dtype, device=like.device)
+        return buffer[:size].view(rows, columns)
+
+
+def _fusable_gemm(query: torch.Tensor, reference: torch.Tensor) -> bool:
+    """CPU float tensors without gradients: one GEMM, then norms, clamp and square root in one numba pass."""
+    return (query.device.type == "cpu" and reference.device.type == "cpu" and query.dtype == reference.dtype
+            and query.dtype in (torch.float32, torch.float64) and not (query.requires_grad or reference.requires_grad))
 
 
 def aligned_sequence_distances(
@@ -244,6 +274,10 @@ def sequence_topk(
 #: reference rows ``sequence_topk`` reads: a tensor, or an array (an ``np.memmap`` is read chunk by chunk)
 ReferenceRows = torch.Tensor | np.ndarray
 MIN_CHUNK = 8192  # reference columns a chunk keeps before query blocks are made smaller
+MIN_ROWS = 256  # query rows a block needs for an efficient GEMM; fewer, and the reference is chunked instead
+#: blocks larger than this are slower, not faster (cache misses, page faults of fresh allocations): a larger budget
+#: is a ceiling, not a target
+BLOCK_BYTES = 128 * 1024**2
 
 
 def _in_memory(reference: ReferenceRows) -> bool:
@@ -254,67 +288,79 @@ def block_shape(
     n_q: int, n_r: int, spec: SequenceSpec, itemsize: int, budget: int | None, *, in_memory: bool = True
 ) -> tuple[int, int]:
     """Query rows and reference columns per block so that a block's matrices (about two copies, halos included)
-    fit in ``budget`` bytes: every column when the reference is in memory and at least one query row fits with all
-    of them, else chunks of at least ``MIN_CHUNK`` columns (fewer query rows per block if need be)."""
+    fit in ``budget`` bytes (at most ``BLOCK_BYTES``): every column when the reference is in memory and
+    ``MIN_ROWS`` query rows (or all of them) fit with all of them, or when all queries do; else chunks of at least
+    ``MIN_CHUNK`` columns (fewer query rows per block if need be)."""
     length, halo = spec.length, 2 * max_span(spec)
     if budget is None:
         return n_q, n_r
-    cells = budget // (2 * itemsize)
+    cells = min(budget, BLOCK_BYTES) // (2 * itemsize)
     whole = cells // max(n_r, 1) - 2 * (length - 1)
-    if whole >= 1 and (in_memory or whole >= n_q):
+    if whole >= (min(n_q, MIN_ROWS) if in_memory else n_q):
         return int(min(whole, n_q)), n_r
     columns = min(n_r, MIN_CHUNK)
     rows = min(n_q, cells // (columns + halo) - 2 * (length - 1))
-    if rows < 1:
-        raise SeqvprError(
-            f"memory budget of {budget} bytes is too small for {columns} reference frames at sequence length {length}"
-        )
+    if rows < 1:  # a small budget: one query row over as many columns as fit
+        columns = min(n_r, cells // (1 + 2 * (length - 1)) - halo)
+        if columns < 1:
+            raise SeqvprError(f"memory budget of {budget} bytes is too small for sequence length {length}")
+        return 1, int(columns)
     columns = max(columns, min(n_r, cells // (rows + 2 * (length - 1)) - halo))
     return int(rows), int(columns)
 
 
 def _chunked_topk(query, reference, spec, starts, r_seg, k, columns) -> tuple[np.ndarray, np.ndarray]:
-    """The K best (distances, reference rows) of a query block over reference chunks of ``columns`` frames.
+    """The K best (distances, reference rows) of a query block over reference chunks of ``columns`` frames; rows of
+    queries without a window stay +inf / -1. Ties go to the lower reference row, whatever the chunking.
 
     A chunk is described with ``max_span`` frames of halo on each side, so every window of its own columns, and
     its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference."""
     n_r, halo = len(reference), max_span(spec)
-    best_values: torch.Tensor | None = None
-    best_rows: torch.Tensor | None = None
+    valid = np.flatnonzero(starts >= 0)
+    values = np.full((len(valid), k), np.inf, dtype=np.float64)
+    picked = np.full((len(valid), k), -1, dtype=np.int64)
+    workspace = Workspace()
     for first in range(0, n_r, columns):
         last = min(first + columns, n_r)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
         block = _reference_block(reference, lo, hi, query)
-        rows = _block_sequence_rows(query, block, spec, starts, r_seg[lo:hi])[:, first - lo : last - lo]
-        values, picked = torch.topk(rows, min(k, last - first), dim=1, largest=False, sorted=True)
-        picked = picked + first
-        if best_values is not None:
-            merged = torch.cat([best_values, values], 1)
-            values, order = torch.topk(merged, min(k, merged.shape[1]), dim=1, largest=False, sorted=True)
-            picked = torch.cat([best_rows, picked], 1).gather(1, order)
-        best_values, best_rows = values, picked
-    assert best_values is not None and best_rows is not None
-    return best_values.double().cpu().numpy(), best_rows.cpu().numpy()
+        rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace)
+        rows = rows[:, first - lo : last - lo]
+        _merge_topk(rows, first, values, picked)
+    all_values = np.full((len(starts), k), np.inf)
+    all_picked = np.full((len(starts), k), -1, dtype=np.int64)
+    all_values[valid], all_picked[valid] = values, picked
+    return all_values, all_picked
+
+
+def _merge_topk(rows: torch.Tensor, first: int, values: np.ndarray, picked: np.ndarray) -> None:
+    """Merge a chunk's sequence distances into the running top-K (in place): one numba scan on CPU; elsewhere the
+    chunk's own top-K, then a stable merge that keeps the lower row on ties."""
+    if rows.device.type == "cpu":
+        from seqvpr.sequences._fused import topk_update_
+
+        topk_update_(rows.numpy(), first, values, picked)
+        return
+    k = min(values.shape[1], rows.shape[1])
+    chunk_values, chunk_rows = torch.topk(rows, k, dim=1, largest=False, sorted=True)
+    both_values = np.concatenate([values, chunk_values.double().cpu().numpy()], 1)
+    both_rows = np.concatenate([picked, chunk_rows.cpu().numpy() + first], 1)
+    both_rows[~np.isfinite(both_values)] = np.iinfo(np.int64).max
+    order = np.lexsort((both_rows, both_values), axis=1)[:, : values.shape[1]]
+    values[:] = np.take_along_axis(both_values, order, 1)
+    picked[:] = np.take_along_axis(both_rows, order, 1)
+    picked[~np.isfinite(values)] = -1
 
 
 def _reference_block(reference: ReferenceRows, lo: int, hi: int, like: torch.Tensor) -> torch.Tensor:
-    """Reference rows [lo, hi) as a tensor of ``like``'s dtype and device (a view when they already are)."""
+    """Reference rows [lo, hi) as a tensor of ``like``'s dtype and device: a view when they already are (a
+    writable float32 memory map on CPU too), else a converted copy of the chunk."""
     rows = reference[lo:hi]
     if isinstance(rows, torch.Tensor):
         return rows.to(device=like.device, dtype=like.dtype)
-    return torch.as_tensor(np.array(rows), dtype=like.dtype, device=like.device)  # a writable copy of the chunk
-
-
-def _block_sequence_rows(query, reference, spec, starts, r_seg) -> torch.Tensor:
-    """Sequence distances of queries [begin, end) (+inf rows for queries without a window)."""
-    valid = starts >= 0
-    if valid.all():
-        return sequence_distance_rows(query, reference, spec, starts, r_seg)
-    out = torch.full((len(starts), len(reference)), float("inf"), dtype=query.dtype, device=query.device)
-    out[torch.as_tensor(np.flatnonzero(valid), device=query.device)] = sequence_distance_rows(
-        query, reference, spec, starts[valid], r_seg
-    )
-    return out
+    if rows.flags.writeable and str(rows.dtype) == str(like.dtype).removeprefix("torch.") and like.device.type == "cpu":
+        return torch.from_numpy(rows)
+    return torch.as_tensor(np.array(rows), dtype=like.dtype, device=like.device)
 
 
 def sequence_distance_rows(
@@ -323,8 +369,10 @@ def sequence_distance_rows(
     spec: SequenceSpec,
     query_starts: np.ndarray,
     reference_segments: np.ndarray | None = None,
+    workspace: Workspace | None = None,
 ) -> torch.Tensor:
-    """Sequence distances [len(query_starts), n_reference] of the query windows starting at ``query_starts``.
+    """Sequence distances [len(query_starts), n_reference] of the query windows starting at ``query_starts``
+    (computed in ``workspace``'s buffer when one is given).
 
     Only the frames those windows cover are compared with the reference (one GEMM over their union, laid out as
     contiguous runs), so a scattered set of windows costs about its own frames, and a contiguous block its rows
@@ -337,7 +385,7 @@ def sequence_distance_rows(
     position = np.full(int(covered[-1]) + 1 if len(covered) else 0, -1, dtype=np.int64)
     position[covered] = np.arange(len(covered))
     index = torch.as_tensor(covered, device=query.device)
-    d = frame_distances(query.index_select(0, index), reference)
+    d = frame_distances(query.index_select(0, index), reference, workspace)
     # runs of consecutive covered frames are contiguous in d, and each window lies inside one run
     local_starts = position[starts]
     r_seg = _segments(reference_segments, len(reference))

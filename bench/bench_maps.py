@@ -1,0 +1,170 @@
+"""Saved maps at scale: exact sequence matching against a memory-mapped map, as ratios to the bare GEMM.
+
+Run from the repository root (CPU; about 5 minutes and 4 GB of disk in ``--work``):
+
+    .venv/bin/python bench/bench_maps.py --work runs/bench-maps [--sizes 10000,100000,1000000]
+
+For each map size N (D = 256, float32 unit vectors: random directions, each ``--run`` consecutive frames a slowly
+turning path so that sequences exist) the script writes the reference as a traversal file, builds the map with
+``seqvpr map build`` and matches 1,000 query frames (map rows ``N/3 ...`` plus noise) with ``seqvpr match --map
+-L 5 --k 20`` under ``/usr/bin/time -v``. In the same process it times:
+
+* the yardstick: the bare distance GEMM of the same shapes, ``torch.mm(query [1000, 256], map.T [256, N])`` in one
+  call (and, for information, in 65,536-column blocks into one reused output buffer);
+* ``seqvpr.maps.match_map`` (exact, L = 5, top-20) on the opened map, under a 2 GB and a 256 MB budget, whose
+  top-K must be identical.
+
+It prints a Markdown table (and writes it to ``WORK/results.md``): build seconds, match seconds, their ratio to
+the GEMM, the CLI's wall time and peak RSS, and the growth exponent of build and match time over the sizes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _common import cpu_model
+
+try:
+    import seqvpr  # noqa: F401
+except ImportError:  # running from a checkout without an installed package
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+
+from seqvpr.data.sources import load_traversal, save_traversal_npz
+from seqvpr.data.traversal import Traversal
+from seqvpr.maps import load_map, match_map
+from seqvpr.pipeline import MatchSettings
+from seqvpr.sequences.windows import SequenceSpec
+
+DIM, QUERIES, LENGTH, K = 256, 1000, 5, 20
+
+
+def unit_rows(rng: np.random.Generator, n: int, run: int = 50) -> np.ndarray:
+    """N unit vectors in runs of ``run`` frames that turn slowly (neighbouring frames alike, as along a route)."""
+    out = np.empty((n, DIM), dtype=np.float32)
+    for begin in range(0, n, 100_000):
+        size = min(100_000, n - begin)
+        anchors = rng.standard_normal((size // run + 2, DIM)).astype(np.float32)
+        t = (np.arange(size) % run / run)[:, None].astype(np.float32)
+        base = anchors[np.arange(size) // run] * (1 - t) + anchors[np.arange(size) // run + 1] * t
+        rows = base + 0.3 * rng.standard_normal((size, DIM)).astype(np.float32)
+        out[begin : begin + size] = rows / np.linalg.norm(rows, axis=1, keepdims=True)
+    return out
+
+
+def write_sources(work: Path, n: int, seed: int = 0) -> tuple[Path, Path]:
+    """The reference (N frames 1 m apart) and the query (1,000 map rows from N/3 on, plus noise) as traversal files."""
+    reference, query = work / f"ref_{n}.npz", work / f"qry_{n}.npz"
+    if reference.exists() and query.exists():
+        return reference, query
+    rng = np.random.default_rng(seed)
+    rows = unit_rows(rng, n)
+    positions = np.stack([np.arange(n, dtype=np.float64), np.zeros(n)], 1)
+    save_traversal_npz(reference, Traversal.from_descriptors(rows, "reference", positions=positions))
+    first = n // 3
+    noisy = rows[first : first + QUERIES] + 0.1 * rng.standard_normal((QUERIES, DIM)).astype(np.float32)
+    save_traversal_npz(query, Traversal.from_descriptors(noisy, "query", positions=positions[first : first + QUERIES]))
+    return reference, query
+
+
+def seqvpr_command(*args: str | Path) -> list[str]:
+    return [sys.executable, "-m", "seqvpr.cli", *map(str, args)]
+
+
+def timed_cli(args: list[str]) -> tuple[float, float]:
+    """Wall seconds and peak RSS (GiB) of a command, by /usr/bin/time -v."""
+    started = time.perf_counter()
+    done = subprocess.run(["/usr/bin/time", "-v", *args], capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(args)} failed:\n{done.stderr[-2000:]}")
+    peak_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr).group(1))
+    return seconds, peak_kb / 2**20
+
+
+def gemm_seconds(query: torch.Tensor, reference: np.ndarray) -> tuple[float, float]:
+    """The yardstick: one torch.mm of the full shapes; and blocked into one reused buffer (information)."""
+    full = torch.from_numpy(np.array(reference))
+    started = time.perf_counter()
+    torch.mm(query, full.T)
+    one = time.perf_counter() - started
+    block = 65_536
+    out = torch.empty(len(query), block)
+    started = time.perf_counter()
+    for begin in range(0, len(full), block):
+        part = full[begin : begin + block]
+        torch.mm(query, part.T, out=out[:, : len(part)])
+    return one, time.perf_counter() - started
+
+
+def measure(work: Path, n: int) -> dict:
+    reference, query_file = write_sources(work, n)
+    folder = work / f"map_{n}"
+    build_s, build_gb = timed_cli(seqvpr_command("map", "build", reference, "--out", folder))
+    saved = load_map(folder)
+    query = load_traversal(query_file, "query")
+    q = torch.nn.functional.normalize(torch.from_numpy(np.asarray(query.descriptors)), dim=1)
+    settings = MatchSettings(SequenceSpec(LENGTH), k=K)
+    match_map(saved, query.select(np.arange(50)), "matching", settings)  # compile the numba kernels once
+    gemm, gemm_blocked = gemm_seconds(q, saved.descriptors)
+    results = {}
+    for budget in (2 * 1024**3, 256 * 1024**2):
+        started = time.perf_counter()
+        results[budget] = match_map(saved, query, "matching", MatchSettings(SequenceSpec(LENGTH), k=K,
+                                                                             memory_budget=budget))
+        results[f"s{budget}"] = time.perf_counter() - started
+    same = np.array_equal(results[2 * 1024**3].topk.indices, results[256 * 1024**2].topk.indices)
+    cli_s, cli_gb = timed_cli(seqvpr_command("match", "--map", folder, "-q", query_file, "-L", LENGTH, "--k", "1,5,20",
+                                             "--radius", "3m", "--out", work / f"out_{n}"))
+    match_s = results[f"s{2 * 1024**3}"]
+    return {"n": n, "map_gb": saved.descriptors.nbytes / 2**30, "build_s": build_s, "build_gb": build_gb,
+            "gemm_s": gemm, "gemm_blocked_s": gemm_blocked, "match_s": match_s,
+            "match_256m_s": results[f"s{256 * 1024**2}"], "ratio": match_s / gemm, "same": same,
+            "cli_s": cli_s, "cli_gb": cli_gb}
+
+
+def exponent(rows: list[dict], key: str) -> float:
+    """Slope of log(time) against log(N): 1 is linear growth."""
+    if len(rows) < 2:
+        return float("nan")
+    return float(np.polyfit(np.log([r["n"] for r in rows]), np.log([r[key] for r in rows]), 1)[0])
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| map frames | map file | build (CLI) | build peak RSS | GEMM (1 call) | GEMM (blocked, reused) | "
+             "match 2 GB budget | match 256 MB | ratio to GEMM | top-K identical | CLI match wall | CLI peak RSS |",
+             "|---:" * 12 + "|"]
+    for r in rows:
+        lines.append(f"| {r['n']:,} | {r['map_gb']:.2f} GiB | {r['build_s']:.1f} s | {r['build_gb']:.2f} GiB | "
+                     f"{r['gemm_s']:.2f} s | {r['gemm_blocked_s']:.2f} s | {r['match_s']:.2f} s | "
+                     f"{r['match_256m_s']:.2f} s | **{r['ratio']:.2f}x** | {'yes' if r['same'] else 'NO'} | "
+                     f"{r['cli_s']:.1f} s | {r['cli_gb']:.2f} GiB |")
+    lines.append(f"\ngrowth exponent over the sizes: build {exponent(rows, 'build_s'):.2f}, "
+                 f"exact match {exponent(rows, 'match_s'):.2f}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", type=Path, required=True, help="Folder for the data, maps and outputs.")
+    parser.add_argument("--sizes", default="10000,100000,1000000", help="Map sizes, comma-separated.")
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for n in (int(s) for s in args.sizes.split(",")):
+        rows.append(measure(args.work, n))
+        print(rows[-1], flush=True)
+    text = (f"{cpu_model()}, {torch.get_num_threads()} threads; {QUERIES} queries, D = {DIM}, L = {LENGTH}, "
+            f"top-{K}, exact\n\n{table(rows)}\n")
+    (args.work / "results.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
