@@ -66,6 +66,7 @@ class MatchResult:
     query: Traversal
     topk: TopK
     settings: MatchSettings
+    shortlist: TopK | None = None  # the candidates a shortlisted match re-ranked (None: exhaustive)
 
 
 def describe(

@@ -62,3 +62,35 @@ def test_a_bad_source_leaves_no_map_folder(route, tmp_path, monkeypatch, capsys)
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", tmp_path / "nope.npy",
                            "--out", tmp_path / "m")
     assert code == 2 and "nope.npy: no such file" in err and not (tmp_path / "m").exists()
+
+
+def test_index_and_shortlisted_match_report_the_shortlist_recall(route, tmp_path, monkeypatch, capsys):
+    code, out, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m",
+                             "--index", "hnsw:8")
+    assert code == 0 and "index hnsw:8 over 100 frames" in out, err
+    code, out, _ = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
+    assert code == 0 and "index flat over 100 frames" in out
+    code, out, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", "-q", route / "qry.npz", "-L", "5",
+                             "--radius", "10m", "--shortlist", "100", "--out", tmp_path / "s")
+    assert code == 0 and "shortlist: 1.000 of the scored queries" in err
+    run = json.loads((tmp_path / "s" / "run.json").read_text())["settings"]
+    assert run["shortlist"] == {"per_frame": 100, "index": "flat", "nprobe": 16, "recall": 1.0}
+
+
+@pytest.mark.parametrize("args, message", [
+    (("-r", "REF", "--shortlist", "5"), "--shortlist S needs S >= 0 and a --map"),
+    (("--map", "MAP", "--shortlist", "5"), "has no index: add one with seqvpr map index"),
+    (("--map", "MAP", "--shortlist", "5", "--method", "delta"), "applies to the frame-matching methods"),
+])
+def test_bad_shortlists_are_one_line(route, tmp_path, monkeypatch, capsys, args, message):
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    names = {"REF": route / "ref.npz", "MAP": tmp_path / "m"}
+    code, _, err = run_cli(monkeypatch, capsys, "match", *[names.get(a, a) for a in args], "-q", route / "qry.npz",
+                           "--radius", "10m", "-L", "5", "--out", tmp_path / "o")
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_bad_index_spec_fails_before_the_build(route, tmp_path, monkeypatch, capsys):
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m",
+                           "--index", "ivf:abc")
+    assert code == 2 and "expected flat, hnsw:M or ivf:NLIST" in err and not (tmp_path / "m").exists()

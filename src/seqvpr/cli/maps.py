@@ -20,6 +20,10 @@ Examples:
 """
 
 
+INDEX_HELP = ("faiss index over the frames, for --shortlist: flat (exact), hnsw:M (graph, e.g. hnsw:32) or "
+              "ivf:NLIST[,pq:M] (k-means lists, raw or M-byte PQ codes, e.g. ivf:1024,pq:32).")
+
+
 @click.group(name="map")
 def map_group() -> None:
     """Build a reference map once (described, saved, memory-mapped) and inspect it; match with --map."""
@@ -36,12 +40,16 @@ def map_group() -> None:
 @click.option("--dtype", type=click.Choice(["float32", "float16"]), default="float32", show_default=True,
               help="How the descriptors are stored (float16 halves the map).")
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
+@click.option("--index", "index_spec", help=INDEX_HELP)
+@click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
-          no_normalize: bool, device: str, **o: Any) -> None:
+          no_normalize: bool, index_spec: str | None, seed: int, device: str, **o: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
     from seqvpr.maps import build_map
+    from seqvpr.maps.index import add_index, parse_index_spec
 
+    spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec fails before any work
     description, extraction = _description(o, device)
     models = _models(model_dirs, device)
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=not no_normalize,
@@ -49,6 +57,26 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     info = saved.info
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
+    if spec is not None:
+        _echo_index(add_index(saved, spec, seed, tqdm_progress))
+
+
+@map_group.command(name="index")
+@click.argument("map_dir", type=click.Path())
+@click.option("--index", "index_spec", required=True, help=INDEX_HELP)
+@click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
+def index_command(map_dir: str, index_spec: str, seed: int) -> None:
+    """Build (or rebuild) MAP's faiss index over its frames, for seqvpr match --map MAP --shortlist S."""
+    from seqvpr.maps import open_map
+    from seqvpr.maps.index import add_index, parse_index_spec
+
+    spec = parse_index_spec(index_spec)
+    _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress))
+
+
+def _echo_index(record: dict) -> None:
+    click.echo(f"index {record['spec']} over {record['ntotal']} frames in {record['build_seconds']} s "
+               f"({record['file']})")
 
 
 @map_group.command()

@@ -55,6 +55,10 @@ Examples:
               + ".  [default: matching, or the --model's method]")
 @click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
               help="faiss index for sequence-descriptor methods: exact (flat) or approximate (HNSW).")
+@click.option("--shortlist", type=int, default=0, show_default=True,
+              help="With --map: re-rank only the windows placed by each query frame's S nearest map frames (the "
+                   "map's faiss index, seqvpr map index) by exact sequence distance (0: exhaustive).")
+@click.option("--nprobe", type=int, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
 @click.option("--rerank", type=int, default=0, show_default=True,
               help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
 @click.option("--pca-dim", default=0, show_default=True, type=int,
@@ -85,6 +89,8 @@ def match(**o: Any) -> None:
 
     if bool(o["map_dir"]) == bool(o["reference"]):
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
+    if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
+        raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
     models, method = _models_and_method(o)
     if o["map_dir"]:
         return _match_map(o, models, method, k_values, speeds, budget)
@@ -121,11 +127,19 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
-                       progress=tqdm_progress, cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
+                       shortlist=o["shortlist"], nprobe=o["nprobe"], progress=tqdm_progress,
+                       cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
                         gt.description, settings.as_dict())
     run["map"] = o["map_dir"]
+    if o["shortlist"]:
+        from seqvpr.maps.match import shortlist_recall
+
+        run["shortlist"] = {"per_frame": o["shortlist"], "index": saved.info.index["spec"], "nprobe": o["nprobe"],
+                            "recall": shortlist_recall(result, gt)}
+        click.echo(f"shortlist: {run['shortlist']['recall']:.3f} of the scored queries have a true place among "
+                   f"their candidates", err=True)
     _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (saved.frames, result.query))
 
 

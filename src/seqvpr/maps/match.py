@@ -68,10 +68,13 @@ def match_map(
     *,
     index: str = "flat",
     rerank: int = 0,
+    shortlist: int = 0,
+    nprobe: int = 16,
     progress: ProgressFactory | None = None,
     **extraction: Any,
 ) -> MatchResult:
-    """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives."""
+    """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives; with
+    ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame)."""
     models = dict(models or {})
     check_run(method, models, rerank)
     check_map_models(saved.info, str(saved.folder), method, models)
@@ -83,5 +86,54 @@ def match_map(
     if "seqmatchnet" in (saved.info.model or {}):  # the map holds transformed frames and so does the query now
         models.pop("seqmatchnet")
         method = "matching" if method == "seqmatchnet" else method
+    if shortlist:
+        check_shortlist(saved, method, models)
+        return shortlist_match(saved, frames, method, settings, shortlist, nprobe)
     return run_method(method, saved.frames, frames, replace(settings), models, index=index, rerank=rerank,
                       progress=progress)
+
+
+def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedModel]) -> None:
+    """A shortlist serves the frame-matching methods, over the frames the map's index holds."""
+    if METHODS[method].family != "matching":
+        raise SeqvprError(f"--shortlist applies to the frame-matching methods (single, matching, seqmatchnet), "
+                          f"not --method {method}")
+    if "seqmatchnet" in models:
+        raise SeqvprError(f"--shortlist with a SeqMatchNet model needs a map built through it: {saved.folder}'s "
+                          "index holds untransformed frames")
+
+
+def shortlist_match(
+    saved: SavedMap, frames: Traversal, method: str, settings: MatchSettings, shortlist: int, nprobe: int,
+) -> MatchResult:
+    """Shortlisted frame matching: each query frame's ``shortlist`` nearest map frames by the map's faiss index
+    place candidate windows (``frame_shortlist``), which exact sequence distance re-ranks (``rerank``)."""
+    import numpy as np
+    import torch
+
+    from seqvpr.maps.index import open_frame_index, search_frames
+    from seqvpr.sequences.hierarchical import frame_shortlist, rerank
+    from seqvpr.sequences.windows import SequenceSpec, window_starts
+
+    spec = SequenceSpec(1) if METHODS[method].length == 1 else settings.sequence
+    settings = replace(settings, sequence=spec)
+    query = torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32))
+    if settings.normalize:
+        query = torch.nn.functional.normalize(query, dim=1)
+    neighbours, _ = search_frames(open_frame_index(saved, nprobe), query.numpy(), shortlist)
+    starts = window_starts(frames.segment_ids, spec.length, spec.offset, spec.boundary)
+    candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
+    reference = torch.from_numpy(saved.descriptors)  # a view of the memory map: only candidate rows are read
+    top = rerank(query, reference, candidates, spec, frames.segment_ids, saved.frames.segment_ids, k=settings.k)
+    return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
+
+
+def shortlist_recall(result: MatchResult, gt) -> float | None:
+    """The share of scored queries whose shortlist holds a true place (what the approximation can still find)."""
+    from seqvpr.evaluation.metrics import evaluate
+
+    if result.shortlist is None:
+        return None
+    candidates = result.shortlist
+    width = candidates.indices.shape[1]
+    return evaluate(candidates.indices, candidates.distances, candidates.has_window, gt, (width,)).recall[width]

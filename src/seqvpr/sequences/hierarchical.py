@@ -57,10 +57,36 @@ def rerank(
         q_windows = query[torch.as_tensor(window_frames(q_starts[batch], spec.length), device=query.device)]  # [b, L, D]
         r_frames = window_frames(np.maximum(starts, 0).reshape(-1), spec.length).reshape(*starts.shape, spec.length)
         r_index = torch.as_tensor(r_frames, device=query.device)  # [b, K, L]
-        d = aligned_sequence_distances(q_windows[:, None], reference[r_index]).double().cpu().numpy()
+        r_windows = reference[r_index].to(device=query.device, dtype=query.dtype)  # [b, K, L, D]
+        d = aligned_sequence_distances(q_windows[:, None], r_windows).double().cpu().numpy()
         d[~valid] = np.inf
         order = np.argsort(d, axis=1, kind="stable")[:, :keep]
         best = np.take_along_axis(d, order, axis=1)
         indices[batch] = np.where(np.isfinite(best), np.take_along_axis(picked, order, axis=1), -1)
         distances[batch] = best
     return TopK(indices, distances, has_window)
+
+
+def frame_shortlist(neighbours: np.ndarray, query_starts: np.ndarray, spec: SequenceSpec, n_reference: int) -> TopK:
+    """Candidate reference frames of each query from the nearest reference frames of every frame of its window.
+
+    ``neighbours`` [n_query, S] are the S nearest reference frames of each query frame (-1 for none). A reference
+    frame r found for the k-th frame of the window starting at ``query_starts[i]`` places the candidate window
+    there, so the candidate is the frame ``r - k + offset`` (slope 1). Each query gets the union over its L frames
+    (up to L * S, duplicates and frames off the reference dropped), ascending; -1 pads. Distances are not known.
+    """
+    starts = np.asarray(query_starts, dtype=np.int64)
+    has_window = starts >= 0
+    length, width = spec.length, neighbours.shape[1]
+    frames = window_frames(np.maximum(starts, 0), length)  # [n, L]
+    found = neighbours[frames]  # [n, L, S]
+    shift = spec.offset - np.arange(length)[None, :, None]
+    candidates = np.where(found >= 0, found + shift, -1).reshape(len(starts), length * width)
+    candidates[(candidates < 0) | (candidates >= n_reference) | ~has_window[:, None]] = -1
+    candidates.sort(axis=1)
+    duplicate = np.zeros_like(candidates, dtype=bool)
+    duplicate[:, 1:] = candidates[:, 1:] == candidates[:, :-1]
+    candidates[duplicate] = -1
+    candidates.sort(axis=1)  # -1s first, then the distinct candidates ascending
+    candidates = candidates[:, ::-1].copy()  # distinct candidates first (descending), -1s last
+    return TopK(candidates, np.zeros(candidates.shape), has_window)

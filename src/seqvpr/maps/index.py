@@ -1,0 +1,152 @@
+"""A map's faiss index over its frames: built once (``--index flat | hnsw:M | ivf:NLIST[,pq:M]``), saved beside the
+descriptors as ``index.faiss`` and opened memory-mapped; its searches give the candidate frames that shortlisted
+matching re-ranks by exact sequence distance."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqvpr.errors import SeqvprError
+from seqvpr.io import atomic_write
+from seqvpr.maps.files import INFO_FILE, SavedMap, read_map_info
+
+INDEX_FILE = "index.faiss"
+ADD_BLOCK = 65_536  # map rows added to an index at a time (a memory-mapped map is never read whole)
+TRAIN_PER_LIST = 64  # training rows per IVF list (faiss asks for at least 39)
+DEFAULT_NPROBE = 16
+DEFAULT_EF_SEARCH = 64
+
+
+@dataclass(frozen=True)
+class IndexSpec:
+    """What ``--index`` names: ``flat`` (exact), ``hnsw:M`` (graph, M links a node) or ``ivf:NLIST[,pq:M]``
+    (NLIST k-means lists, raw vectors or M-byte PQ codes)."""
+
+    kind: str
+    m: int = 0
+    nlist: int = 0
+    pq: int = 0
+
+    def __str__(self) -> str:
+        if self.kind == "hnsw":
+            return f"hnsw:{self.m}"
+        if self.kind == "ivf":
+            return f"ivf:{self.nlist}" + (f",pq:{self.pq}" if self.pq else "")
+        return "flat"
+
+
+def parse_index_spec(text: str) -> IndexSpec:
+    """``flat``, ``hnsw:32``, ``ivf:1024`` or ``ivf:1024,pq:32``; anything else is a one-line error."""
+    spec = text.strip().lower()
+    if spec == "flat":
+        return IndexSpec("flat")
+    if match := re.fullmatch(r"hnsw:(\d+)", spec):
+        return IndexSpec("hnsw", m=_positive(match.group(1), text))
+    if match := re.fullmatch(r"ivf:(\d+)(?:,pq:(\d+))?", spec):
+        return IndexSpec("ivf", nlist=_positive(match.group(1), text), pq=_positive(match.group(2) or "0", text, 0))
+    raise SeqvprError(f"--index {text!r}: expected flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
+
+
+def _positive(value: str, text: str, least: int = 1) -> int:
+    if int(value) < least:
+        raise SeqvprError(f"--index {text!r}: numbers must be at least {least}")
+    return int(value)
+
+
+def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None):
+    """A faiss index over the rows of ``descriptors`` (read a block at a time); IVF lists are trained on a seeded
+    sample of ``TRAIN_PER_LIST`` rows a list."""
+    import faiss
+
+    n, dim = descriptors.shape
+    if spec.kind == "ivf" and spec.nlist > n:
+        raise SeqvprError(f"--index {spec}: {spec.nlist} lists for {n} frames (use at most one list per frame)")
+    if spec.pq and dim % spec.pq:
+        raise SeqvprError(f"--index {spec}: pq:{spec.pq} must divide the dimension {dim}")
+    index = _empty_index(faiss, spec, dim)
+    if spec.kind == "ivf":
+        index.cp.seed = seed
+        rows = np.sort(np.random.default_rng(seed).choice(n, size=min(n, TRAIN_PER_LIST * spec.nlist), replace=False))
+        index.train(np.ascontiguousarray(descriptors[rows], dtype=np.float32))
+    tick = progress(n, f"index {spec}") if progress else None
+    for begin in range(0, n, ADD_BLOCK):
+        index.add(np.ascontiguousarray(descriptors[begin : begin + ADD_BLOCK], dtype=np.float32))
+        if tick:
+            tick(min(ADD_BLOCK, n - begin))
+    return index
+
+
+def _empty_index(faiss, spec: IndexSpec, dim: int):
+    if spec.kind == "flat":
+        return faiss.IndexFlatL2(dim)
+    if spec.kind == "hnsw":
+        index = faiss.IndexHNSWFlat(dim, spec.m)
+        index.hnsw.efSearch = DEFAULT_EF_SEARCH
+        return index
+    quantizer = faiss.IndexFlatL2(dim)
+    if spec.pq:
+        return faiss.IndexIVFPQ(quantizer, dim, spec.nlist, spec.pq, 8)
+    return faiss.IndexIVFFlat(quantizer, dim, spec.nlist)
+
+
+def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None) -> dict[str, Any]:
+    """Build the map's frame index and save it beside the descriptors: ``index.faiss`` first, then ``map.json``
+    naming it, each atomically (a map whose ``map.json`` names no index has none)."""
+    import faiss
+
+    started = time.perf_counter()
+    index = build_frame_index(saved.descriptors, spec, seed, progress)
+    record = {"spec": str(spec), "over": "frames", "file": INDEX_FILE, "ntotal": int(index.ntotal), "seed": seed,
+              "build_seconds": round(time.perf_counter() - started, 2)}
+    fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
+    os.close(fd)
+    try:
+        faiss.write_index(index, tmp)
+        os.replace(tmp, saved.folder / INDEX_FILE)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    info = read_map_info(saved.folder)
+    with atomic_write(saved.folder / INFO_FILE) as handle:
+        json.dump({**info.to_json(), "index": record}, handle, indent=2)
+    return record
+
+
+def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: int = DEFAULT_EF_SEARCH):
+    """The map's saved frame index, memory-mapped where faiss can; a map without one is a one-line error."""
+    import faiss
+
+    record = saved.info.index
+    if not record:
+        raise SeqvprError(f"{saved.folder} has no index: add one with seqvpr map index {saved.folder} --index SPEC")
+    path = Path(saved.folder) / record["file"]
+    if not path.is_file():
+        raise SeqvprError(f"{path}: missing map file (map.json names an index)")
+    try:
+        index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP | faiss.IO_FLAG_READ_ONLY)
+    except RuntimeError as error:
+        raise SeqvprError(f"{path}: unreadable faiss index ({str(error).splitlines()[0][:120]})") from None
+    if index.ntotal != saved.info.count or index.d != saved.info.dim:
+        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map {saved.info.count} of "
+                          f"{saved.info.dim}-D")
+    if hasattr(index, "nprobe"):
+        index.nprobe = nprobe
+    if hasattr(index, "hnsw"):
+        index.hnsw.efSearch = ef_search
+    return index
+
+
+def search_frames(index, frames: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest map frames of each row of ``frames`` [n, D]: rows [n, k] (-1 where none), distances."""
+    squared, rows = index.search(np.ascontiguousarray(frames, dtype=np.float32), k)
+    return rows.astype(np.int64), np.sqrt(np.maximum(squared.astype(np.float64), 0.0))
+

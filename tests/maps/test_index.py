@@ -1,0 +1,104 @@
+"""The map's faiss index and shortlisted matching: specs, seeded builds, candidates against a plain loop, and a
+shortlist as wide as the map equal to exhaustive matching."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from seqvpr.data.sources import load_traversal, save_traversal_npz
+from seqvpr.maps import build_map, load_map, match_map
+from seqvpr.maps.index import IndexSpec, add_index, open_frame_index, parse_index_spec, search_frames
+from seqvpr.maps.match import shortlist_recall
+from seqvpr.pipeline import MatchSettings, ground_truth
+from seqvpr.sequences.hierarchical import frame_shortlist
+from seqvpr.sequences.windows import SequenceSpec, window_starts
+from seqvpr.synthetic.routes import generate_route
+from tests.helpers import raises_one_line
+
+SETTINGS = MatchSettings(SequenceSpec(5), k=10)
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("route")
+    reference, query = generate_route(n_frames=300, dim=16, seed=6)
+    save_traversal_npz(folder / "ref.npz", reference)
+    save_traversal_npz(folder / "qry.npz", query)
+    return folder
+
+
+def test_index_specs_parse_and_bad_ones_are_one_line():
+    assert parse_index_spec("flat") == IndexSpec("flat")
+    assert parse_index_spec("hnsw:32") == IndexSpec("hnsw", m=32)
+    assert parse_index_spec("IVF:1024,pq:32") == IndexSpec("ivf", nlist=1024, pq=32)
+    assert str(parse_index_spec("ivf:64,pq:8")) == "ivf:64,pq:8"
+    for bad in ("ivf", "hnsw:0", "ivf:16,pq", "pq:8", "lsh"):
+        raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 1", parse_index_spec, bad)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 4), st.integers(8, 30), st.sampled_from(["centered", "causal"]),
+       st.integers(0, 2**32 - 1))
+def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align, seed):
+    rng = np.random.default_rng(seed)
+    n_query = 12
+    neighbours = rng.integers(-1, n_reference, size=(n_query, width))
+    spec = SequenceSpec(length, align)
+    starts = window_starts(np.zeros(n_query, np.int64), length, spec.offset, "drop")
+    got = frame_shortlist(neighbours, starts, spec, n_reference)
+    for i in range(n_query):
+        expected = set()
+        if starts[i] >= 0:
+            for k in range(length):
+                for r in neighbours[starts[i] + k]:
+                    c = r - k + spec.offset
+                    if r >= 0 and 0 <= c < n_reference:
+                        expected.add(int(c))
+        row = got.indices[i]
+        assert set(row[row >= 0].tolist()) == expected and len(row[row >= 0]) == len(expected)
+
+
+def test_a_flat_shortlist_as_wide_as_the_map_is_exhaustive_matching(route, tmp_path):
+    saved = build_map([str(route / "ref.npz")], tmp_path / "m")
+    add_index(saved, IndexSpec("flat"))
+    saved = load_map(tmp_path / "m")
+    query = load_traversal(route / "qry.npz", "query")
+    exhaustive = match_map(saved, query, "matching", SETTINGS)
+    shortlisted = match_map(saved, query, "matching", SETTINGS, shortlist=300)
+    np.testing.assert_array_equal(shortlisted.topk.indices, exhaustive.topk.indices)
+    np.testing.assert_allclose(shortlisted.topk.distances, exhaustive.topk.distances, rtol=1e-5)
+    narrow = match_map(saved, query, "matching", SETTINGS, shortlist=3)
+    gt = ground_truth(saved.frames, query)
+    assert 0.5 < shortlist_recall(narrow, gt) <= shortlist_recall(shortlisted, gt) == 1.0
+    single = match_map(saved, query, "single", SETTINGS, shortlist=10)
+    np.testing.assert_array_equal(single.topk.indices, match_map(saved, query, "single", SETTINGS).topk.indices)
+
+
+def test_ivf_and_hnsw_indexes_are_saved_seeded_and_reopened(route, tmp_path):
+    saved = build_map([str(route / "ref.npz")], tmp_path / "m")
+    query = load_traversal(route / "qry.npz", "query").descriptors.astype(np.float32)
+    query /= np.linalg.norm(query, axis=1, keepdims=True)
+    found = []
+    for spec in ("ivf:8,pq:4", "ivf:8,pq:4", "hnsw:8"):
+        record = add_index(saved, parse_index_spec(spec), seed=3)
+        reopened = load_map(tmp_path / "m")
+        assert reopened.info.index["spec"] == spec and record["ntotal"] == 300
+        found.append(search_frames(open_frame_index(reopened, nprobe=8), query, 5)[0])
+    np.testing.assert_array_equal(found[0], found[1])  # same seed, same index
+    assert (found[2][:, 0] >= 0).all()
+
+
+def test_shortlist_errors_are_one_line(route, tmp_path):
+    saved = build_map([str(route / "ref.npz")], tmp_path / "m")
+    query = load_traversal(route / "qry.npz", "query")
+    raises_one_line("has no index", match_map, saved, query, "matching", SETTINGS, shortlist=5)
+    raises_one_line("applies to the frame-matching methods", match_map, saved, query, "seqgem", SETTINGS, shortlist=5)
+    add_index(saved, IndexSpec("flat"))
+    (tmp_path / "m" / "index.faiss").write_bytes(b"garbage")
+    raises_one_line("unreadable faiss index", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
+                    shortlist=5)
+    raises_one_line("must divide the dimension 16", add_index, saved, IndexSpec("ivf", nlist=4, pq=5))
+    raises_one_line("400 lists for 300 frames", add_index, saved, IndexSpec("ivf", nlist=400))
