@@ -55,3 +55,15 @@ def test_corridor_images_match(monkeypatch, capsys, tmp_path, shared_data):
     single = recall(monkeypatch, capsys, tmp_path, "-r", root / "ref", "-q", root / "query", "--ground-truth", gt)
     sequence = recall(monkeypatch, capsys, tmp_path, "-r", root / "ref", "-q", root / "query", "--ground-truth", gt, "-L", 5)
     assert sequence[0] >= single[0] and single[0] > 0.3
+
+
+@pytest.mark.parametrize("length,expected", [(1, (0.194, 0.342, 0.502)), (5, (0.584, 0.683, 0.770))])
+def test_nordland_through_a_saved_map(monkeypatch, capsys, tmp_path, shared_data, length, expected):
+    """``seqvpr map build`` of the summer images, then ``match --map`` with winter: the direct figures."""
+    root = shared_data / "nordland_64x32"
+    monkeypatch.setattr(sys, "argv", ["seqvpr", "map", "build", str(root / "summer"), "--frames", "17:2000",
+                                      "--out", str(tmp_path / "map")])
+    main()
+    capsys.readouterr()
+    args = ["--map", tmp_path / "map", "-q", root / "winter", "--frames", "17:2000", "--radius", "1f", "-L", length]
+    assert recall(monkeypatch, capsys, tmp_path / "out", *args) == expected
