@@ -102,3 +102,13 @@ def test_shortlist_errors_are_one_line(route, tmp_path):
                     shortlist=5)
     raises_one_line("must divide the dimension 16", add_index, saved, IndexSpec("ivf", nlist=4, pq=5))
     raises_one_line("400 lists for 300 frames", add_index, saved, IndexSpec("ivf", nlist=400))
+
+
+def test_a_float16_map_shortlists_like_the_float32_one(route, tmp_path):
+    query = load_traversal(route / "qry.npz", "query")
+    results = []
+    for dtype in ("float32", "float16"):
+        saved = build_map([str(route / "ref.npz")], tmp_path / dtype, dtype=dtype)
+        add_index(saved, IndexSpec("flat"))
+        results.append(match_map(load_map(tmp_path / dtype), query, "matching", SETTINGS, shortlist=20))
+    assert (results[0].topk.indices[:, 0] == results[1].topk.indices[:, 0]).mean() > 0.95

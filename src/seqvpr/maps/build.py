@@ -45,10 +45,14 @@ class FrameDescription:
 
     @classmethod
     def from_json(cls, values: dict[str, Any]) -> FrameDescription:
-        extractor = {k: tuple(v) if isinstance(v, list) else v for k, v in values["extractor"].items()}
-        size = values.get("image_size")
-        return cls(values["descriptor"], PatchNormConfig(**values["patchnorm"]), ExtractorConfig(**extractor),
-                   None if size is None else (int(size[0]), int(size[1])))
+        """The description ``map.json`` records; a missing or unknown field is a one-line error."""
+        try:
+            extractor = {k: tuple(v) if isinstance(v, list) else v for k, v in values["extractor"].items()}
+            size = values.get("image_size")
+            return cls(values["descriptor"], PatchNormConfig(**values["patchnorm"]), ExtractorConfig(**extractor),
+                       None if size is None else (int(size[0]), int(size[1])))
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
+            raise SeqvprError(f"map.json: malformed frame description ({type(error).__name__}: {error})") from None
 
 
 def describe_frames(

@@ -48,8 +48,8 @@ def describe_query(
     if query.descriptors is None and info.description["descriptor"] == "file":
         raise SeqvprError(f"{saved.folder} holds frames of descriptor files: the query {query.source or query.name} "
                           "must be a descriptor file too, described the same way")
-    frames = describe_frames(query, FrameDescription.from_json(info.description), models, device, progress,
-                             **extraction)
+    frames = query if query.descriptors is not None else describe_frames(
+        query, FrameDescription.from_json(info.description), models, device, progress, **extraction)
     if "seqmatchnet" in (info.model or {}):
         frames = transformed_frames(frames, frames, models, device)[0]
     assert frames.descriptors is not None

@@ -200,3 +200,35 @@ def topk_update_(rows: np.ndarray, first: int, values: np.ndarray, indices: np.n
     ``values``/``indices`` [n, K] (sorted ascending; +inf/-1 where empty). A value enters only if strictly smaller
     than the K-th, and columns come in index order, so ties keep the lower index whatever the chunking."""
     _topk_update(rows, first, values, indices)
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _window_distances(query, reference, query_starts, reference_starts, length, out):
+    for i in prange(reference_starts.shape[0]):
+        qs = query_starts[i]
+        for c in range(reference_starts.shape[1]):
+            rs = reference_starts[i, c]
+            if rs < 0:
+                out[i, c] = np.inf
+                continue
+            total = 0.0
+            for k in range(length):
+                q = query[qs + k]
+                r = reference[rs + k]
+                squared = 0.0
+                for d in range(q.shape[0]):
+                    diff = np.float64(q[d]) - np.float64(r[d])
+                    squared += diff * diff
+                total += np.sqrt(max(squared, 1e-12))
+            out[i, c] = total / length
+
+
+def window_distances(query: np.ndarray, reference: np.ndarray, query_starts: np.ndarray,
+                     reference_starts: np.ndarray, length: int) -> np.ndarray:
+    """Sequence distances [n, C] between the query window starting at ``query_starts[i]`` and the reference
+    windows starting at ``reference_starts[i, c]`` (-1: none, +inf), read straight from the (possibly
+    memory-mapped) rows: no [n, C, L, D] gather."""
+    out = np.empty(reference_starts.shape, dtype=np.float64)
+    _window_distances(query, reference, np.ascontiguousarray(query_starts, dtype=np.int64),
+                      np.ascontiguousarray(reference_starts, dtype=np.int64), length, out)
+    return out

@@ -54,17 +54,29 @@ def rerank(
         picked = candidates[batch]
         starts = np.where(picked >= 0, r_starts[np.maximum(picked, 0)], -1)
         valid = starts >= 0
-        q_windows = query[torch.as_tensor(window_frames(q_starts[batch], spec.length), device=query.device)]  # [b, L, D]
-        r_frames = window_frames(np.maximum(starts, 0).reshape(-1), spec.length).reshape(*starts.shape, spec.length)
-        r_index = torch.as_tensor(r_frames, device=query.device)  # [b, K, L]
-        r_windows = reference[r_index].to(device=query.device, dtype=query.dtype)  # [b, K, L, D]
-        d = aligned_sequence_distances(q_windows[:, None], r_windows).double().cpu().numpy()
+        d = _candidate_distances(query, reference, q_starts[batch], starts, spec.length)
         d[~valid] = np.inf
         order = np.argsort(d, axis=1, kind="stable")[:, :keep]
         best = np.take_along_axis(d, order, axis=1)
         indices[batch] = np.where(np.isfinite(best), np.take_along_axis(picked, order, axis=1), -1)
         distances[batch] = best
     return TopK(indices, distances, has_window)
+
+
+def _candidate_distances(
+    query: torch.Tensor, reference: torch.Tensor, q_starts: np.ndarray, r_starts: np.ndarray, length: int
+) -> np.ndarray:
+    """Sequence distances [b, K] between each query window and its candidate windows (start -1: +inf): one numba
+    pass over the rows on CPU, a gather of the windows elsewhere."""
+    cpu = query.device.type == "cpu" and reference.device.type == "cpu"
+    if cpu and not query.requires_grad and reference.dtype in (torch.float32, torch.float64):
+        from seqvpr.sequences._fused import window_distances
+
+        return window_distances(query.numpy(), reference.numpy(), q_starts, r_starts, length)
+    q_windows = query[torch.as_tensor(window_frames(q_starts, length), device=query.device)]  # [b, L, D]
+    r_frames = window_frames(np.maximum(r_starts, 0).reshape(-1), length).reshape(*r_starts.shape, length)
+    r_windows = reference[torch.as_tensor(r_frames, device=reference.device)].to(query.device, query.dtype)
+    return aligned_sequence_distances(q_windows[:, None], r_windows).double().cpu().numpy()
 
 
 def frame_shortlist(neighbours: np.ndarray, query_starts: np.ndarray, spec: SequenceSpec, n_reference: int) -> TopK:

@@ -1,0 +1,163 @@
+"""Exact against shortlisted sequence matching on large maps of real descriptors: time, memory, index build and
+how much R@1 the approximation costs.
+
+Run from the repository root (CPU; about 15 minutes and 2 GB of disk in ``--work``; needs ../shared/data):
+
+    .venv/bin/python bench/bench_shortlist.py --work runs/bench-shortlist [--sizes 100000,1000000]
+
+The data (there is no real 1M-frame traversal here): Nordland 64x32 summer and winter (frames 17-1999) are
+described with patch normalisation (2048-D), PCA-reduced to 256-D (fitted on summer, seeded) and L2-normalised.
+The map is the 1983 summer frames repeated to N frames, each copy a segment of its own, with Gaussian noise
+(sigma ``--noise`` per dimension before renormalising), so every place occurs N / 1983 times; the query is winter
+frames 500-1499 (1,000 frames). A query is right at K when one of its K best map frames is the same place (within
+one frame) in any copy. Each size's map gets one index of each kind in ``--indexes``; every row matches the same
+query through ``seqvpr.maps.match_map`` (L = 5, top-20) and reports its time, the shortlist's recall (a true place
+among the candidates), R@1, and its top-1 agreement with the exact result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _common import cpu_model
+
+try:
+    import seqvpr  # noqa: F401
+except ImportError:  # running from a checkout without an installed package
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+
+from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.sources import load_traversal
+from seqvpr.data.traversal import Traversal, slice_frame_range
+from seqvpr.evaluation.metrics import evaluate
+from seqvpr.features.whitening import fit_pca_whitening
+from seqvpr.maps import FrameDescription, load_map, match_map
+from seqvpr.maps.files import MapInfo, MapSource, write_map
+from seqvpr.maps.index import add_index, parse_index_spec
+from seqvpr.maps.match import shortlist_recall
+from seqvpr.pipeline import MatchSettings, describe
+from seqvpr.sequences.windows import SequenceSpec
+
+DIM, LENGTH, K = 256, 5, 20
+QUERY_FRAMES = (500, 1500)
+
+
+def nordland_256(data: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Summer and winter frames 17-1999 as 256-D unit vectors (patch normalisation, PCA fitted on summer)."""
+    root = data / "nordland_64x32"
+    summer, winter = (describe(slice_frame_range(load_traversal(root / side, "reference"), "17:2000"))
+                      for side in ("summer", "winter"))
+    pca = fit_pca_whitening(summer.descriptors, DIM)
+    unit = lambda x: (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)  # noqa: E731
+    return unit(pca.apply(summer.descriptors)), unit(pca.apply(winter.descriptors))
+
+
+def write_repeated_map(folder: Path, summer: np.ndarray, n: int, noise: float, seed: int = 0) -> None:
+    """A map of N frames: copies of the summer traversal with noise, one segment per copy (written in blocks)."""
+    rng = np.random.default_rng(seed)
+    copies = -(-n // len(summer))
+    rows = np.concatenate([summer + noise * rng.standard_normal(summer.shape).astype(np.float32)
+                           for _ in range(copies)])[:n]
+    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+    place = np.arange(n) % len(summer)
+    frames = Traversal("nordland-repeated", place.astype(np.int64), (np.arange(n) // len(summer)).astype(np.int64),
+                       rows, positions=np.stack([place.astype(np.float64), np.zeros(n)], 1))
+    description = {**FrameDescription().to_json(), "descriptor": "file"}
+    info = MapInfo(n, DIM, "float32", True, description, (MapSource("nordland-repeated", "summer", 0, n),))
+    write_map(folder, frames, info)
+
+
+def _truth(lists: list[np.ndarray], n: int) -> GroundTruth:
+    """Positives from a list of reference rows per query."""
+    from scipy.sparse import csr_array
+
+    rows = np.concatenate([np.full(len(p), i) for i, p in enumerate(lists)])
+    cols = np.concatenate(lists)
+    matrix = csr_array((np.ones(len(cols), bool), (rows, cols)), shape=(len(lists), n))
+    return GroundTruth(matrix, description="same place within 1 frame, any copy")
+
+
+def run_rows(saved, query: Traversal, gt: GroundTruth, exact_top1: np.ndarray | None, label: str, shortlist: int,
+             nprobe: int) -> dict:
+    settings = MatchSettings(SequenceSpec(LENGTH), k=K)
+    started = time.perf_counter()
+    result = match_map(saved, query, "matching", settings, shortlist=shortlist, nprobe=nprobe)
+    seconds = time.perf_counter() - started
+    top = result.topk
+    scores = evaluate(top.indices, top.distances, top.has_window, gt, (1, 5, 20))
+    scored = top.has_window
+    agree = float(np.mean(top.indices[scored, 0] == exact_top1[scored])) if exact_top1 is not None else 1.0
+    return {"label": label, "seconds": seconds, "r1": scores.recall[1], "r20": scores.recall[20],
+            "shortlist_recall": shortlist_recall(result, gt), "agree": agree, "top1": top.indices[:, 0]}
+
+
+def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: list[str], shortlist: int,
+            nprobe: int, noise: float) -> list[dict]:
+    folder = work / f"map_{n}"
+    if not (folder / "map.json").exists():
+        write_repeated_map(folder, summer, n, noise)
+    saved = load_map(folder)
+    first, last = QUERY_FRAMES
+    query = Traversal.from_descriptors(winter[first:last], "winter")
+    place = np.asarray(saved.frames.frame_index)
+    order = np.argsort(place, kind="stable")
+    bounds = np.searchsorted(place[order], np.arange(len(summer) + 1))
+    copies = lambda p: order[bounds[p] : bounds[p + 1]] if 0 <= p < len(summer) else np.empty(0, np.int64)  # noqa: E731
+    gt = _truth([np.concatenate([copies(p + d) for d in (-1, 0, 1)]) for p in range(first, last)], n)
+    match_map(saved, query.select(np.arange(50)), "matching", MatchSettings(SequenceSpec(LENGTH), k=K))  # warm-up
+    rows = [run_rows(saved, query, gt, None, "exact", 0, nprobe)]
+    rows[0]["build"] = 0.0
+    for spec in specs:
+        record = add_index(saved, parse_index_spec(spec), seed=0)
+        row = run_rows(load_map(folder), query, gt, rows[0]["top1"], f"{spec}, S = {shortlist}", shortlist, nprobe)
+        row["build"] = record["build_seconds"]
+        rows.append(row)
+    for row in rows:
+        row["n"] = n
+        row["speedup"] = rows[0]["seconds"] / row["seconds"]
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| map frames | matching | index build | match 1,000 queries | speed-up | shortlist recall | R@1 | R@20 | "
+             "top-1 = exact |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        recall = "-" if r["shortlist_recall"] is None else f"{r['shortlist_recall']:.3f}"
+        lines.append(f"| {r['n']:,} | {r['label']} | {r['build']:.1f} s | {r['seconds']:.3f} s | {r['speedup']:.0f}x | "
+                     f"{recall} | {r['r1']:.3f} | {r['r20']:.3f} | {r['agree']:.3f} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--sizes", default="100000,1000000")
+    parser.add_argument("--indexes", default="ivf:1024,ivf:1024+pq:32,hnsw:16",
+                        help="Index specs separated by commas; '+' stands for the comma inside one spec.")
+    parser.add_argument("--shortlist", type=int, default=20, help="Nearest map frames a query frame contributes.")
+    parser.add_argument("--nprobe", type=int, default=16)
+    parser.add_argument("--noise", type=float, default=0.02)
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    summer, winter = nordland_256(args.data)
+    specs = [s.replace("+", ",") for s in args.indexes.split(",")]
+    rows = []
+    for n in (int(s) for s in args.sizes.split(",")):
+        rows += measure(args.work, summer, winter, n, specs, args.shortlist, args.nprobe, args.noise)
+        print(table(rows), flush=True)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    text = (f"{cpu_model()}, {torch.get_num_threads()} threads; 1,000 queries, D = {DIM}, L = {LENGTH}, top-{K}, "
+            f"nprobe {args.nprobe}, noise {args.noise}; peak RSS of the whole script {peak:.2f} GiB\n\n{table(rows)}\n")
+    (args.work / "results.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
