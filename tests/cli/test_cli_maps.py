@@ -67,9 +67,9 @@ def test_a_bad_source_leaves_no_map_folder(route, tmp_path, monkeypatch, capsys)
 def test_index_and_shortlisted_match_report_the_shortlist_recall(route, tmp_path, monkeypatch, capsys):
     code, out, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m",
                              "--index", "hnsw:8")
-    assert code == 0 and "index hnsw:8 over 100 frames" in out, err
+    assert code == 0 and "index hnsw:8 over frames (100 rows)" in out, err
     code, out, _ = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
-    assert code == 0 and "index flat over 100 frames" in out
+    assert code == 0 and "index flat over frames (100 rows)" in out
     code, out, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", "-q", route / "qry.npz", "-L", "5",
                              "--radius", "10m", "--shortlist", "100", "--out", tmp_path / "s")
     assert code == 0 and "shortlist: 1.000 of the scored queries" in err

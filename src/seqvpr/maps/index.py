@@ -62,6 +62,32 @@ def _positive(value: str, text: str, least: int = 1) -> int:
     return int(value)
 
 
+class WindowMeans:
+    """Rows of a (memory-mapped) descriptor matrix replaced by the L2-normalised mean of their centred window of
+    ``length`` frames (smoothing); a frame without a window in its segment keeps its own descriptor. Indexable by
+    slices and row arrays, computed on access: an index over windows is built without a second copy of the map."""
+
+    def __init__(self, descriptors: np.ndarray, segments: np.ndarray, length: int) -> None:
+        from seqvpr.sequences.windows import window_starts
+
+        self.descriptors, self.length = descriptors, int(length)
+        self.starts = window_starts(np.asarray(segments), self.length, self.length // 2, "drop")
+        self.shape = descriptors.shape
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        rows = np.arange(self.shape[0])[key]
+        starts = self.starts[rows]
+        means = np.array(self.descriptors[rows], dtype=np.float32)
+        inside = starts >= 0
+        if inside.any():
+            total = sum(np.asarray(self.descriptors[starts[inside] + k], dtype=np.float64) for k in range(self.length))
+            means[inside] = total / self.length
+        return means / np.maximum(np.linalg.norm(means, axis=1, keepdims=True), 1e-12)
+
+
 def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None):
     """A faiss index over the rows of ``descriptors`` (read a block at a time); IVF lists are trained on a seeded
     sample of ``TRAIN_PER_LIST`` rows a list."""
@@ -98,15 +124,19 @@ def _empty_index(faiss, spec: IndexSpec, dim: int):
     return faiss.IndexIVFFlat(quantizer, dim, spec.nlist)
 
 
-def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None) -> dict[str, Any]:
-    """Build the map's frame index and save it beside the descriptors: ``index.faiss`` first, then ``map.json``
-    naming it, each atomically (a map whose ``map.json`` names no index has none)."""
+def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0) -> dict[str, Any]:
+    """Build the map's index (over its frames, or with ``windows`` L over the smoothed windows of L frames) and
+    save it beside the descriptors: ``index.faiss`` first, then ``map.json`` naming it, each atomically (a map
+    whose ``map.json`` names no index has none)."""
     import faiss
 
+    if windows < 0:
+        raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
     started = time.perf_counter()
-    index = build_frame_index(saved.descriptors, spec, seed, progress)
-    record = {"spec": str(spec), "over": "frames", "file": INDEX_FILE, "ntotal": int(index.ntotal), "seed": seed,
-              "build_seconds": round(time.perf_counter() - started, 2)}
+    rows = WindowMeans(saved.descriptors, saved.frames.segment_ids, windows) if windows else saved.descriptors
+    index = build_frame_index(rows, spec, seed, progress)
+    record = {"spec": str(spec), "over": f"windows:{windows}" if windows else "frames", "file": INDEX_FILE,
+              "ntotal": int(index.ntotal), "seed": seed, "build_seconds": round(time.perf_counter() - started, 2)}
     fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
     os.close(fd)
     try:

@@ -106,12 +106,14 @@ def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedMo
 def shortlist_match(
     saved: SavedMap, frames: Traversal, method: str, settings: MatchSettings, shortlist: int, nprobe: int,
 ) -> MatchResult:
-    """Shortlisted frame matching: each query frame's ``shortlist`` nearest map frames by the map's faiss index
-    place candidate windows (``frame_shortlist``), which exact sequence distance re-ranks (``rerank``)."""
+    """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
+    (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
+    (``frame_shortlist``, up to L x S); over smoothed windows: each query window's ``shortlist`` nearest ones."""
     import numpy as np
     import torch
 
-    from seqvpr.maps.index import open_frame_index, search_frames
+    from seqvpr.maps.index import WindowMeans, open_frame_index, search_frames
+    from seqvpr.sequences.matching import TopK
     from seqvpr.sequences.hierarchical import frame_shortlist, rerank
     from seqvpr.sequences.windows import SequenceSpec, window_starts
 
@@ -120,9 +122,15 @@ def shortlist_match(
     query = torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32))
     if settings.normalize:
         query = torch.nn.functional.normalize(query, dim=1)
-    neighbours, _ = search_frames(open_frame_index(saved, nprobe), query.numpy(), shortlist)
     starts = window_starts(frames.segment_ids, spec.length, spec.offset, spec.boundary)
-    candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
+    index, over = open_frame_index(saved, nprobe), saved.info.index["over"]
+    if over == "frames":
+        neighbours, _ = search_frames(index, query.numpy(), shortlist)
+        candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
+    else:  # an index over smoothed windows: each query's own window mean finds its candidate frames directly
+        windows = WindowMeans(query.numpy(), frames.segment_ids, int(over.split(":")[1]))
+        neighbours, distances = search_frames(index, windows[:], shortlist)
+        candidates = TopK(neighbours, distances, starts >= 0)
     reference = torch.from_numpy(saved.descriptors)  # a view of the memory map: only candidate rows are read
     top = rerank(query, reference, candidates, spec, frames.segment_ids, saved.frames.segment_ids, k=settings.k)
     return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
