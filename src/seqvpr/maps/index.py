@@ -176,7 +176,10 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
 
 
 def search_frames(index, frames: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` nearest map frames of each row of ``frames`` [n, D]: rows [n, k] (-1 where none), distances."""
+    """The ``k`` nearest map frames of each row of ``frames`` [n, D]: rows [n, k] (-1 where none), distances. An
+    HNSW search looks at ``k`` candidates at least (its efSearch is raised to ``k``)."""
+    if hasattr(index, "hnsw") and index.hnsw.efSearch < k:
+        index.hnsw.efSearch = k
     squared, rows = index.search(np.ascontiguousarray(frames, dtype=np.float32), k)
     return rows.astype(np.int64), np.sqrt(np.maximum(squared.astype(np.float64), 0.0))
 
