@@ -8,7 +8,7 @@ Run from the repository root (CPU; about 15 minutes and 2 GB of disk in ``--work
 The data (there is no real 1M-frame traversal here): Nordland 64x32 summer and winter (frames 17-1999) are
 described with patch normalisation (2048-D), PCA-reduced to 256-D (fitted on summer, seeded) and L2-normalised.
 The map is the 1983 summer frames (the only true places) followed by distractor traversals up to N frames: each
-a copy of summer turned part-way towards a random rotation of itself (``cos t x + sin t R x``, t from 0.3 to 1.2
+a copy of summer turned part-way towards a random rotation of itself (``cos t x + sin t R x``, t from 0.7 to 1.4
 rad, renormalised; a segment of its own), so sequences are as smooth as real ones and some look much alike. The
 query is winter frames 500-1499 (1,000 frames); a query is right at K when one of its K best map frames is its
 summer frame within one frame. Each size's map gets each index of ``--indexes`` twice: over frames (each query frame's
@@ -48,6 +48,7 @@ from seqvpr.pipeline import MatchSettings, describe
 from seqvpr.sequences.windows import SequenceSpec
 
 DIM, LENGTH, K = 256, 5, 20
+TURNS = (0.7, 1.4)  # radians a distractor copy is turned towards its rotation
 QUERY_FRAMES = (500, 1500)
 
 
@@ -64,12 +65,12 @@ def nordland_256(data: Path) -> tuple[np.ndarray, np.ndarray]:
 def write_distractor_map(folder: Path, summer: np.ndarray, n: int, seed: int = 0) -> None:
     """A map of N frames: the summer traversal (the true places), then distractor traversals, each the summer
     frames turned part-way towards a random rotation of themselves (``cos t x + sin t R x``, t drawn from
-    0.3-1.2 rad per copy, renormalised): sequences as smooth as real ones, of places that look more or less alike."""
+    0.7-1.4 rad per copy, renormalised): sequences as smooth as real ones, of places that look more or less alike."""
     rng = np.random.default_rng(seed)
     blocks, made = [summer], len(summer)
     while made < n:
         rotation, _ = np.linalg.qr(rng.standard_normal((DIM, DIM)))
-        turn = rng.uniform(0.3, 1.2)
+        turn = rng.uniform(*TURNS)
         copy = np.cos(turn) * summer + np.sin(turn) * (summer @ rotation.T.astype(np.float32))
         blocks.append((copy / np.linalg.norm(copy, axis=1, keepdims=True)).astype(np.float32))
         made += len(summer)
@@ -108,7 +109,7 @@ def run_rows(saved, query: Traversal, gt: GroundTruth, exact_top1: np.ndarray | 
 
 
 def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: list[str], shortlist: int,
-            nprobe: int) -> list[dict]:
+            nprobe: int, both: bool = True) -> list[dict]:
     folder = work / f"map_{n}"
     if not (folder / "map.json").exists():
         write_distractor_map(folder, summer, n)
@@ -120,7 +121,7 @@ def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: l
     rows = [run_rows(saved, query, gt, None, "exact", 0, nprobe)]
     rows[0]["build"] = 0.0
     for spec in specs:
-        for windows, per in ((0, shortlist), (LENGTH, shortlist * LENGTH)):  # the same number of candidates
+        for windows, per in ((0, shortlist), (LENGTH, shortlist * LENGTH))[: 2 if both else 1]:  # equal candidates
             record = add_index(saved, parse_index_spec(spec), seed=0, windows=windows)
             label = f"{spec} over {record['over']}, S = {per}"
             row = run_rows(load_map(folder), query, gt, rows[0]["top1"], label, per, nprobe)
@@ -147,17 +148,18 @@ def main() -> None:
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--sizes", default="100000,1000000")
-    parser.add_argument("--indexes", default="ivf:1024,ivf:1024+pq:32,hnsw:16",
+    parser.add_argument("--indexes", default="ivf:4096,ivf:4096+pq:32,hnsw:16",
                         help="Index specs separated by commas; '+' stands for the comma inside one spec.")
     parser.add_argument("--shortlist", type=int, default=20, help="Nearest map frames a query frame contributes.")
     parser.add_argument("--nprobe", type=int, default=16)
+    parser.add_argument("--over", choices=("both", "frames"), default="both", help="Index frames and windows, or frames.")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     summer, winter = nordland_256(args.data)
     specs = [s.replace("+", ",") for s in args.indexes.split(",")]
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
-        rows += measure(args.work, summer, winter, n, specs, args.shortlist, args.nprobe)
+        rows += measure(args.work, summer, winter, n, specs, args.shortlist, args.nprobe, args.over == "both")
         print(table(rows), flush=True)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     text = (f"{cpu_model()}, {torch.get_num_threads()} threads; 1,000 queries, D = {DIM}, L = {LENGTH}, top-{K}, "
