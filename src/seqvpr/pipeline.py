@@ -191,6 +191,8 @@ def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
         raise SeqvprError(f"dtype must be float32 or float64, got {settings.dtype!r}")
     try:
         array = traversal.descriptors
+        if not isinstance(array, np.ndarray):  # a saved map's coded rows, decoded
+            array = array[:]
         array = np.ascontiguousarray(array) if array.flags.writeable else np.array(array)  # a read-only map: a copy
         tensor = torch.as_tensor(array, dtype=dtype).to(settings.device)
     except (RuntimeError, AssertionError) as error:
@@ -198,6 +200,11 @@ def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
     if settings.normalize:
         tensor = torch.nn.functional.normalize(tensor, dim=1)
     return tensor
+
+
+def stored_rows(descriptors) -> bool:
+    """Whether descriptors are a saved map's rows (memory-mapped, or coded), read by the kernel chunk by chunk."""
+    return isinstance(descriptors, np.memmap) or (descriptors is not None and not isinstance(descriptors, np.ndarray))
 
 
 def match_traversals(
@@ -209,7 +216,7 @@ def match_traversals(
     """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments).
     A memory-mapped reference (a saved map's) is read chunk by chunk, as stored: ``seqvpr.maps`` checks that it
     was normalised as ``settings`` ask."""
-    ref = reference.descriptors if isinstance(reference.descriptors, np.memmap) else _as_tensor(reference, settings)
+    ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
     qry = _as_tensor(query, settings)
     if ref.shape[1] != qry.shape[1]:
         raise SeqvprError(

@@ -89,3 +89,17 @@ def test_broken_maps_are_one_line_errors(sources, tmp_path):
     raises_one_line("segments.npy: holds int64 (3,), the map needs int64 (80,)", open_map, folder)
     (folder / "segments.npy").unlink()
     raises_one_line("segments.npy: missing map file", open_map, folder)
+
+
+def test_sq8_stores_a_quarter_and_decodes_within_half_a_step(sources, tmp_path):
+    ref = sources[0]
+    wide, coded = build_map([str(ref)], tmp_path / "f32"), build_map([str(ref)], tmp_path / "sq8", dtype="sq8")
+    assert np.load(tmp_path / "sq8" / "descriptors.npy", mmap_mode="r").dtype == np.uint8
+    assert coded.descriptors.nbytes * 4 == wide.descriptors.nbytes
+    offset, step = np.load(tmp_path / "sq8" / "quantizer.npy")
+    decoded = coded.descriptors[:]
+    assert decoded.dtype == np.float32 and decoded.shape == (80, 12)
+    assert np.abs(decoded - wide.descriptors).max() <= step.max() / 2 + 1e-6
+    np.testing.assert_array_equal(coded.descriptors[np.array([3, 70])], decoded[[3, 70]])
+    (tmp_path / "sq8" / "quantizer.npy").unlink()
+    raises_one_line("quantizer.npy: missing map file", open_map, tmp_path / "sq8")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from seqvpr.data.sources import load_traversal, save_traversal_npz
-from seqvpr.maps import FrameDescription, build_map, match_map
+from seqvpr.maps import FrameDescription, build_map, load_map, match_map
 from seqvpr.methods import METHODS, describe_for_models, run_method
 from seqvpr.models.configs import JistConfig, TransformConfig
 from seqvpr.models.jist import build_jist, save_jist
@@ -106,3 +106,17 @@ def test_mismatched_queries_and_models_are_one_line_errors(route, tmp_path):
     raises_one_line("has 8-D descriptors", match_map, plain, narrow, "matching", SETTINGS)
     raises_one_line("holds normalised descriptors", match_map, plain, query, "matching",
                     replace(SETTINGS, normalize=False))
+
+
+def test_an_sq8_map_ranks_as_the_float32_one_exactly_and_shortlisted(route, tmp_path):
+    from seqvpr.maps.index import IndexSpec, add_index
+
+    query = load_traversal(route / "qry.npz", "query")
+    wide = match_map(build_map([str(route / "ref.npz")], tmp_path / "a"), query, "matching", SETTINGS)
+    coded = build_map([str(route / "ref.npz")], tmp_path / "b", dtype="sq8")
+    exact = match_map(coded, query, "matching", replace(SETTINGS, memory_budget=2 * 4 * 130 * 40))
+    assert (exact.topk.indices[:, 0] == wide.topk.indices[:, 0]).mean() > 0.95
+    add_index(coded, IndexSpec("flat"))
+    shortlisted = match_map(load_map(tmp_path / "b"), query, "matching", SETTINGS, shortlist=120)
+    np.testing.assert_array_equal(shortlisted.topk.indices[:, 0], exact.topk.indices[:, 0])
+    assert (match_map(coded, query, "seqgem", SETTINGS).topk.indices[:, 0] >= 0).any()  # decoded for retrieval

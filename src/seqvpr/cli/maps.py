@@ -41,8 +41,9 @@ def map_group() -> None:
               help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform "
                    "the stored frames go through (repeatable, one per kind); match the map with the same ones.")
 @extraction_options
-@click.option("--dtype", type=click.Choice(["float32", "float16"]), default="float32", show_default=True,
-              help="How the descriptors are stored (float16 halves the map).")
+@click.option("--dtype", type=click.Choice(["float32", "float16", "sq8"]), default="float32", show_default=True,
+              help="How the descriptors are stored: float16 halves the map, sq8 (8-bit codes, per-dimension range) "
+                   "quarters it; matching decodes them.")
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
 @click.option("--index", "index_spec", help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)

@@ -145,8 +145,8 @@ def _check_descriptors(traversal: Traversal, descriptors: np.ndarray) -> None:
         raise SeqvprError(f"{traversal._label()}: descriptors have dimension 0")
     if not np.issubdtype(descriptors.dtype, np.floating):
         raise SeqvprError(f"{traversal._label()}: descriptors must be floating point, got {descriptors.dtype}")
-    if isinstance(descriptors, np.memmap):
-        return  # a saved map's rows were checked when it was written; reading them all here would load the map
+    if isinstance(descriptors, np.memmap) or not isinstance(descriptors, np.ndarray):
+        return  # a saved map's rows (memory-mapped or coded) were checked when it was written: not loaded here
     finite = np.isfinite(descriptors).all(axis=1)
     if not finite.all():
         row = int(np.flatnonzero(~finite)[0])

@@ -131,7 +131,8 @@ def shortlist_match(
         windows = WindowMeans(query.numpy(), frames.segment_ids, int(over.split(":")[1]))
         neighbours, distances = search_frames(index, windows[:], shortlist)
         candidates = TopK(neighbours, distances, starts >= 0)
-    reference = torch.from_numpy(saved.descriptors)  # a view of the memory map: only candidate rows are read
+    stored = saved.descriptors  # only candidate rows are read: a view of the memory map, or coded rows decoded
+    reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
     top = rerank(query, reference, candidates, spec, frames.segment_ids, saved.frames.segment_ids, k=settings.k)
     return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
 

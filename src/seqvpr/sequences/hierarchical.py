@@ -68,14 +68,16 @@ def _candidate_distances(
 ) -> np.ndarray:
     """Sequence distances [b, K] between each query window and its candidate windows (start -1: +inf): one numba
     pass over the rows on CPU, a gather of the windows elsewhere."""
-    cpu = query.device.type == "cpu" and reference.device.type == "cpu"
-    if cpu and not query.requires_grad and reference.dtype in (torch.float32, torch.float64):
+    tensor = isinstance(reference, torch.Tensor)
+    if (tensor and query.device.type == "cpu" and reference.device.type == "cpu" and not query.requires_grad
+            and reference.dtype in (torch.float32, torch.float64)):
         from seqvpr.sequences._fused import window_distances
 
         return window_distances(query.numpy(), reference.numpy(), q_starts, r_starts, length)
     q_windows = query[torch.as_tensor(window_frames(q_starts, length), device=query.device)]  # [b, L, D]
     r_frames = window_frames(np.maximum(r_starts, 0).reshape(-1), length).reshape(*r_starts.shape, length)
-    r_windows = reference[torch.as_tensor(r_frames, device=reference.device)].to(query.device, query.dtype)
+    gathered = reference[torch.as_tensor(r_frames, device=reference.device)] if tensor else reference[r_frames]
+    r_windows = torch.as_tensor(gathered).to(query.device, query.dtype)
     return aligned_sequence_distances(q_windows[:, None], r_windows).double().cpu().numpy()
 
 

@@ -11,6 +11,7 @@ within a memory budget and keeps only the K best references per query.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass
 
 import numpy as np
@@ -271,8 +272,9 @@ def sequence_topk(
     return TopK(indices, distances, q_starts >= 0)
 
 
-#: reference rows ``sequence_topk`` reads: a tensor, or an array (an ``np.memmap`` is read chunk by chunk)
-ReferenceRows = torch.Tensor | np.ndarray
+#: reference rows ``sequence_topk`` reads: a tensor, an array (an ``np.memmap`` is read chunk by chunk), or any
+#: object whose slices are float arrays (a saved map's coded rows)
+ReferenceRows = torch.Tensor | np.ndarray | Any
 MIN_CHUNK = 8192  # reference columns a chunk keeps before query blocks are made smaller
 MIN_ROWS = 256  # query rows a block needs for an efficient GEMM; fewer, and the reference is chunked instead
 #: blocks larger than this are slower, not faster (cache misses, page faults of fresh allocations): a larger budget
@@ -281,7 +283,9 @@ BLOCK_BYTES = 128 * 1024**2
 
 
 def _in_memory(reference: ReferenceRows) -> bool:
-    return not isinstance(reference, np.memmap)
+    """A tensor or a plain array; a memory map or coded rows (anything else indexable) are read in chunks."""
+    return isinstance(reference, torch.Tensor) or (isinstance(reference, np.ndarray)
+                                                    and not isinstance(reference, np.memmap))
 
 
 def block_shape(
