@@ -304,6 +304,8 @@ def block_shape(
         return int(min(whole, n_q)), n_r
     columns = min(n_r, MIN_CHUNK)
     rows = min(n_q, cells // (columns + halo) - 2 * (length - 1))
+    if whole >= 1 and (columns == n_r or rows <= whole):  # chunks would not give larger blocks
+        return int(min(whole, n_q)), n_r
     if rows < 1:  # a small budget: one query row over as many columns as fit
         columns = min(n_r, cells // (1 + 2 * (length - 1)) - halo)
         if columns < 1:
@@ -330,23 +332,24 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns) -> tuple[np
         block = _reference_block(reference, lo, hi, query)
         rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace)
         rows = rows[:, first - lo : last - lo]
-        _merge_topk(rows, first, values, picked)
+        merge_topk(rows, first, values, picked)
     all_values = np.full((len(starts), k), np.inf)
     all_picked = np.full((len(starts), k), -1, dtype=np.int64)
     all_values[valid], all_picked[valid] = values, picked
     return all_values, all_picked
 
 
-def _merge_topk(rows: torch.Tensor, first: int, values: np.ndarray, picked: np.ndarray) -> None:
-    """Merge a chunk's sequence distances into the running top-K (in place): one numba scan on CPU; elsewhere the
-    chunk's own top-K, then a stable merge that keeps the lower row on ties."""
-    if rows.device.type == "cpu":
+def merge_topk(rows: torch.Tensor, first: int, values: np.ndarray, picked: np.ndarray, scan: bool | None = None) -> None:
+    """Merge a chunk's sequence distances into the running top-K (in place): one numba scan (``scan``, the default
+    on CPU); else the chunk's own top-K, then a stable merge that keeps the lower row on ties (same result)."""
+    if scan if scan is not None else rows.device.type == "cpu":
         from seqvpr.sequences._fused import topk_update_
 
         topk_update_(rows.numpy(), first, values, picked)
         return
     k = min(values.shape[1], rows.shape[1])
-    chunk_values, chunk_rows = torch.topk(rows, k, dim=1, largest=False, sorted=True)
+    chunk_values, chunk_rows = torch.sort(rows, dim=1, stable=True)  # ties in row order, as the scan keeps them
+    chunk_values, chunk_rows = chunk_values[:, :k], chunk_rows[:, :k]
     both_values = np.concatenate([values, chunk_values.double().cpu().numpy()], 1)
     both_rows = np.concatenate([picked, chunk_rows.cpu().numpy() + first], 1)
     both_rows[~np.isfinite(both_values)] = np.iinfo(np.int64).max
