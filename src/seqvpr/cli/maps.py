@@ -24,10 +24,8 @@ INDEX_HELP = ("faiss index over the frames, for --shortlist: flat (exact), hnsw:
               "ivf:NLIST[,pq:M] (k-means lists, raw or M-byte PQ codes, e.g. ivf:1024,pq:32).")
 
 
-WINDOWS_HELP = ("Index the windows of this many frames (see --window-pool) instead of single frames: one search "
-                "per query window (0: frames).")
-POOL_HELP = ("How a window is indexed: mean (smoothing, D-dim) or concat (the L frames side by side, L*D-dim, ranks "
-             "nearly as sequence matching; pair it with ivf:N,pq:M).")
+WINDOWS_HELP = ("Index the smoothed windows of this many frames (their L2-normalised mean) instead of single "
+                "frames: one search per query window, far fewer missed places on hard data (0: frames).")
 
 
 @click.group(name="map")
@@ -49,13 +47,10 @@ def map_group() -> None:
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
 @click.option("--index", "index_spec", help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
-@click.option("--window-pool", type=click.Choice(["mean", "concat"]), default="mean", show_default=True,
-              help=POOL_HELP)
 @click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
-          no_normalize: bool, index_spec: str | None, windows: int, window_pool: str, seed: int, device: str,
-          **o: Any) -> None:
+          no_normalize: bool, index_spec: str | None, windows: int, seed: int, device: str, **o: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
     from seqvpr.maps import build_map
     from seqvpr.maps.index import add_index, parse_index_spec
@@ -69,23 +64,21 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
     if spec is not None:
-        _echo_index(add_index(saved, spec, seed, tqdm_progress, windows, window_pool))
+        _echo_index(add_index(saved, spec, seed, tqdm_progress, windows))
 
 
 @map_group.command(name="index")
 @click.argument("map_dir", type=click.Path())
 @click.option("--index", "index_spec", required=True, help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
-@click.option("--window-pool", type=click.Choice(["mean", "concat"]), default="mean", show_default=True,
-              help=POOL_HELP)
 @click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
-def index_command(map_dir: str, index_spec: str, windows: int, window_pool: str, seed: int) -> None:
+def index_command(map_dir: str, index_spec: str, windows: int, seed: int) -> None:
     """Build (or rebuild) MAP's faiss index over its frames, for seqvpr match --map MAP --shortlist S."""
     from seqvpr.maps import open_map
     from seqvpr.maps.index import add_index, parse_index_spec
 
     spec = parse_index_spec(index_spec)
-    _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress, windows, window_pool))
+    _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress, windows))
 
 
 def _echo_index(record: dict) -> None:

@@ -62,37 +62,29 @@ def _positive(value: str, text: str, least: int = 1) -> int:
     return int(value)
 
 
-WINDOW_POOLS = ("mean", "concat")
+class WindowMeans:
+    """Rows of a (memory-mapped) descriptor matrix replaced by the L2-normalised mean of their centred window of
+    ``length`` frames (smoothing); a frame without a window in its segment keeps its own descriptor. Indexable by
+    slices and row arrays, computed on access: an index over windows is built without a second copy of the map."""
 
-
-class WindowRows:
-    """Rows of a (memory-mapped) descriptor matrix replaced by their centred window of ``length`` frames: the
-    L2-normalised mean (``mean``, smoothing) or the L frames side by side (``concat``, [L * D]: its squared
-    distance is the sum of the frames' squared distances, so it ranks nearly as sequence matching does). A frame
-    without a window in its segment stands for all L. Indexable by slices and row arrays, computed on access: an
-    index over windows is built without a second copy of the map."""
-
-    def __init__(self, descriptors, segments: np.ndarray, length: int, pool: str = "mean") -> None:
+    def __init__(self, descriptors: np.ndarray, segments: np.ndarray, length: int) -> None:
         from seqvpr.sequences.windows import window_starts
 
-        if pool not in WINDOW_POOLS:
-            raise SeqvprError(f"window pool {pool!r} is not known (choose from: {', '.join(WINDOW_POOLS)})")
-        self.descriptors, self.length, self.pool = descriptors, int(length), pool
+        self.descriptors, self.length = descriptors, int(length)
         self.starts = window_starts(np.asarray(segments), self.length, self.length // 2, "drop")
-        dim = descriptors.shape[1]
-        self.shape = (descriptors.shape[0], dim * self.length if pool == "concat" else dim)
+        self.shape = descriptors.shape
 
     def __len__(self) -> int:
         return self.shape[0]
 
     def __getitem__(self, key) -> np.ndarray:
         rows = np.arange(self.shape[0])[key]
-        starts = np.where(self.starts[rows] >= 0, self.starts[rows], -1)
-        frames = [np.asarray(self.descriptors[np.where(starts >= 0, starts + k, rows)], dtype=np.float32)
-                  for k in range(self.length)]
-        if self.pool == "concat":
-            return np.concatenate(frames, axis=1)
-        means = np.mean(frames, axis=0, dtype=np.float64).astype(np.float32)
+        starts = self.starts[rows]
+        means = np.array(self.descriptors[rows], dtype=np.float32)
+        inside = starts >= 0
+        if inside.any():
+            total = sum(np.asarray(self.descriptors[starts[inside] + k], dtype=np.float64) for k in range(self.length))
+            means[inside] = total / self.length
         return means / np.maximum(np.linalg.norm(means, axis=1, keepdims=True), 1e-12)
 
 
@@ -132,10 +124,8 @@ def _empty_index(faiss, spec: IndexSpec, dim: int):
     return faiss.IndexIVFFlat(quantizer, dim, spec.nlist)
 
 
-def add_index(
-    saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0, pool: str = "mean",
-) -> dict[str, Any]:
-    """Build the map's index (over its frames, or with ``windows`` L over windows of L frames, ``pool``ed) and
+def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0) -> dict[str, Any]:
+    """Build the map's index (over its frames, or with ``windows`` L over the smoothed windows of L frames) and
     save it beside the descriptors: ``index.faiss`` first, then ``map.json`` naming it, each atomically (a map
     whose ``map.json`` names no index has none)."""
     import faiss
@@ -143,10 +133,9 @@ def add_index(
     if windows < 0:
         raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
     started = time.perf_counter()
-    rows = WindowRows(saved.descriptors, saved.frames.segment_ids, windows, pool) if windows else saved.descriptors
+    rows = WindowMeans(saved.descriptors, saved.frames.segment_ids, windows) if windows else saved.descriptors
     index = build_frame_index(rows, spec, seed, progress)
-    over = (f"windows:{windows}" if pool == "mean" else f"{pool}:{windows}") if windows else "frames"
-    record = {"spec": str(spec), "over": over, "file": INDEX_FILE,
+    record = {"spec": str(spec), "over": f"windows:{windows}" if windows else "frames", "file": INDEX_FILE,
               "ntotal": int(index.ntotal), "seed": seed, "build_seconds": round(time.perf_counter() - started, 2)}
     fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
     os.close(fd)
@@ -176,11 +165,9 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
         index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP | faiss.IO_FLAG_READ_ONLY)
     except RuntimeError as error:
         raise SeqvprError(f"{path}: unreadable faiss index ({str(error).splitlines()[0][:120]})") from None
-    over = record.get("over", "frames")
-    dim = saved.info.dim * (int(over.split(":")[1]) if over.startswith("concat:") else 1)
-    if index.ntotal != saved.info.count or index.d != dim:
-        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map needs {saved.info.count} "
-                          f"of {dim}-D")
+    if index.ntotal != saved.info.count or index.d != saved.info.dim:
+        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map {saved.info.count} of "
+                          f"{saved.info.dim}-D")
     if hasattr(index, "nprobe"):
         index.nprobe = nprobe
     if hasattr(index, "hnsw"):

@@ -108,12 +108,11 @@ def shortlist_match(
 ) -> MatchResult:
     """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
     (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
-    (``frame_shortlist``, up to L x S); over windows (smoothed or concatenated): each query window's ``shortlist``
-    nearest ones."""
+    (``frame_shortlist``, up to L x S); over smoothed windows: each query window's ``shortlist`` nearest ones."""
     import numpy as np
     import torch
 
-    from seqvpr.maps.index import WindowRows, open_frame_index, search_frames
+    from seqvpr.maps.index import WindowMeans, open_frame_index, search_frames
     from seqvpr.sequences.matching import TopK
     from seqvpr.sequences.hierarchical import frame_shortlist, rerank
     from seqvpr.sequences.windows import SequenceSpec, window_starts
@@ -128,9 +127,8 @@ def shortlist_match(
     if over == "frames":
         neighbours, _ = search_frames(index, query.numpy(), shortlist)
         candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
-    else:  # an index over windows: each query's own window finds its candidate frames directly
-        pool, length = over.split(":")
-        windows = WindowRows(query.numpy(), frames.segment_ids, int(length), "mean" if pool == "windows" else pool)
+    else:  # an index over smoothed windows: each query's own window mean finds its candidate frames directly
+        windows = WindowMeans(query.numpy(), frames.segment_ids, int(over.split(":")[1]))
         neighbours, distances = search_frames(index, windows[:], shortlist)
         candidates = TopK(neighbours, distances, starts >= 0)
     stored = saved.descriptors  # only candidate rows are read: a view of the memory map, or coded rows decoded
