@@ -29,3 +29,14 @@ def run_cli(monkeypatch, capsys, *args) -> tuple[int, str, str]:
         code = exit_.code or 0
     out, err = capsys.readouterr()
     return code, out, err
+
+
+def write_route_files(folder, n_frames: int, dim: int, seed: int):
+    """A synthetic route's reference and query as traversal files ``ref.npz`` and ``qry.npz`` in ``folder``."""
+    from seqvpr.data.sources import save_traversal_npz
+    from seqvpr.synthetic.routes import generate_route
+
+    reference, query = generate_route(n_frames=n_frames, dim=dim, seed=seed)
+    save_traversal_npz(folder / "ref.npz", reference)
+    save_traversal_npz(folder / "qry.npz", query)
+    return folder

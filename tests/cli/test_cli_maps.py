@@ -6,17 +6,12 @@ import json
 
 import pytest
 
-from seqvpr.data.sources import save_traversal_npz
-from seqvpr.synthetic.routes import generate_route
-from tests.helpers import run_cli
+from tests.helpers import run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("route")
-    reference, query = generate_route(n_frames=100, dim=16, seed=5)
-    save_traversal_npz(folder / "ref.npz", reference)
-    save_traversal_npz(folder / "qry.npz", query)
+    folder = write_route_files(tmp_path_factory.mktemp("route"), 100, 16, 5)
     return folder
 
 

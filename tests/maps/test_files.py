@@ -7,21 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from seqvpr.data.sources import save_traversal_npz
+from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps import build_map, open_map
 from seqvpr.maps.files import concatenate_traversals
-from seqvpr.synthetic.routes import generate_route
-from tests.helpers import raises_one_line
+from tests.helpers import raises_one_line, write_route_files
 
 
 @pytest.fixture(scope="module")
 def sources(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("sources")
-    reference, query = generate_route(n_frames=80, dim=12, seed=2)
-    save_traversal_npz(folder / "ref.npz", reference)
-    save_traversal_npz(folder / "qry.npz", query)
-    return folder / "ref.npz", folder / "qry.npz", reference
+    folder = write_route_files(tmp_path_factory.mktemp("sources"), 80, 12, 2)
+    return folder / "ref.npz", folder / "qry.npz", load_traversal(folder / "ref.npz", "reference")
 
 
 def test_a_map_holds_the_normalised_frames_memory_mapped_with_their_table(sources, tmp_path):

@@ -8,25 +8,21 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.data.sources import load_traversal, save_traversal_npz
+from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, load_map, match_map
 from seqvpr.maps.index import IndexSpec, WindowMeans, add_index, open_frame_index, parse_index_spec, search_frames
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.pipeline import MatchSettings, ground_truth
 from seqvpr.sequences.hierarchical import frame_shortlist
 from seqvpr.sequences.windows import SequenceSpec, window_starts
-from seqvpr.synthetic.routes import generate_route
-from tests.helpers import raises_one_line
+from tests.helpers import raises_one_line, write_route_files
 
 SETTINGS = MatchSettings(SequenceSpec(5), k=10)
 
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("route")
-    reference, query = generate_route(n_frames=300, dim=16, seed=6)
-    save_traversal_npz(folder / "ref.npz", reference)
-    save_traversal_npz(folder / "qry.npz", query)
+    folder = write_route_files(tmp_path_factory.mktemp("route"), 300, 16, 6)
     return folder
 
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from seqvpr.data.sources import load_traversal, save_traversal_npz
+from seqvpr.data.sources import load_traversal
 from seqvpr.maps import FrameDescription, build_map, load_map, match_map
 from seqvpr.methods import METHODS, describe_for_models, run_method
 from seqvpr.models.configs import JistConfig, TransformConfig
@@ -19,9 +19,8 @@ from seqvpr.models.seqnet import save_seqnet
 from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.synthetic.routes import generate_route
 from seqvpr.synthetic.world import write_demo_world
-from tests.helpers import raises_one_line
+from tests.helpers import raises_one_line, write_route_files
 
 SETTINGS = MatchSettings(SequenceSpec(5), k=10)
 #: the models each method is run with (hvpr: SeqNet shortlist, SeqMatchNet re-ranking)
@@ -30,10 +29,7 @@ METHOD_MODELS = {"seqmatchnet": ("seqmatchnet",), "seqnet": ("seqnet",), "hvpr":
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("route")
-    reference, query = generate_route(n_frames=120, dim=16, seed=4)
-    save_traversal_npz(folder / "ref.npz", reference)
-    save_traversal_npz(folder / "qry.npz", query)
+    folder = write_route_files(tmp_path_factory.mktemp("route"), 120, 16, 4)
     save_seqmatchnet(folder / "smn", FrameTransform(TransformConfig(16), seed=1), {"sequence": {"length": 5}})
     save_seqnet(folder / "seqnet", SeqNet(16, 16, 3), {"sequence": {"length": 5}})
     return folder
