@@ -101,8 +101,9 @@ def build_map(
     frames: str | None = None,
     **extraction: Any,
 ) -> SavedMap:
-    """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames through a SeqMatchNet model if given, L2-normalise them (as matching
-    does) unless told not to, and save them as one map (each source its own segments)."""
+    """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames
+    through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
+    as one map (each source its own segments)."""
     models = dict(models or {})
     unusable = [kind for kind in models if kind not in STORED_KINDS]
     if unusable:
@@ -114,11 +115,12 @@ def build_map(
         described.append(transformed_frames(traversal, traversal, models, device)[0])
     whole = concatenate_traversals(described, Path(out).name)
     assert whole.descriptors is not None
-    vectors = np.asarray(whole.descriptors, dtype=np.float32)
-    if normalize:
+    vectors = np.require(whole.descriptors, dtype=np.float32, requirements=["C", "W"])  # no copy if it is one
+    if normalize:  # in place, by the same torch operation matching applies to a reference (identical rows)
         import torch
 
-        vectors = torch.nn.functional.normalize(torch.from_numpy(vectors), dim=1).numpy()
+        rows = torch.from_numpy(vectors)
+        torch.nn.functional.normalize(rows, dim=1, out=rows)
     recorded = description.descriptor if image_model(models) is None else image_model(models).kind
     info = MapInfo(len(whole), int(vectors.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},

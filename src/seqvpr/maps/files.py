@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +111,9 @@ def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Tr
     dims = {t.descriptors.shape[1] for t in traversals if t.descriptors is not None}
     if any(t.descriptors is None for t in traversals) or len(dims) != 1:
         raise SeqvprError(f"map sources must all be described with one dimension, got {sorted(dims)}")
+    if len(traversals) == 1:  # one source: its arrays as they are (a 1M-frame map is not copied)
+        only = traversals[0]
+        return replace(only, name=name, segment_ids=np.unique(only.segment_ids, return_inverse=True)[1], source=name)
     segments, offset = [], 0
     for t in traversals:
         segments.append(np.unique(t.segment_ids, return_inverse=True)[1] + offset)
