@@ -14,12 +14,20 @@ from typing import IO
 from seqvpr.errors import SeqvprError
 
 
+def current_umask() -> int:
+    """The process's umask (read by setting it and setting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[IO]:
     """Open a temporary file next to ``path``; on success rename it over ``path``, on error delete it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    os.chmod(tmp, 0o666 & ~current_umask())  # what open() would have given, not mkstemp's private 0600
     try:
         with os.fdopen(fd, mode, **open_kwargs) as handle:
             yield handle
@@ -39,6 +47,7 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
         raise SeqvprError(f"{path} exists and is not a folder; not replacing it")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~current_umask())  # what mkdir would have given, not mkdtemp's private 0700
     try:
         yield tmp
         _replace_folder(tmp, path)

@@ -68,7 +68,10 @@ def test_broken_maps_are_one_line_errors(sources, tmp_path):
     info = folder / "map.json"
     good = info.read_text()
     info.write_text(good.replace('"version": 1', '"version": 9'))
-    raises_one_line("version 9 is not known", open_map, folder)
+    message = raises_one_line("version 9 is not known", open_map, folder)
+    assert "malformed" not in message
+    info.write_text(good.replace('"sources"', '"origins"'))
+    raises_one_line("malformed map description (KeyError", open_map, folder)
     info.write_text(good.replace('"seqvpr-map"', '"other"'))
     raises_one_line("not a seqvpr map", open_map, folder)
     info.write_text("{")
@@ -99,3 +102,19 @@ def test_sq8_stores_a_quarter_and_decodes_within_half_a_step(sources, tmp_path):
     np.testing.assert_array_equal(coded.descriptors[np.array([3, 70])], decoded[[3, 70]])
     (tmp_path / "sq8" / "quantizer.npy").unlink()
     raises_one_line("quantizer.npy: missing map file", open_map, tmp_path / "sq8")
+
+
+def test_map_files_take_the_umask_mode_not_a_private_one(sources, tmp_path):
+    import os
+
+    from seqvpr.maps.index import IndexSpec, add_index
+
+    old = os.umask(0o022)
+    try:
+        saved = build_map([str(sources[0])], tmp_path / "m")
+        add_index(saved, IndexSpec("flat"))
+    finally:
+        os.umask(old)
+    assert (tmp_path / "m").stat().st_mode & 0o777 == 0o755
+    for name in ("map.json", "descriptors.npy", "index.faiss"):
+        assert (tmp_path / "m" / name).stat().st_mode & 0o777 == 0o644, name

@@ -187,15 +187,19 @@ def read_map_info(folder: str | Path) -> MapInfo:
         raise SeqvprError(f"{folder}: not a seqvpr map (no {INFO_FILE}; a half-built map has none)")
     try:
         values = json.loads(path.read_text())
-        if values.get("format") != MAP_FORMAT:
-            raise SeqvprError(f"{path}: not a seqvpr map (format {values.get('format')!r})")
-        if values.get("version") != MAP_VERSION:
-            raise SeqvprError(f"{path}: map format version {values.get('version')!r} is not known "
-                              f"(this seqvpr reads version {MAP_VERSION})")
+        kind, version = values.get("format"), values.get("version")
+    except (ValueError, AttributeError) as error:
+        raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
+    if kind != MAP_FORMAT:
+        raise SeqvprError(f"{path}: not a seqvpr map (format {kind!r})")
+    if version != MAP_VERSION:
+        raise SeqvprError(f"{path}: map format version {version!r} is not known (this seqvpr reads version "
+                          f"{MAP_VERSION})")
+    try:
         values["sources"] = tuple(MapSource(**s) for s in values["sources"])
         values["columns"] = tuple(values.get("columns", ()))
         return MapInfo(**values)
-    except (ValueError, TypeError, KeyError, AttributeError) as error:
+    except (TypeError, KeyError, AttributeError) as error:
         raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
 
 

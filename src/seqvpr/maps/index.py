@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from seqvpr.errors import SeqvprError
-from seqvpr.io import atomic_write
+from seqvpr.io import atomic_write, current_umask
 from seqvpr.maps.files import INFO_FILE, SavedMap, read_map_info
 
 INDEX_FILE = "index.faiss"
@@ -139,6 +139,7 @@ def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, wi
               "ntotal": int(index.ntotal), "seed": seed, "build_seconds": round(time.perf_counter() - started, 2)}
     fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~current_umask())
     try:
         faiss.write_index(index, tmp)
         os.replace(tmp, saved.folder / INDEX_FILE)
