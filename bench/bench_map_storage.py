@@ -1,4 +1,5 @@
-"""Compact maps on real data: bytes per frame against Recall@1 for float32, float16 and sq8 (8-bit codes) maps.
+"""Compact maps on real data: bytes per frame against Recall@1 for float32, float16, sq8 (8-bit codes) and pq:M
+(product-quantised, M bytes a frame) maps.
 
 Run from the repository root (CPU, under a minute; needs ../shared/data):
 
@@ -23,6 +24,7 @@ except ImportError:  # running from a checkout without an installed package
 from seqvpr.data.groundtruth import parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import slice_frame_range
+from seqvpr.errors import SeqvprError
 from seqvpr.maps import build_map, match_map
 from seqvpr.pipeline import MatchSettings, describe, evaluate_match, ground_truth
 from seqvpr.sequences.windows import SequenceSpec
@@ -50,8 +52,13 @@ def main() -> None:
     lines = ["| dataset | storage | bytes / frame | " + " | ".join(f"R@1 L={n}" for n in LENGTHS) + " |",
              "|---|---|---:|" + "---:|" * len(LENGTHS)]
     for name, (source, query, radius, frames) in datasets(args.data).items():
-        for dtype in ("float32", "float16", "sq8"):
-            saved = build_map([source], args.work / f"{name.split()[0]}-{dtype}", dtype=dtype, frames=frames)
+        for dtype in ("float32", "float16", "sq8", "pq:256", "pq:64"):
+            try:
+                saved = build_map([source], args.work / f"{name.split()[0]}-{dtype.replace(':', '')}", dtype=dtype,
+                                  frames=frames)
+            except SeqvprError as error:  # PQ codebooks need 256 frames: Gardens Point has 200
+                lines.append(f"| {name} | {dtype} | – | " + " | ".join("–" for _ in LENGTHS) + f" | ({error})")
+                continue
             gt = ground_truth(saved.frames, query, parse_radius(radius))
             recalls = []
             for length in LENGTHS:

@@ -118,3 +118,30 @@ def test_map_files_take_the_umask_mode_not_a_private_one(sources, tmp_path):
     assert (tmp_path / "m").stat().st_mode & 0o777 == 0o755
     for name in ("map.json", "descriptors.npy", "index.faiss"):
         assert (tmp_path / "m" / name).stat().st_mode & 0o777 == 0o644, name
+
+
+def test_pq_stores_m_bytes_a_frame_and_still_ranks_like_float32(tmp_path):
+    from seqvpr.maps import match_map
+    from seqvpr.pipeline import MatchSettings
+    from seqvpr.sequences.windows import SequenceSpec
+
+    folder = write_route_files(tmp_path, 600, 16, 9)
+    wide = build_map([str(folder / "ref.npz")], tmp_path / "f32")
+    coded = build_map([str(folder / "ref.npz")], tmp_path / "pq", dtype="pq:8")
+    assert np.load(tmp_path / "pq" / "descriptors.npy", mmap_mode="r").shape == (600, 8)
+    assert np.load(tmp_path / "pq" / "pq_centroids.npy").shape == (8, 256, 2)
+    assert coded.descriptors.nbytes == 600 * 8 and coded.descriptors.shape == (600, 16)
+    decoded = coded.descriptors[:]
+    assert np.linalg.norm(decoded - wide.descriptors, axis=1).mean() < 0.1
+    np.testing.assert_array_equal(coded.descriptors[np.array([4, 500])], decoded[[4, 500]])
+    query = load_traversal(folder / "qry.npz", "query")
+    settings = MatchSettings(SequenceSpec(5), k=5)
+    a, b = (match_map(m, query, "matching", settings).topk.indices[:, 0] for m in (wide, coded))
+    assert (np.abs(a - b) <= 2)[a >= 0].mean() > 0.8
+
+
+def test_unknown_or_untrainable_storages_are_one_line(sources, tmp_path):
+    raises_one_line("map storage 'int4' is not known", build_map, [str(sources[0])], tmp_path / "a", dtype="int4")
+    raises_one_line("M = 5 must divide the dimension 12", build_map, [str(sources[0])], tmp_path / "b", dtype="pq:5")
+    raises_one_line("needs at least 256 frames", build_map, [str(sources[0])], tmp_path / "c", dtype="pq:4")
+    assert not any(tmp_path.iterdir())

@@ -41,9 +41,10 @@ def map_group() -> None:
               help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform "
                    "the stored frames go through (repeatable, one per kind); match the map with the same ones.")
 @extraction_options
-@click.option("--dtype", type=click.Choice(["float32", "float16", "sq8"]), default="float32", show_default=True,
-              help="How the descriptors are stored: float16 halves the map, sq8 (8-bit codes, per-dimension range) "
-                   "quarters it; matching decodes them.")
+@click.option("--dtype", default="float32", show_default=True,
+              help="How the descriptors are stored: float32, float16 (half), sq8 (8-bit codes over each "
+                   "dimension's range, a quarter) or pq:M (product quantisation, M bytes a frame); matching "
+                   "decodes them.")
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
 @click.option("--index", "index_spec", help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
@@ -53,9 +54,11 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
           no_normalize: bool, index_spec: str | None, windows: int, seed: int, device: str, **o: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
     from seqvpr.maps import build_map
+    from seqvpr.maps.codes import parse_storage
     from seqvpr.maps.index import add_index, parse_index_spec
 
-    spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec fails before any work
+    spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec or storage fails before any work
+    parse_storage(dtype)
     description, extraction = _description(o, device)
     models = _models(model_dirs, device)
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=not no_normalize,

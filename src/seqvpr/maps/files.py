@@ -2,8 +2,10 @@
 
     MAP/map.json          format, version, count, dimension, dtype, metric, normalisation, how the frames were
                           described (descriptor, settings, model kind and sha256), sources, library version, time
-    MAP/descriptors.npy   [N, D] float32 or float16 frame descriptors, or uint8 codes (``sq8``; memory-mappable)
-    MAP/quantizer.npy     [2, D] float32 per-dimension offset and step of the ``sq8`` codes (x = offset + step * code)
+    MAP/descriptors.npy   [N, D] float32 or float16 frame descriptors, or uint8 codes (``sq8`` [N, D], ``pq:M``
+                          [N, M]; memory-mappable; see ``codes``)
+    MAP/quantizer.npy     ``sq8``: [2, D] float32 per-dimension offset and step (x = offset + step * code)
+    MAP/pq_centroids.npy  ``pq:M``: [M, 256, D / M] float32 sub-centroids
     MAP/segments.npy      [N] int64 segment id (a window never spans two; each source has its own)
     MAP/sources.npy       [N] int32 row of map.json's ``sources`` each frame came from
     MAP/frame_index.npy   [N] int64 the frame's index in its source (survives --frames slicing)
@@ -28,45 +30,13 @@ import numpy as np
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.io import atomic_folder
+from seqvpr.maps.codes import SIDE_FILES, decoded_rows, encode, parse_storage, stored_shape
 
 MAP_FORMAT = "seqvpr-map"
 MAP_VERSION = 1
 INFO_FILE = "map.json"
 DESCRIPTORS_FILE = "descriptors.npy"
-DTYPES = ("float32", "float16", "sq8")
-QUANTIZER_FILE = "quantizer.npy"
 OPTIONAL_COLUMNS = ("positions", "timestamps", "headings")
-
-
-class CodedRows:
-    """8-bit scalar-quantised rows (``sq8``): uint8 codes (memory-mapped) decoded on access to float32
-    ``offset + step * code``, per dimension. Indexed like an array (slices, row arrays), a chunk at a time: a map
-    at a quarter of its float32 size that matching reads as floats."""
-
-    ndim = 2
-    dtype = np.dtype(np.float32)
-
-    def __init__(self, codes: np.ndarray, offset: np.ndarray, step: np.ndarray) -> None:
-        self.codes, self.offset, self.step = codes, offset.astype(np.float32), step.astype(np.float32)
-        self.shape = codes.shape
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    @property
-    def nbytes(self) -> int:
-        return int(self.codes.nbytes)
-
-    def __getitem__(self, key) -> np.ndarray:
-        return self.codes[key].astype(np.float32) * self.step + self.offset
-
-
-def scalar_quantize(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """uint8 codes and the per-dimension offset and step spanning each dimension's range over ``rows``."""
-    low, high = rows.min(axis=0), rows.max(axis=0)
-    step = np.maximum((high - low) / 255.0, np.finfo(np.float32).tiny).astype(np.float32)
-    codes = np.clip(np.rint((rows - low) / step), 0, 255).astype(np.uint8)
-    return codes, low.astype(np.float32), step
 
 
 @dataclass(frozen=True)
@@ -137,19 +107,15 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
     """Write a map folder atomically: the descriptors in ``info.dtype``, the per-frame table, ``map.json`` last."""
     from seqvpr import __version__
 
-    if info.dtype not in DTYPES:
-        raise SeqvprError(f"map dtype must be one of {', '.join(DTYPES)}, got {info.dtype!r}")
     assert frames.descriptors is not None
+    stored, side = encode(frames.descriptors, info.dtype)  # an unknown storage fails before anything is written
     columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns})
     with atomic_folder(folder) as tmp:
-        if info.dtype == "sq8":
-            codes, offset, step = scalar_quantize(np.asarray(frames.descriptors, dtype=np.float32))
-            np.save(tmp / DESCRIPTORS_FILE, codes)
-            np.save(tmp / QUANTIZER_FILE, np.stack([offset, step]))
-        else:
-            np.save(tmp / DESCRIPTORS_FILE, np.ascontiguousarray(frames.descriptors, dtype=info.dtype))
+        np.save(tmp / DESCRIPTORS_FILE, stored)
+        if side is not None:
+            np.save(tmp / SIDE_FILES[parse_storage(info.dtype)[0]], side)
         np.save(tmp / "segments.npy", frames.segment_ids.astype(np.int64))
         np.save(tmp / "frame_index.npy", frames.frame_index.astype(np.int64))
         np.save(tmp / "sources.npy", np.repeat(np.arange(len(info.sources), dtype=np.int32),
@@ -165,7 +131,7 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
 @dataclass(frozen=True)
 class SavedMap:
     """An opened map: its info, its descriptors memory-mapped (never read whole) and its frames as a Traversal
-    whose ``descriptors`` are that memory map (``CodedRows`` over it for an ``sq8`` map)."""
+    whose ``descriptors`` are that memory map (decoded on access for a coded map)."""
 
     folder: Path
     info: MapInfo
@@ -207,11 +173,7 @@ def open_map(folder: str | Path) -> SavedMap:
     """Open a saved map: descriptors memory-mapped read-only, the per-frame table read, every file checked."""
     folder = Path(folder)
     info = read_map_info(folder)
-    stored = "uint8" if info.dtype == "sq8" else info.dtype
-    descriptors = _load_column(folder, DESCRIPTORS_FILE, (info.count, info.dim), stored, mmap=True)
-    if info.dtype == "sq8":
-        offset, step = _load_column(folder, QUANTIZER_FILE, (2, info.dim), "float32")
-        descriptors = CodedRows(descriptors, offset, step)
+    descriptors = _stored_rows(folder, info)
     column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
     optional = {c: column(c, (info.count, 2) if c == "positions" else (info.count,), "float64") for c in info.columns}
     names = folder / "names.txt"
@@ -221,6 +183,19 @@ def open_map(folder: str | Path) -> SavedMap:
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
                        column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder), **optional)
     return SavedMap(folder, info, frames)
+
+
+def _stored_rows(folder: Path, info: MapInfo):
+    """The map's descriptor rows: the memory-mapped array, or its codes decoded on access (``codes``)."""
+    kind, m = parse_storage(info.dtype, info.dim)
+    shape, dtype = stored_shape(info.dtype, info.count, info.dim)
+    stored = _load_column(folder, DESCRIPTORS_FILE, shape, dtype, mmap=True)
+    side = None
+    if kind == "sq8":
+        side = _load_column(folder, SIDE_FILES[kind], (2, info.dim), "float32")
+    elif kind == "pq":
+        side = _load_column(folder, SIDE_FILES[kind], (m, 256, info.dim // m), "float32")
+    return decoded_rows(info.dtype, stored, side)
 
 
 def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mmap: bool = False) -> np.ndarray:
