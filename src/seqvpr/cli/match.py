@@ -31,7 +31,7 @@ Examples:
 @click.option("--reference", "-r", help="Reference traversal: descriptor file, image folder, .db or .toml.")
 @click.option("--map", "map_dir", type=click.Path(),
               help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described "
-                   "as the map was, and frame matching reads the map in chunks.")
+                   "as the map was (--frames then cuts the query only), and frame matching reads the map in chunks.")
 @click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
 @click.option("--seq-len", "-L", type=int, help="Frames per sequence window.  [default: 1, or the --model's L]")
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
