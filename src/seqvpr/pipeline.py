@@ -207,6 +207,14 @@ def stored_rows(descriptors) -> bool:
     return isinstance(descriptors, np.memmap) or (descriptors is not None and not isinstance(descriptors, np.ndarray))
 
 
+def _frame_rows(traversal: Traversal, settings: MatchSettings) -> torch.Tensor | np.ndarray:
+    """A saved map's memory-mapped float rows as they are (stored normalised as ``settings`` ask, which
+    ``seqvpr.maps`` checks; read a batch at a time), or the traversal's descriptors as a normalised tensor."""
+    rows = traversal.descriptors
+    usable = isinstance(rows, np.memmap) and rows.flags.writeable and rows.dtype == np.float32
+    return rows if usable and settings.dtype == "float32" and settings.device == "cpu" else _as_tensor(traversal, settings)
+
+
 def match_traversals(
     reference: Traversal,
     query: Traversal,
@@ -255,7 +263,7 @@ def retrieve_traversals(
     if method == "seqgem-signed":
         method, model = "seqgem", model or SeqGeM(mode="signed")
 
-    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    ref, qry = _frame_rows(reference, settings), _as_tensor(query, settings)
     if ref.shape[1] != qry.shape[1]:
         raise SeqvprError(
             f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
@@ -273,7 +281,9 @@ def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None) 
     from seqvpr.sequences.hierarchical import rerank
 
     settings = settings or shortlist.settings
-    ref, qry = _as_tensor(shortlist.reference, settings), _as_tensor(shortlist.query, settings)
+    ref, qry = _frame_rows(shortlist.reference, settings), _as_tensor(shortlist.query, settings)
+    if isinstance(ref, np.ndarray):
+        ref = torch.from_numpy(ref)  # a view of the map: the re-ranking reads only the candidates' rows
     top = rerank(qry, ref, shortlist.topk, settings.sequence, shortlist.query.segment_ids,
                  shortlist.reference.segment_ids, k=settings.k)
     return MatchResult(shortlist.reference, shortlist.query, top, settings)
