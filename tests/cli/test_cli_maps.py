@@ -89,3 +89,21 @@ def test_a_bad_index_spec_fails_before_the_build(route, tmp_path, monkeypatch, c
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m",
                            "--index", "ivf:abc")
     assert code == 2 and "expected flat, hnsw:M or ivf:NLIST" in err and not (tmp_path / "m").exists()
+
+
+def test_an_image_map_describes_the_query_with_the_maps_backbone(tmp_path, monkeypatch, capsys):
+    """A map of images through a backbone: the query images go through the same extractor settings (read back
+    from map.json), so match --map equals the direct match."""
+    from seqvpr.synthetic.world import write_demo_world
+
+    world = write_demo_world(tmp_path / "world", frames=20, width=64, height=48, seed=1, query_condition="dusk")
+    describe = ("--descriptor", "efficientnet-lite0", "--image-size", "64x48", "--weights", "imagenet")
+    code, out, err = run_cli(monkeypatch, capsys, "map", "build", world["test_reference"], *describe,
+                             "--out", tmp_path / "m")
+    assert code == 0 and "efficientnet-lite0 descriptors" in out, err
+    common = ("-q", world["test_query"], "-L", "3", "--radius", "10m")
+    assert run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", *common, "--out", tmp_path / "a")[0] == 0
+    code, _, err = run_cli(monkeypatch, capsys, "match", "-r", world["test_reference"], *common, *describe,
+                           "--out", tmp_path / "b")
+    assert code == 0, err
+    assert (tmp_path / "a" / "predictions.csv").read_text() == (tmp_path / "b" / "predictions.csv").read_text()
