@@ -3,6 +3,8 @@ shortlist as wide as the map equal to exhaustive matching."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,7 +12,7 @@ from hypothesis import strategies as st
 
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, load_map, match_map
-from seqvpr.maps.index import IndexSpec, WindowMeans, add_index, open_frame_index, parse_index_spec, search_frames
+from seqvpr.maps.index import IndexSpec, add_index, open_frame_index, parse_index_spec, search_frames
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.pipeline import MatchSettings, ground_truth
 from seqvpr.sequences.hierarchical import frame_shortlist
@@ -110,25 +112,32 @@ def test_a_float16_map_shortlists_like_the_float32_one(route, tmp_path):
     assert (results[0].topk.indices[:, 0] == results[1].topk.indices[:, 0]).mean() > 0.95
 
 
-def test_window_means_match_a_plain_loop():
-    rng = np.random.default_rng(0)
-    rows = rng.standard_normal((40, 6)).astype(np.float32)
-    segments = np.repeat([0, 1, 2], [3, 20, 17])
-    means = WindowMeans(rows, segments, 5)
-    for j in (0, 1, 3, 4, 5, 21, 22, 23, 39):
-        inside = segments[max(j - 2, 0) : j + 3]
-        if j - 2 >= 0 and j + 3 <= 40 and (inside == segments[j]).all() and len(inside) == 5:
-            expected = rows[j - 2 : j + 3].mean(0)
-        else:
-            expected = rows[j]
-        np.testing.assert_allclose(means[j : j + 1][0], expected / np.linalg.norm(expected), rtol=1e-5)
-    np.testing.assert_allclose(means[np.array([5, 30])], means[:][[5, 30]])
+@pytest.mark.parametrize("method", ["smoothing", "delta", "seqgem"])
+def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_path, method):
+    from seqvpr.methods import run_method
+
+    saved = build_map([str(route / "ref.npz")], tmp_path / "m")
+    record = add_index(saved, IndexSpec("flat"), windows=5, method=method)
+    assert record["over"] == f"{method}:5" and (tmp_path / "m" / "index_rows.npy").is_file()
+    saved = load_map(tmp_path / "m")
+    query = load_traversal(route / "qry.npz", "query")
+    indexed = match_map(saved, query, method, SETTINGS)
+    reference = load_traversal(route / "ref.npz", "reference")
+    direct = run_method(method, reference, query, SETTINGS)
+    np.testing.assert_array_equal(indexed.topk.indices, direct.topk.indices)
+    np.testing.assert_allclose(indexed.topk.distances, direct.topk.distances, rtol=1e-5, atol=1e-6)
+    other_length = match_map(saved, query, method, replace(SETTINGS, sequence=SequenceSpec(3)))  # pools the map
+    np.testing.assert_array_equal(other_length.topk.indices,
+                                  run_method(method, reference, query, replace(SETTINGS, sequence=SequenceSpec(3)))
+                                  .topk.indices)
+    (tmp_path / "m" / "index_rows.npy").unlink()
+    raises_one_line("index_rows.npy: missing map file", match_map, load_map(tmp_path / "m"), query, method, SETTINGS)
 
 
 def test_a_window_index_as_wide_as_the_map_is_exhaustive_matching(route, tmp_path):
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     record = add_index(saved, IndexSpec("flat"), windows=5)
-    assert record["over"] == "windows:5"
+    assert record["over"] == "smoothing:5"
     saved = load_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     exhaustive = match_map(saved, query, "matching", SETTINGS)

@@ -62,30 +62,21 @@ def _positive(value: str, text: str, least: int = 1) -> int:
     return int(value)
 
 
-class WindowMeans:
-    """Rows of a (memory-mapped) descriptor matrix replaced by the L2-normalised mean of their centred window of
-    ``length`` frames (smoothing); a frame without a window in its segment keeps its own descriptor. Indexable by
-    slices and row arrays, computed on access: an index over windows is built without a second copy of the map."""
+#: the sequence descriptors an index over windows can hold (one D-dim vector per window, no model)
+WINDOW_METHODS = ("smoothing", "delta", "seqgem")
+ROWS_FILE = "index_rows.npy"
 
-    def __init__(self, descriptors: np.ndarray, segments: np.ndarray, length: int) -> None:
-        from seqvpr.sequences.windows import window_starts
 
-        self.descriptors, self.length = descriptors, int(length)
-        self.starts = window_starts(np.asarray(segments), self.length, self.length // 2, "drop")
-        self.shape = descriptors.shape
+def window_vectors(descriptors, segments: np.ndarray, length: int, method: str):
+    """The ``method`` sequence descriptors of every frame with a centred window of ``length`` frames (the vectors
+    ``seqvpr match --method`` retrieves with), read from the map a batch at a time."""
+    from seqvpr.sequences.descriptors import sequence_descriptors
+    from seqvpr.sequences.windows import SequenceSpec
 
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, key) -> np.ndarray:
-        rows = np.arange(self.shape[0])[key]
-        starts = self.starts[rows]
-        means = np.array(self.descriptors[rows], dtype=np.float32)
-        inside = starts >= 0
-        if inside.any():
-            total = sum(np.asarray(self.descriptors[starts[inside] + k], dtype=np.float64) for k in range(self.length))
-            means[inside] = total / self.length
-        return means / np.maximum(np.linalg.norm(means, axis=1, keepdims=True), 1e-12)
+    if method not in WINDOW_METHODS:
+        raise SeqvprError(f"--window-method {method!r} is not known (choose from: {', '.join(WINDOW_METHODS)})")
+    rows = descriptors if isinstance(descriptors, np.ndarray) else descriptors[:]  # coded rows: decoded
+    return sequence_descriptors(rows, np.asarray(segments), SequenceSpec(length), method)
 
 
 def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None):
@@ -124,19 +115,25 @@ def _empty_index(faiss, spec: IndexSpec, dim: int):
     return faiss.IndexIVFFlat(quantizer, dim, spec.nlist)
 
 
-def add_index(saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0) -> dict[str, Any]:
-    """Build the map's index (over its frames, or with ``windows`` L over the smoothed windows of L frames) and
-    save it beside the descriptors: ``index.faiss`` first, then ``map.json`` naming it, each atomically (a map
-    whose ``map.json`` names no index has none)."""
+def add_index(
+    saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0, method: str = "smoothing",
+) -> dict[str, Any]:
+    """Build the map's index, over its frames or (``windows`` L) over the ``method`` sequence descriptors of its
+    windows of L frames, and save it beside the descriptors: ``index.faiss`` (and, over windows, the map row of
+    each vector, ``index_rows.npy``) first, then ``map.json`` naming it, each atomically (a map whose
+    ``map.json`` names no index has none)."""
     import faiss
 
     if windows < 0:
         raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
     started = time.perf_counter()
-    rows = WindowMeans(saved.descriptors, saved.frames.segment_ids, windows) if windows else saved.descriptors
-    index = build_frame_index(rows, spec, seed, progress)
-    record = {"spec": str(spec), "over": f"windows:{windows}" if windows else "frames", "file": INDEX_FILE,
+    described = window_vectors(saved.descriptors, saved.frames.segment_ids, windows, method) if windows else None
+    index = build_frame_index(described.vectors if described else saved.descriptors, spec, seed, progress)
+    record = {"spec": str(spec), "over": f"{method}:{windows}" if windows else "frames", "file": INDEX_FILE,
               "ntotal": int(index.ntotal), "seed": seed, "build_seconds": round(time.perf_counter() - started, 2)}
+    if described is not None:
+        with atomic_write(saved.folder / ROWS_FILE, "wb") as handle:
+            np.save(handle, described.rows)
     fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
     os.close(fd)
     os.chmod(tmp, 0o666 & ~current_umask())
@@ -166,14 +163,40 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
         index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP | faiss.IO_FLAG_READ_ONLY)
     except RuntimeError as error:
         raise SeqvprError(f"{path}: unreadable faiss index ({str(error).splitlines()[0][:120]})") from None
-    if index.ntotal != saved.info.count or index.d != saved.info.dim:
-        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map {saved.info.count} of "
+    count = saved.info.count if record["over"] == "frames" else len(indexed_rows(saved))
+    if index.ntotal != count or index.d != saved.info.dim:
+        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map needs {count} of "
                           f"{saved.info.dim}-D")
     if hasattr(index, "nprobe"):
         index.nprobe = nprobe
     if hasattr(index, "hnsw"):
         index.hnsw.efSearch = ef_search
     return index
+
+
+def indexed_rows(saved: SavedMap) -> np.ndarray:
+    """The map row of each vector of an index over windows (``index_rows.npy``)."""
+    path = Path(saved.folder) / ROWS_FILE
+    if not path.is_file():
+        raise SeqvprError(f"{path}: missing map file (map.json names an index over windows)")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:
+        raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
+
+
+def window_search(saved: SavedMap, index, frames, segments: np.ndarray, k: int):
+    """The ``k`` nearest map windows of each query window, by the index's own sequence descriptor: map rows and
+    Euclidean distances [n_query, k] (-1 / +inf for queries without a window)."""
+    method, length = saved.info.index["over"].split(":")
+    described = window_vectors(frames, segments, int(length), method)
+    rows = np.full((described.n_frames, k), -1, dtype=np.int64)
+    distances = np.full((described.n_frames, k), np.inf)
+    found, found_distances = search_frames(index, described.vectors, k)
+    mapped = indexed_rows(saved)
+    rows[described.rows] = np.where(found >= 0, mapped[np.maximum(found, 0)], -1)
+    distances[described.rows] = np.where(found >= 0, found_distances, np.inf)
+    return rows, distances
 
 
 def search_frames(index, frames: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -89,8 +89,34 @@ def match_map(
     if shortlist:
         check_shortlist(saved, method, models)
         return shortlist_match(saved, frames, method, settings, shortlist, nprobe)
+    if uses_window_index(saved, method, settings, models, rerank):
+        return indexed_retrieval(saved, frames, settings, nprobe)
     return run_method(method, saved.frames, frames, replace(settings), models, index=index, rerank=rerank,
                       progress=progress)
+
+
+def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:
+    """A retrieval method whose sequence descriptors the map's index already holds (same method, same centred
+    windows of L frames, no model, no re-ranking) searches that index instead of pooling the map again."""
+    over = (saved.info.index or {}).get("over", "frames")
+    spec = settings.sequence
+    same_windows = (spec.align, spec.boundary, spec.velocities) == ("centered", "drop", (1.0,))
+    return (METHODS[method].family == "retrieval" and over == f"{METHODS[method].pooling}:{spec.length}"
+            and same_windows and not models and not rerank)
+
+
+def indexed_retrieval(saved: SavedMap, frames: Traversal, settings: MatchSettings, nprobe: int) -> MatchResult:
+    """Top-K map frames per query frame from the map's saved index over its windows' sequence descriptors."""
+    import numpy as np
+    import torch
+
+    from seqvpr.maps.index import open_frame_index, window_search
+    from seqvpr.sequences.matching import TopK
+
+    query = torch.nn.functional.normalize(torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32)), dim=1)
+    index = open_frame_index(saved, nprobe)
+    rows, distances = window_search(saved, index, query, frames.segment_ids, min(settings.k, index.ntotal))
+    return MatchResult(saved.frames, frames, TopK(rows, distances, rows[:, 0] >= 0), settings)
 
 
 def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedModel]) -> None:
@@ -108,11 +134,11 @@ def shortlist_match(
 ) -> MatchResult:
     """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
     (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
-    (``frame_shortlist``, up to L x S); over smoothed windows: each query window's ``shortlist`` nearest ones."""
+    (``frame_shortlist``, up to L x S); over windows: each query window's ``shortlist`` nearest ones."""
     import numpy as np
     import torch
 
-    from seqvpr.maps.index import WindowMeans, open_frame_index, search_frames
+    from seqvpr.maps.index import open_frame_index, search_frames, window_search
     from seqvpr.sequences.matching import TopK
     from seqvpr.sequences.hierarchical import frame_shortlist, rerank
     from seqvpr.sequences.windows import SequenceSpec, window_starts
@@ -127,9 +153,8 @@ def shortlist_match(
     if over == "frames":
         neighbours, _ = search_frames(index, query.numpy(), shortlist)
         candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
-    else:  # an index over smoothed windows: each query's own window mean finds its candidate frames directly
-        windows = WindowMeans(query.numpy(), frames.segment_ids, int(over.split(":")[1]))
-        neighbours, distances = search_frames(index, windows[:], shortlist)
+    else:  # an index over windows: each query window's sequence descriptor finds its candidate frames directly
+        neighbours, distances = window_search(saved, index, query, frames.segment_ids, shortlist)
         candidates = TopK(neighbours, distances, starts >= 0)
     stored = saved.descriptors  # only candidate rows are read: a view of the memory map, or coded rows decoded
     reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
