@@ -145,3 +145,32 @@ def test_a_window_index_as_wide_as_the_map_is_exhaustive_matching(route, tmp_pat
                                   exhaustive.topk.indices)
     narrow = match_map(saved, query, "matching", SETTINGS, shortlist=10)
     assert shortlist_recall(narrow, ground_truth(saved.frames, query)) > 0.8
+
+
+def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(route, tmp_path):
+    from seqvpr.methods import run_method
+    from seqvpr.models.registry import load_trained_model
+    from seqvpr.models.seqnet import save_seqnet
+    from seqvpr.sequences.descriptors import SeqNet
+
+    save_seqnet(tmp_path / "seqnet", SeqNet(16, 8, 3), {"sequence": {"length": 5}})
+    save_seqnet(tmp_path / "other", SeqNet(16, 8, 3), {"sequence": {"length": 5}})
+    saved = build_map([str(route / "ref.npz")], tmp_path / "m")
+    raises_one_line("needs its SeqNet (--index-model)", add_index, saved, IndexSpec("flat"), windows=5,
+                    method="seqnet")
+    record = add_index(saved, IndexSpec("flat"), windows=5, method="seqnet", model_folder=tmp_path / "seqnet")
+    assert record["dim"] == 8 and record["model"]["folder"] == str(tmp_path / "seqnet")
+    saved = load_map(tmp_path / "m")
+    query = load_traversal(route / "qry.npz", "query")
+    models = {"seqnet": load_trained_model(tmp_path / "seqnet")}
+    direct = run_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, models)
+    indexed = match_map(saved, query, "seqnet", SETTINGS, models)
+    np.testing.assert_array_equal(indexed.topk.indices, direct.topk.indices)
+    shortlisted = match_map(saved, query, "matching", SETTINGS, shortlist=300)  # the index's SeqNet, from its folder
+    np.testing.assert_array_equal(shortlisted.topk.indices, match_map(saved, query, "matching", SETTINGS).topk.indices)
+    other = {"seqnet": load_trained_model(tmp_path / "other")}
+    assert (match_map(saved, query, "seqnet", SETTINGS, other).topk.indices
+            == run_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, other)
+            .topk.indices).all()  # another SeqNet pools the map itself
+    (tmp_path / "seqnet" / "model.safetensors").write_bytes(b"changed")
+    raises_one_line("which is gone or has changed", match_map, saved, query, "matching", SETTINGS, shortlist=5)

@@ -27,7 +27,7 @@ INDEX_HELP = ("faiss index over the frames, for --shortlist: flat (exact), hnsw:
 WINDOWS_HELP = ("Index the sequence descriptors (--window-method) of the centred windows of this many frames "
                 "instead of single frames: for --shortlist, one search per query window; and match --method "
                 "smoothing/delta/seqgem at that L searches it instead of pooling the map (0: frames).")
-METHOD_HELP = "The sequence descriptor an index over windows holds."
+METHOD_HELP = "The sequence descriptor an index over windows holds (seqnet: give its --index-model)."
 
 
 @click.group(name="map")
@@ -50,13 +50,14 @@ def map_group() -> None:
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
 @click.option("--index", "index_spec", help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
-@click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem"]), default="smoothing",
+@click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
               show_default=True, help=METHOD_HELP)
+@click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
-          no_normalize: bool, index_spec: str | None, windows: int, window_method: str, seed: int, device: str,
-          **o: Any) -> None:
+          no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,
+          seed: int, device: str, **o: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
     from seqvpr.maps import build_map
     from seqvpr.maps.codes import parse_storage
@@ -72,23 +73,25 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
     if spec is not None:
-        _echo_index(add_index(saved, spec, seed, tqdm_progress, windows, window_method))
+        _echo_index(add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model))
 
 
 @map_group.command(name="index")
 @click.argument("map_dir", type=click.Path())
 @click.option("--index", "index_spec", required=True, help=INDEX_HELP)
 @click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
-@click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem"]), default="smoothing",
+@click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
               show_default=True, help=METHOD_HELP)
 @click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
-def index_command(map_dir: str, index_spec: str, windows: int, window_method: str, seed: int) -> None:
+@click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
+def index_command(map_dir: str, index_spec: str, windows: int, window_method: str, seed: int,
+                  index_model: str | None) -> None:
     """Build (or rebuild) MAP's faiss index over its frames, for seqvpr match --map MAP --shortlist S."""
     from seqvpr.maps import open_map
     from seqvpr.maps.index import add_index, parse_index_spec
 
     spec = parse_index_spec(index_spec)
-    _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress, windows, window_method))
+    _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress, windows, window_method, index_model))
 
 
 def _echo_index(record: dict) -> None:

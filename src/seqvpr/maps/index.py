@@ -62,21 +62,43 @@ def _positive(value: str, text: str, least: int = 1) -> int:
     return int(value)
 
 
-#: the sequence descriptors an index over windows can hold (one D-dim vector per window, no model)
-WINDOW_METHODS = ("smoothing", "delta", "seqgem")
+#: the sequence descriptors an index over windows can hold (one vector per window; seqnet with its model)
+WINDOW_METHODS = ("smoothing", "delta", "seqgem", "seqnet")
 ROWS_FILE = "index_rows.npy"
 
 
-def window_vectors(descriptors, segments: np.ndarray, length: int, method: str):
+def window_vectors(descriptors, segments: np.ndarray, length: int, method: str, model=None):
     """The ``method`` sequence descriptors of every frame with a centred window of ``length`` frames (the vectors
-    ``seqvpr match --method`` retrieves with), read from the map a batch at a time."""
+    ``seqvpr match --method`` retrieves with; ``seqnet`` through ``model``), read from the map a batch at a time."""
     from seqvpr.sequences.descriptors import sequence_descriptors
     from seqvpr.sequences.windows import SequenceSpec
 
     if method not in WINDOW_METHODS:
         raise SeqvprError(f"--window-method {method!r} is not known (choose from: {', '.join(WINDOW_METHODS)})")
     rows = descriptors if isinstance(descriptors, np.ndarray) else descriptors[:]  # coded rows: decoded
-    return sequence_descriptors(rows, np.asarray(segments), SequenceSpec(length), method)
+    return sequence_descriptors(rows, np.asarray(segments), SequenceSpec(length), method, model)
+
+
+def model_record(folder: str | Path) -> dict[str, str]:
+    """The folder and weights' sha256 of the model an index over windows was built with."""
+    from seqvpr.models.files import MODEL_FILE
+    from seqvpr.models.published import file_sha256
+
+    return {"folder": str(folder), "sha256": file_sha256(Path(folder) / MODEL_FILE)}
+
+
+def index_model(saved: SavedMap):
+    """The SeqNet an index over seqnet windows was built with, loaded from its recorded folder and checked against
+    its recorded sha256 (None for the other indexes)."""
+    from seqvpr.models.registry import load_trained_model
+
+    record = (saved.info.index or {}).get("model")
+    if not record:
+        return None
+    if not Path(record["folder"]).is_dir() or model_record(record["folder"])["sha256"] != record["sha256"]:
+        raise SeqvprError(f"{saved.folder}'s index was built with the SeqNet {record['folder']} "
+                          f"(sha256 {record['sha256'][:12]}), which is gone or has changed: rebuild the index")
+    return load_trained_model(record["folder"]).module
 
 
 def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None):
@@ -117,6 +139,7 @@ def _empty_index(faiss, spec: IndexSpec, dim: int):
 
 def add_index(
     saved: SavedMap, spec: IndexSpec, seed: int = 0, progress=None, windows: int = 0, method: str = "smoothing",
+    model_folder: str | Path | None = None,
 ) -> dict[str, Any]:
     """Build the map's index, over its frames or (``windows`` L) over the ``method`` sequence descriptors of its
     windows of L frames, and save it beside the descriptors: ``index.faiss`` (and, over windows, the map row of
@@ -126,11 +149,18 @@ def add_index(
 
     if windows < 0:
         raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
+    if (method == "seqnet") != (model_folder is not None) and windows:
+        raise SeqvprError("an index over seqnet windows needs its SeqNet (--index-model), and only it takes one")
     started = time.perf_counter()
-    described = window_vectors(saved.descriptors, saved.frames.segment_ids, windows, method) if windows else None
-    index = build_frame_index(described.vectors if described else saved.descriptors, spec, seed, progress)
+    model = _seqnet(model_folder) if windows and model_folder is not None else None
+    described = window_vectors(saved.descriptors, saved.frames.segment_ids, windows, method, model) if windows else None
+    vectors = described.vectors if described else saved.descriptors
+    index = build_frame_index(vectors, spec, seed, progress)
     record = {"spec": str(spec), "over": f"{method}:{windows}" if windows else "frames", "file": INDEX_FILE,
-              "ntotal": int(index.ntotal), "seed": seed, "build_seconds": round(time.perf_counter() - started, 2)}
+              "ntotal": int(index.ntotal), "dim": int(vectors.shape[1]), "seed": seed,
+              "build_seconds": round(time.perf_counter() - started, 2)}
+    if model is not None:
+        record["model"] = model_record(model_folder)
     if described is not None:
         with atomic_write(saved.folder / ROWS_FILE, "wb") as handle:
             np.save(handle, described.rows)
@@ -164,14 +194,24 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
     except RuntimeError as error:
         raise SeqvprError(f"{path}: unreadable faiss index ({str(error).splitlines()[0][:120]})") from None
     count = saved.info.count if record["over"] == "frames" else len(indexed_rows(saved))
-    if index.ntotal != count or index.d != saved.info.dim:
-        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map needs {count} of "
-                          f"{saved.info.dim}-D")
+    dim = record.get("dim", saved.info.dim)
+    if index.ntotal != count or index.d != dim:
+        raise SeqvprError(f"{path}: holds {index.ntotal} vectors of {index.d}-D, the map needs {count} of {dim}-D")
     if hasattr(index, "nprobe"):
         index.nprobe = nprobe
     if hasattr(index, "hnsw"):
         index.hnsw.efSearch = ef_search
     return index
+
+
+def _seqnet(folder: str | Path):
+    """The SeqNet module of a model folder (another kind is a one-line error)."""
+    from seqvpr.models.registry import load_trained_model
+
+    model = load_trained_model(folder)
+    if model.kind != "seqnet":
+        raise SeqvprError(f"--model {folder} is a {model.kind} model; an index over seqnet windows needs a SeqNet")
+    return model.module
 
 
 def indexed_rows(saved: SavedMap) -> np.ndarray:
@@ -189,7 +229,7 @@ def window_search(saved: SavedMap, index, frames, segments: np.ndarray, k: int):
     """The ``k`` nearest map windows of each query window, by the index's own sequence descriptor: map rows and
     Euclidean distances [n_query, k] (-1 / +inf for queries without a window)."""
     method, length = saved.info.index["over"].split(":")
-    described = window_vectors(frames, segments, int(length), method)
+    described = window_vectors(frames, segments, int(length), method, index_model(saved))
     rows = np.full((described.n_frames, k), -1, dtype=np.int64)
     distances = np.full((described.n_frames, k), np.inf)
     found, found_distances = search_frames(index, described.vectors, k)

@@ -12,6 +12,7 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.build import FrameDescription, describe_frames, model_records
 from seqvpr.maps.files import MapInfo, SavedMap
+from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, check_run, run_method, transformed_frames
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
@@ -98,11 +99,14 @@ def match_map(
 def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:
     """A retrieval method whose sequence descriptors the map's index already holds (same method, same centred
     windows of L frames, no model, no re-ranking) searches that index instead of pooling the map again."""
-    over = (saved.info.index or {}).get("over", "frames")
+    record = saved.info.index or {}
     spec = settings.sequence
     same_windows = (spec.align, spec.boundary, spec.velocities) == ("centered", "drop", (1.0,))
-    return (METHODS[method].family == "retrieval" and over == f"{METHODS[method].pooling}:{spec.length}"
-            and same_windows and not models and not rerank)
+    indexed = (record.get("model") or {}).get("sha256")
+    same_model = (not models) if indexed is None else (
+        set(models) == {"seqnet"} and model_record(models["seqnet"].folder)["sha256"] == indexed)
+    return (METHODS[method].family == "retrieval" and record.get("over") == f"{METHODS[method].pooling}:{spec.length}"
+            and same_windows and same_model and not rerank)
 
 
 def indexed_retrieval(saved: SavedMap, frames: Traversal, settings: MatchSettings, nprobe: int) -> MatchResult:
