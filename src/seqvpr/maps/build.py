@@ -18,10 +18,16 @@ from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
-from seqvpr.maps.files import MapInfo, SavedMap, concatenate_traversals, map_sources, open_map, write_map
+from seqvpr.maps.files import (
+    MapInfo,
+    SavedMap,
+    concatenate_traversals,
+    map_sources,
+    open_map,
+    write_map,
+)
+from seqvpr.maps.index import model_record
 from seqvpr.methods import image_model, transformed_frames
-from seqvpr.models.files import MODEL_FILE
-from seqvpr.models.published import file_sha256
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import ProgressFactory, describe
 
@@ -84,8 +90,7 @@ def model_records(models: Mapping[str, TrainedModel]) -> dict[str, Any] | None:
     stored = {kind: models[kind] for kind in STORED_KINDS if kind in models}
     if not stored:
         return None
-    return {kind: {"folder": str(m.folder), "sha256": file_sha256(Path(m.folder) / MODEL_FILE)}
-            for kind, m in stored.items()}
+    return {kind: model_record(m.folder) for kind, m in stored.items()}
 
 
 def build_map(
