@@ -11,11 +11,14 @@ The map is the 1983 summer frames (the only true places) followed by distractor 
 a copy of summer turned part-way towards a random rotation of itself (``cos t x + sin t R x``, t from 0.7 to 1.4
 rad, renormalised; a segment of its own), so sequences are as smooth as real ones and some look much alike. The
 query is winter frames 500-1499 (1,000 frames); a query is right at K when one of its K best map frames is its
-summer frame within one frame. Each size's map gets each index of ``--indexes`` twice: over frames (each query frame's
-S nearest map frames place candidate windows, up to 5 S) and over smoothed windows of 5 frames (each query
-window's 5 S nearest windows), so both re-rank as many candidates. Every row matches the same query through
-``seqvpr.maps.match_map`` (L = 5, top-20) and reports its time, the shortlist's recall (a true place among the
-candidates), R@1, and its top-1 agreement with the exact result.
+summer frame within one frame. Each size's map gets each index of ``--indexes`` over frames, with one row per
+``--frame-shortlists`` S:H:NPROBE: each query frame's S nearest map frames place candidate windows, and so do the
+H query frames before the window (carried forward at slope 1; up to (5 + H) S candidates). With ``--over both``
+the index is also built over smoothed windows of 5 frames (each query window's 5 S nearest windows, as many
+candidates as the first row). Every row matches the same query through ``seqvpr.maps.match_map`` (L = 5,
+top-20) and reports its time, the shortlist's recall (a true place among the candidates), R@1, its top-1
+agreement with the exact result, and the share of exact's right answers it keeps. When a row has H > 0, exact
+matching with L = 5 + H (the query frames that row sees) is reported too, for reference.
 """
 
 from __future__ import annotations
@@ -94,22 +97,30 @@ def _truth(lists: list[np.ndarray], n: int) -> GroundTruth:
     return GroundTruth(matrix, description="the same summer frame within 1 frame")
 
 
-def run_rows(saved, query: Traversal, gt: GroundTruth, exact_top1: np.ndarray | None, label: str, shortlist: int,
-             nprobe: int) -> dict:
-    settings = MatchSettings(SequenceSpec(LENGTH), k=K)
+def run_rows(saved, query: Traversal, gt: GroundTruth, exact: dict | None, label: str, shortlist: int,
+             nprobe: int, history: int = 0, length: int = LENGTH) -> dict:
+    settings = MatchSettings(SequenceSpec(length), k=K)
     started = time.perf_counter()
-    result = match_map(saved, query, "matching", settings, shortlist=shortlist, nprobe=nprobe)
+    result = match_map(saved, query, "matching", settings, shortlist=shortlist, history=history, nprobe=nprobe)
     seconds = time.perf_counter() - started
     top = result.topk
     scores = evaluate(top.indices, top.distances, top.has_window, gt, (1, 5, 20))
     scored = top.has_window
-    agree = float(np.mean(top.indices[scored, 0] == exact_top1[scored])) if exact_top1 is not None else 1.0
+    right = np.array([top.indices[i, 0] in gt.positives_of(i) for i in range(len(scored))], dtype=bool)
+    agree = float(np.mean(top.indices[scored, 0] == exact["top1"][scored])) if exact else 1.0
+    kept = float(np.mean(right[exact["right"] & scored])) if exact else 1.0
     return {"label": label, "seconds": seconds, "r1": scores.recall[1], "r20": scores.recall[20],
-            "shortlist_recall": shortlist_recall(result, gt), "agree": agree, "top1": top.indices[:, 0]}
+            "shortlist_recall": shortlist_recall(result, gt), "agree": agree, "kept": kept, "top1": top.indices[:, 0],
+            "right": right}
 
 
-def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: list[str], shortlist: int,
-            nprobe: int, both: bool = True) -> list[dict]:
+def parse_frame_shortlists(text: str) -> list[tuple[int, int, int]]:
+    """``S:H:NPROBE`` triples separated by commas: neighbours per query frame, history frames, IVF lists probed."""
+    return [tuple(int(v) for v in item.split(":")) for item in text.split(",")]
+
+
+def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: list[str],
+            frame_rows: list[tuple[int, int, int]], both: bool = True) -> list[dict]:
     folder = work / f"map_{n}"
     if not (folder / "map.json").exists():
         write_distractor_map(folder, summer, n)
@@ -118,16 +129,25 @@ def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: l
     query = Traversal.from_descriptors(winter[first:last], "winter")
     gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, last)], n)
     match_map(saved, query.select(np.arange(50)), "matching", MatchSettings(SequenceSpec(LENGTH), k=K))  # warm-up
-    rows = [run_rows(saved, query, gt, None, "exact", 0, nprobe)]
-    rows[0]["build"] = 0.0
+    rows = [run_rows(saved, query, gt, None, "exact", 0, 16)]
+    longest = max(h for _, h, _ in frame_rows)
+    if longest:  # exact matching over as many query frames as the longest history sees, for reference
+        rows.append(run_rows(saved, query, gt, rows[0], f"exact, L = {LENGTH + longest}", 0, 16,
+                             length=LENGTH + longest))
     for spec in specs:
-        for windows, per in ((0, shortlist), (LENGTH, shortlist * LENGTH))[: 2 if both else 1]:  # equal candidates
-            record = add_index(saved, parse_index_spec(spec), seed=0, windows=windows)
+        record = add_index(saved, parse_index_spec(spec), seed=0)
+        for per, history, nprobe in frame_rows:
+            label = f"{spec} over frames, S = {per}, H = {history}, nprobe {nprobe}"
+            rows.append(run_rows(load_map(folder), query, gt, rows[0], label, per, nprobe, history)
+                        | {"build": record["build_seconds"]})
+        if both:  # an index over smoothed windows re-ranking as many candidates as the first frame row
+            per = frame_rows[0][0] * LENGTH
+            record = add_index(saved, parse_index_spec(spec), seed=0, windows=LENGTH)
             label = f"{spec} over {record['over']}, S = {per}"
-            row = run_rows(load_map(folder), query, gt, rows[0]["top1"], label, per, nprobe)
-            row["build"] = record["build_seconds"]
-            rows.append(row)
+            rows.append(run_rows(load_map(folder), query, gt, rows[0], label, per, frame_rows[0][2])
+                        | {"build": record["build_seconds"]})
     for row in rows:
+        row.setdefault("build", 0.0)
         row["n"] = n
         row["speedup"] = rows[0]["seconds"] / row["seconds"]
     return rows
@@ -135,11 +155,11 @@ def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: l
 
 def table(rows: list[dict]) -> str:
     lines = ["| map frames | matching | index build | match 1,000 queries | speed-up | shortlist recall | R@1 | R@20 | "
-             "top-1 = exact |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "top-1 = exact | exact's right kept |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         recall = "-" if r["shortlist_recall"] is None else f"{r['shortlist_recall']:.3f}"
         lines.append(f"| {r['n']:,} | {r['label']} | {r['build']:.1f} s | {r['seconds']:.3f} s | {r['speedup']:.0f}x | "
-                     f"{recall} | {r['r1']:.3f} | {r['r20']:.3f} | {r['agree']:.3f} |")
+                     f"{recall} | {r['r1']:.3f} | {r['r20']:.3f} | {r['agree']:.3f} | {r['kept']:.3f} |")
     return "\n".join(lines)
 
 
@@ -150,8 +170,9 @@ def main() -> None:
     parser.add_argument("--sizes", default="100000,1000000")
     parser.add_argument("--indexes", default="ivf:4096,ivf:4096+pq:32,hnsw:16",
                         help="Index specs separated by commas; '+' stands for the comma inside one spec.")
-    parser.add_argument("--shortlist", type=int, default=20, help="Nearest map frames a query frame contributes.")
-    parser.add_argument("--nprobe", type=int, default=16)
+    parser.add_argument("--frame-shortlists", default="20:0:16,5:20:8",
+                        help="Rows over frames as S:H:NPROBE (nearest map frames per query frame, query frames "
+                             "before the window that also place candidates, IVF lists probed), separated by commas.")
     parser.add_argument("--over", choices=("both", "frames"), default="both", help="Index frames and windows, or frames.")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
@@ -159,11 +180,12 @@ def main() -> None:
     specs = [s.replace("+", ",") for s in args.indexes.split(",")]
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
-        rows += measure(args.work, summer, winter, n, specs, args.shortlist, args.nprobe, args.over == "both")
+        rows += measure(args.work, summer, winter, n, specs, parse_frame_shortlists(args.frame_shortlists),
+                        args.over == "both")
         print(table(rows), flush=True)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     text = (f"{cpu_model()}, {torch.get_num_threads()} threads; 1,000 queries, D = {DIM}, L = {LENGTH}, top-{K}, "
-            f"nprobe {args.nprobe}; peak RSS of the whole script {peak:.2f} GiB\n\n{table(rows)}\n")
+            f"peak RSS of the whole script {peak:.2f} GiB\n\n{table(rows)}\n")
     (args.work / "results.md").write_text(text)
     print(text)
 

@@ -66,14 +66,16 @@ def test_index_and_shortlisted_match_report_the_shortlist_recall(route, tmp_path
     code, out, _ = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
     assert code == 0 and "index flat over frames (100 rows)" in out
     code, out, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", "-q", route / "qry.npz", "-L", "5",
-                             "--radius", "10m", "--shortlist", "100", "--out", tmp_path / "s")
+                             "--radius", "10m", "--shortlist", "100", "--shortlist-history", "4", "--out", tmp_path / "s")
     assert code == 0 and "shortlist: 1.000 of the scored queries" in err
     run = json.loads((tmp_path / "s" / "run.json").read_text())["settings"]
-    assert run["shortlist"] == {"per_frame": 100, "index": "flat", "nprobe": 16, "recall": 1.0}
+    assert run["shortlist"] == {"per_frame": 100, "history": 4, "index": "flat", "nprobe": 16, "recall": 1.0}
 
 
 @pytest.mark.parametrize("args, message", [
     (("-r", "REF", "--shortlist", "5"), "--shortlist S needs S >= 0 and a --map"),
+    (("--map", "MAP", "--shortlist-history", "5"), "--shortlist-history H needs H >= 0 and a --shortlist"),
+    (("--map", "MAP", "--shortlist", "5", "--shortlist-history", "-1"), "--shortlist-history H needs H >= 0"),
     (("--map", "MAP", "--shortlist", "5"), "has no index: add one with seqvpr map index"),
     (("--map", "MAP", "--shortlist", "5", "--method", "delta"), "applies to the frame-matching methods"),
 ])

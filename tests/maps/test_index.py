@@ -37,21 +37,25 @@ def test_index_specs_parse_and_bad_ones_are_one_line():
         raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 1", parse_index_spec, bad)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=80, deadline=None)
 @given(st.integers(1, 6), st.integers(1, 4), st.integers(8, 30), st.sampled_from(["centered", "causal"]),
-       st.integers(0, 2**32 - 1))
-def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align, seed):
+       st.integers(0, 4), st.integers(0, 2**32 - 1))
+def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align, history, seed):
     rng = np.random.default_rng(seed)
     n_query = 12
     neighbours = rng.integers(-1, n_reference, size=(n_query, width))
+    segments = np.sort(rng.integers(0, 3, n_query))
     spec = SequenceSpec(length, align)
-    starts = window_starts(np.zeros(n_query, np.int64), length, spec.offset, "drop")
-    got = frame_shortlist(neighbours, starts, spec, n_reference)
+    starts = window_starts(segments, length, spec.offset, "drop")
+    got = frame_shortlist(neighbours, starts, spec, n_reference, history=history, query_segments=segments)
     for i in range(n_query):
         expected = set()
         if starts[i] >= 0:
-            for k in range(length):
-                for r in neighbours[starts[i] + k]:
+            for k in range(-history, length):
+                frame = starts[i] + k
+                if frame < 0 or segments[frame] != segments[starts[i]]:
+                    continue
+                for r in neighbours[frame]:
                     c = r - k + spec.offset
                     if r >= 0 and 0 <= c < n_reference:
                         expected.add(int(c))
@@ -71,6 +75,10 @@ def test_a_flat_shortlist_as_wide_as_the_map_is_exhaustive_matching(route, tmp_p
     narrow = match_map(saved, query, "matching", SETTINGS, shortlist=3)
     gt = ground_truth(saved.frames, query)
     assert 0.5 < shortlist_recall(narrow, gt) <= shortlist_recall(shortlisted, gt) == 1.0
+    carried = match_map(saved, query, "matching", SETTINGS, shortlist=3, history=6)  # a superset of the candidates
+    for few, more in zip(narrow.shortlist.indices, carried.shortlist.indices):
+        assert set(few[few >= 0]) <= set(more[more >= 0])
+    assert shortlist_recall(narrow, gt) <= shortlist_recall(carried, gt)
     single = match_map(saved, query, "single", SETTINGS, shortlist=10)
     np.testing.assert_array_equal(single.topk.indices, match_map(saved, query, "single", SETTINGS).topk.indices)
 
@@ -94,6 +102,9 @@ def test_shortlist_errors_are_one_line(route, tmp_path):
     query = load_traversal(route / "qry.npz", "query")
     raises_one_line("has no index", match_map, saved, query, "matching", SETTINGS, shortlist=5)
     raises_one_line("applies to the frame-matching methods", match_map, saved, query, "seqgem", SETTINGS, shortlist=5)
+    add_index(saved, IndexSpec("flat"), windows=5)
+    raises_one_line("needs an index over frames", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
+                    shortlist=5, history=3)
     add_index(saved, IndexSpec("flat"))
     (tmp_path / "m" / "index.faiss").write_bytes(b"garbage")
     raises_one_line("unreadable faiss index", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,

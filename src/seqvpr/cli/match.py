@@ -58,6 +58,9 @@ Examples:
 @click.option("--shortlist", type=int, default=0, show_default=True,
               help="With --map: re-rank only the windows placed by each query frame's S nearest map frames (the "
                    "map's faiss index, seqvpr map index) by exact sequence distance (0: exhaustive).")
+@click.option("--shortlist-history", "history", type=int, default=0, show_default=True,
+              help="With --shortlist: the H query frames before each window place candidates too, carried forward "
+                   "at one frame per frame (where the robot just was; raises the shortlist's recall).")
 @click.option("--nprobe", type=int, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
 @click.option("--rerank", type=int, default=0, show_default=True,
               help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
@@ -91,6 +94,8 @@ def match(**o: Any) -> None:
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
     if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
         raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
+    if o["history"] < 0 or (o["history"] and not o["shortlist"]):
+        raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
     if o["map_dir"]:
         return _match_map(o, models, method, k_values, speeds, budget)
@@ -127,7 +132,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
-                       shortlist=o["shortlist"], nprobe=o["nprobe"], progress=tqdm_progress,
+                       shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
                        cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
@@ -136,7 +141,8 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     if o["shortlist"]:
         from seqvpr.maps.match import shortlist_recall
 
-        run["shortlist"] = {"per_frame": o["shortlist"], "index": saved.info.index["spec"], "nprobe": o["nprobe"],
+        run["shortlist"] = {"per_frame": o["shortlist"], "history": o["history"], "index": saved.info.index["spec"],
+                            "nprobe": o["nprobe"],
                             "recall": shortlist_recall(result, gt)}
         click.echo(f"shortlist: {run['shortlist']['recall']:.3f} of the scored queries have a true place among "
                    f"their candidates", err=True)

@@ -70,12 +70,14 @@ def match_map(
     index: str = "flat",
     rerank: int = 0,
     shortlist: int = 0,
+    history: int = 0,
     nprobe: int = 16,
     progress: ProgressFactory | None = None,
     **extraction: Any,
 ) -> MatchResult:
     """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives; with
-    ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame)."""
+    ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame; the
+    ``history`` query frames before each window place candidates too)."""
     models = dict(models or {})
     check_run(method, models, rerank)
     check_map_models(saved.info, str(saved.folder), method, models)
@@ -89,7 +91,7 @@ def match_map(
         method = "matching" if method == "seqmatchnet" else method
     if shortlist:
         check_shortlist(saved, method, models)
-        return shortlist_match(saved, frames, method, settings, shortlist, nprobe)
+        return shortlist_match(saved, frames, method, settings, shortlist, nprobe, history)
     if uses_window_index(saved, method, settings, models, rerank):
         return indexed_retrieval(saved, frames, settings, nprobe)
     return run_method(method, saved.frames, frames, replace(settings), models, index=index, rerank=rerank,
@@ -135,10 +137,11 @@ def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedMo
 
 def shortlist_match(
     saved: SavedMap, frames: Traversal, method: str, settings: MatchSettings, shortlist: int, nprobe: int,
+    history: int = 0,
 ) -> MatchResult:
     """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
     (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
-    (``frame_shortlist``, up to L x S); over windows: each query window's ``shortlist`` nearest ones."""
+    (``frame_shortlist``, up to (L + history) x S); over windows: each query window's ``shortlist`` nearest ones."""
     import numpy as np
     import torch
 
@@ -154,9 +157,12 @@ def shortlist_match(
         query = torch.nn.functional.normalize(query, dim=1)
     starts = window_starts(frames.segment_ids, spec.length, spec.offset, spec.boundary)
     index, over = open_frame_index(saved, nprobe), saved.info.index["over"]
+    if history and over != "frames":
+        raise SeqvprError(f"--shortlist-history needs an index over frames; {saved.folder}'s is over {over}")
     if over == "frames":
         neighbours, _ = search_frames(index, query.numpy(), shortlist)
-        candidates = frame_shortlist(neighbours, starts, spec, saved.info.count)
+        candidates = frame_shortlist(neighbours, starts, spec, saved.info.count, history=history,
+                                     query_segments=frames.segment_ids)
     else:  # an index over windows: each query window's sequence descriptor finds its candidate frames directly
         neighbours, distances = window_search(saved, index, query, frames.segment_ids, shortlist)
         candidates = TopK(neighbours, distances, starts >= 0)

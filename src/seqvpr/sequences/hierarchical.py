@@ -81,21 +81,38 @@ def _candidate_distances(
     return aligned_sequence_distances(q_windows[:, None], r_windows).double().cpu().numpy()
 
 
-def frame_shortlist(neighbours: np.ndarray, query_starts: np.ndarray, spec: SequenceSpec, n_reference: int) -> TopK:
+def frame_shortlist(
+    neighbours: np.ndarray,
+    query_starts: np.ndarray,
+    spec: SequenceSpec,
+    n_reference: int,
+    *,
+    history: int = 0,
+    query_segments: np.ndarray | None = None,
+) -> TopK:
     """Candidate reference frames of each query from the nearest reference frames of every frame of its window.
 
     ``neighbours`` [n_query, S] are the S nearest reference frames of each query frame (-1 for none). A reference
     frame r found for the k-th frame of the window starting at ``query_starts[i]`` places the candidate window
-    there, so the candidate is the frame ``r - k + offset`` (slope 1). Each query gets the union over its L frames
-    (up to L * S, duplicates and frames off the reference dropped), ascending; -1 pads. Distances are not known.
+    there, so the candidate is the frame ``r - k + offset`` (slope 1). With ``history`` H the H query frames before
+    the window (same segment) place candidates too (k = -1 .. -H): where the robot just was, carried forward. Each
+    query gets the union (up to (L + H) * S, duplicates and frames off the reference dropped); -1 pads. Distances
+    are not known.
     """
     starts = np.asarray(query_starts, dtype=np.int64)
     has_window = starts >= 0
     length, width = spec.length, neighbours.shape[1]
-    frames = window_frames(np.maximum(starts, 0), length)  # [n, L]
-    found = neighbours[frames]  # [n, L, S]
-    shift = spec.offset - np.arange(length)[None, :, None]
-    candidates = np.where(found >= 0, found + shift, -1).reshape(len(starts), length * width)
+    positions = np.arange(-history, length)
+    frames = np.maximum(starts, 0)[:, None] + positions[None, :]  # [n, H + L]
+    usable = frames >= 0
+    if history:
+        segments = np.zeros(len(neighbours), np.int64) if query_segments is None else np.asarray(query_segments)
+        own = segments[np.maximum(starts, 0)]
+        usable &= segments[np.maximum(frames, 0)] == own[:, None]
+    found = neighbours[np.maximum(frames, 0)]  # [n, H + L, S]
+    shift = spec.offset - positions[None, :, None]
+    keep = (found >= 0) & usable[:, :, None]
+    candidates = np.where(keep, found + shift, -1).reshape(len(starts), (history + length) * width)
     candidates[(candidates < 0) | (candidates >= n_reference) | ~has_window[:, None]] = -1
     candidates.sort(axis=1)
     duplicate = np.zeros_like(candidates, dtype=bool)
