@@ -24,7 +24,8 @@ LAYERS = {
     "seqvpr.training": 5,
     "seqvpr.methods": 6,
     "seqvpr.experiments": 7, "seqvpr.maps": 7,
-    "seqvpr.cli": 8,
+    "seqvpr.localization": 8,
+    "seqvpr.cli": 9,
 }
 HEAVY = ("torch", "numba", "faiss", "matplotlib", "scipy")
 

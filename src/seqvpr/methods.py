@@ -3,7 +3,8 @@ benchmark``, the demo).
 
 A method is frame-level sequence matching (``single``, ``matching``, ``seqmatchnet``), retrieval by one sequence
 descriptor per window (``smoothing``, ``delta``, ``concat``, ``seqgem``, ``seqgem-signed``, ``seqnet``, ``jist``),
-or hierarchical (``hvpr``: a retrieval shortlist re-ranked by exact sequence distance). Trained models come in as
+hierarchical (``hvpr``: a retrieval shortlist re-ranked by exact sequence distance), or a filter (``hmm``: a
+topological HMM over reference frames, run forward over the query). Trained models come in as
 ``TrainedModel``s keyed by kind: a SeqMatchNet model transforms the frames that sequence matching compares (the
 matching methods and every re-ranking); SeqNet and JIST give their own sequence descriptors; a CosPlace model is a
 frame encoder only. Sequence-descriptor methods pool the frames as described: the model that consumes images (JIST's
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
     from seqvpr.models.registry import TrainedModel
     from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
 
-Family = Literal["matching", "retrieval", "hierarchical"]
+Family = Literal["matching", "retrieval", "hierarchical", "filter"]
 MODEL_TITLES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST", "cosplace": "CosPlace"}
 #: the method each model kind implies, the first kind given in this order deciding (the registry's ``method``)
 IMPLIED_METHODS = {"jist": "jist", "seqnet": "seqnet", "seqmatchnet": "seqmatchnet", "cosplace": "single"}
@@ -74,6 +75,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("jist", "retrieval", "a trained JIST: its encoder's frames pooled by its SeqGeM, faiss search",
            needs="jist", pooling="seqgem"),
     Method("hvpr", "hierarchical", "hierarchical: a SeqNet (or SeqGeM) shortlist re-ranked by sequence matching"),
+    Method("hmm", "filter", "topological filter (HMM forward pass) over reference frames: stops and speed changes",
+           length=1),
 )}
 
 
@@ -167,6 +170,10 @@ def run_method(
             raise SeqvprError(f"hvpr: the shortlist must be a retrieval method, got {first!r}")
         used = {kind: models[kind] for kind in models if get_method(first).accepts(kind)}
         return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST)
+    if method.family == "filter":
+        from seqvpr.pipeline import filter_traversals
+
+        return filter_traversals(*transformed_frames(reference, query, models, settings.device), settings)
     if method.family == "matching":
         if method.length is not None:
             settings = replace(settings, sequence=SequenceSpec(method.length))

@@ -32,7 +32,14 @@ from seqvpr.features.extraction import (
 )
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
 from seqvpr.features.whitening import fit_pca_whitening
-from seqvpr.sequences.matching import TopK, frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, filter_topk, map_distance_scale
+from seqvpr.sequences.matching import (
+    TopK,
+    frame_distances,
+    reference_squared_norms,
+    sequence_distance_matrix,
+    sequence_topk,
+)
 from seqvpr.sequences.windows import SequenceSpec
 
 if TYPE_CHECKING:
@@ -243,6 +250,27 @@ def match_traversals(
         progress=tick,
     )
     return MatchResult(reference, query, topk, settings)
+
+
+def filter_traversals(
+    reference: Traversal,
+    query: Traversal,
+    settings: MatchSettings = MatchSettings(),
+    filter_settings: FilterSettings = FilterSettings(),
+    seed: int = 0,
+) -> MatchResult:
+    """Top-K reference frames per query frame by a topological filter run forward over the query (``hmm``), its
+    likelihood scale calibrated on the reference (``seed`` draws the sample frames). Distances are 1 - belief mass."""
+    ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
+    qry = _as_tensor(query, settings)
+    if ref.shape[1] != qry.shape[1]:
+        raise SeqvprError(f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
+                          f"{query.source or query.name} has {qry.shape[1]}")
+    norms = reference_squared_norms(ref)
+    scale = map_distance_scale(ref, norms, filter_settings, seed=seed)
+    topological = TopologicalFilter(reference.segment_ids, scale, filter_settings)
+    return MatchResult(reference, query, filter_topk(qry, ref, norms, topological, settings.k, query.segment_ids),
+                       settings)
 
 
 def retrieve_traversals(

@@ -235,3 +235,26 @@ def _rgb(hex_colour: str) -> tuple[float, float, float]:
     """'#rrggbb' as three floats in 0..1."""
     v = hex_colour.lstrip("#")
     return tuple(int(v[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+def plot_localisation(estimate: np.ndarray, truth: np.ndarray, correct: np.ndarray, trusted: np.ndarray,
+                      score: np.ndarray, threshold: float, path: Path) -> None:
+    """A localiser's replay over time: its best map frame per query frame (green right, red wrong, grey when not
+    trusted) against the nearest true map frame, and below, its score with the threshold."""
+    fig = new_figure(10, 6)
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
+    frames = np.arange(len(estimate))
+    has_truth = truth >= 0
+    top.plot(frames[has_truth], truth[has_truth], ".", color=GT_COLOUR, markersize=2, label="ground truth")
+    shown = estimate >= 0
+    for mask, colour, label in ((shown & ~trusted, NO_WINDOW_COLOUR, "not trusted"),
+                                (shown & trusted & correct, CORRECT_COLOUR, "trusted, right"),
+                                (shown & trusted & ~correct, WRONG_COLOUR, "trusted, wrong")):
+        top.plot(frames[mask], estimate[mask], "o", color=colour, markersize=2.5, label=label)
+    top.set_ylabel("map frame")
+    top.legend(loc="upper left", fontsize=8, markerscale=3)
+    bottom.plot(frames, score, color="#444444", linewidth=0.8)
+    bottom.axhline(threshold, color=WRONG_COLOUR, linewidth=0.8, linestyle="--")
+    bottom.set_ylabel("score")
+    bottom.set_xlabel("query frame")
+    save_figure(fig, path)

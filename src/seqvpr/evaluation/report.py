@@ -10,7 +10,7 @@ from __future__ import annotations
 import csv
 import html
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -392,3 +392,17 @@ def write_report(
             distance_views=distance_views, examples=examples, example_title=example_title,
         )
     return out_dir / "index.html"
+
+
+def write_localisation_report(out_dir: Path, *, title: str, summary: str, rows: Sequence[tuple[str, str]],
+                              draw: Callable[[Path], None]) -> Path:
+    """A localisation page: the summary, a table of (measure, value) rows and the figure ``draw`` writes (estimate
+    against ground truth over time, the score), written atomically as ``out_dir/index.html``."""
+    table = "\n".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    with atomic_folder(Path(out_dir)) as tmp:
+        draw(tmp / "localisation.png")
+        sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary),
+                    f'<table class="recall">\n{table}\n</table>',
+                    '<h2>Estimate over time</h2>\n<img src="localisation.png" alt="estimate against ground truth">']
+        (tmp / "index.html").write_text(page_html(title, sections), encoding="utf-8")
+    return Path(out_dir) / "index.html"

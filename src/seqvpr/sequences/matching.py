@@ -397,3 +397,36 @@ def sequence_distance_rows(
     local_starts = position[starts]
     r_seg = _segments(reference_segments, len(reference))
     return _sequence_rows(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)
+
+
+def reference_squared_norms(reference: ReferenceRows, columns: int = 65536) -> np.ndarray:
+    """Squared norms [N] (float64) of every reference row, read chunk by chunk: computed once by a caller that
+    measures many single frames against the same rows (``distances_to_reference``)."""
+    from seqvpr.sequences._fused import squared_norms
+
+    parts = []
+    for lo in range(0, len(reference), columns):
+        rows = reference[lo : lo + columns]
+        parts.append(squared_norms(np.asarray(rows.cpu() if isinstance(rows, torch.Tensor) else rows, np.float32)))
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def distances_to_reference(
+    query: torch.Tensor, reference: ReferenceRows, norms: np.ndarray, columns: int = 65536
+) -> np.ndarray:
+    """Frame distances [b, N] (float32) of a few query rows to every reference row, read chunk by chunk (a saved
+    map's memory map is never loaded whole), with the rows' squared ``norms`` given (one pass over the rows, not
+    two). The same values as ``frame_distances``."""
+    from seqvpr.sequences._fused import distances_from_dots_, squared_norms
+
+    query = query.float().cpu()
+    out = np.empty((len(query), len(reference)), dtype=np.float32)
+    query_sq = squared_norms(query.numpy())
+    for lo in range(0, len(reference), columns):
+        hi = min(lo + columns, len(reference))
+        dots = torch.from_numpy(out[:, lo:hi]) if len(query) == 1 else torch.empty(len(query), hi - lo)
+        torch.mm(query, _reference_block(reference, lo, hi, query).T, out=dots)
+        values = dots.numpy()
+        distances_from_dots_(values, query_sq, norms[lo:hi])
+        out[:, lo:hi] = values
+    return out

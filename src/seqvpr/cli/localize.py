@@ -1,0 +1,196 @@
+"""``seqvpr localize``: replay a query traversal as a stream through the online localiser over a saved map; with
+``--calibrate``, pick and store the score threshold that reaches a target precision."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from seqvpr.cli.options import parse_ks
+from seqvpr.cli.progress import tqdm_progress
+from seqvpr.errors import SeqvprError
+
+
+@click.command("localize", epilog="""\b
+Examples:
+  seqvpr localize --map maps/summer -q winter/ --radius 1f --calibrate --target-precision 0.99
+  seqvpr localize --map maps/summer -q winter2/ --radius 1f --out localised
+  seqvpr localize --map maps/summer -q winter2/ --method hmm --radius 1f""")
+@click.option("--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
+@click.option("-q", "--query", required=True, type=click.Path(), help="The query traversal, replayed frame by frame.")
+@click.option("--frames", help="Keep query frames START:STOP (e.g. 17:2000).")
+@click.option("--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
+              help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through "
+                   "it; hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet "
+                   "with its --model]")
+@click.option("-L", "--seq-len", type=int, default=5, show_default=True, help="Frames of a causal window.")
+@click.option("--model", "model_dirs", multiple=True, type=click.Path(), help="The model(s) the map was built through.")
+@click.option("--shortlist", type=int, default=0, show_default=True,
+              help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map).")
+@click.option("--shortlist-history", "history", type=int, default=0, show_default=True,
+              help="With --shortlist: the H frames before the window place candidates too.")
+@click.option("--nprobe", type=int, default=16, show_default=True, help="IVF lists a shortlist search visits.")
+@click.option("--threshold", type=float, help="Score from which an estimate is trusted [default: the map's "
+                                              "calibrated one for these settings, else the method's default].")
+@click.option("--lost-after", type=int, default=5, show_default=True, help="Frames below the threshold before 'lost'.")
+@click.option("--exclusion", type=int, default=10, show_default=True,
+              help="Frames around the best that are not 'another place' for the score.")
+@click.option("--keyframe-distance", type=float, default=0.0, show_default=True,
+              help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
+@click.option("--min-step", type=int, default=0, show_default=True, help="hmm: fewest map frames moved per frame.")
+@click.option("--max-step", type=int, default=2, show_default=True, help="hmm: most map frames moved per frame.")
+@click.option("--floor", type=float, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
+@click.option("--sharpness", type=float, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
+@click.option("--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat or VPR-Bench .npy).")
+@click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query and "
+                                                "store it with the map (needs ground truth).")
+@click.option("--target-precision", type=float, default=0.99, show_default=True)
+@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@click.option("--resume-state", type=click.Path(), help="Start from a saved localiser state.")
+@click.option("--save-state", type=click.Path(), help="Save the localiser's state after the last frame.")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--out", "out_dir", default="seqvpr-localize", show_default=True, type=click.Path(),
+              help="Folder for stream.csv, run.json and report/.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
+def localize(**o: Any) -> None:
+    """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.localization.replay import replay
+    from seqvpr.pipeline import resolve_ground_truth
+
+    k_values = parse_ks(o["ks"])
+    if o["calibrate"] and not (o["radius"] or o["gt_file"]):
+        raise SeqvprError("--calibrate needs ground truth: give --radius or --ground-truth")
+    localizer = _open(o, max(k_values))
+    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"]) \
+        if (o["radius"] or o["gt_file"]) else None
+    if o["resume_state"]:
+        localizer.restore(o["resume_state"])
+    run = replay(localizer, query, tqdm_progress(len(query), "localize"))
+    if o["save_state"]:
+        localizer.save_state(o["save_state"])
+    if o["calibrate"]:
+        return _calibrate(o, localizer, run, gt)
+    _report(o, localizer, run, gt, k_values)
+
+
+def _open(o: dict[str, Any], k: int):
+    """The localiser the options describe (settings checked before any frame is read)."""
+    from seqvpr.localization import Localizer
+    from seqvpr.sequences.filter import FilterSettings
+
+    method = o["method"] or ("seqmatchnet" if o["model_dirs"] and _has_seqmatchnet(o["model_dirs"]) else "matching")
+    steps = FilterSettings(o["min_step"], o["max_step"], o["floor"], o["sharpness"])
+    return Localizer.open(o["map_dir"], list(o["model_dirs"]) or None, o["device"], method=method,
+                          length=o["seq_len"], k=k, shortlist=o["shortlist"], history=o["history"],
+                          nprobe=o["nprobe"], threshold=o["threshold"], lost_after=o["lost_after"],
+                          exclusion=o["exclusion"], keyframe_distance=o["keyframe_distance"], filter=steps)
+
+
+def _has_seqmatchnet(folders) -> bool:
+    from seqvpr.models.registry import model_kind
+
+    return any(model_kind(f).name == "seqmatchnet" for f in folders)
+
+
+def _calibrate(o: dict[str, Any], localizer, run, gt) -> None:
+    """Choose the threshold on this replay, store it in the map's localizer.json and say what it reaches."""
+    from datetime import datetime, timezone
+
+    from seqvpr.localization.calibration import find_threshold
+    from seqvpr.localization.localizer import store_calibration
+    from seqvpr.localization.replay import correct_best
+
+    usable = run.scored & gt.has_positive()
+    found = find_threshold(run.score[usable], correct_best(run, gt)[usable], o["target_precision"])
+    record = {"threshold": found.threshold, "target_precision": o["target_precision"], "precision": found.precision,
+              "recall": found.recall, "reached": found.reached, "calibration": str(o["query"]),
+              "frames": int(usable.sum()), "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    store_calibration(o["map_dir"], localizer.settings, record)
+    if o["as_json"]:
+        click.echo(json.dumps(record))
+        return
+    reached = "reached" if found.reached else "NOT reachable on this traversal (the threshold accepts nothing)"
+    click.echo(f"threshold {found.threshold:.4f} for precision >= {o['target_precision']}: {reached}; on "
+               f"{usable.sum()} calibration frames precision {found.precision:.3f}, recall {found.recall:.3f}\n"
+               f"stored in {Path(o['map_dir']) / 'localizer.json'} for {localizer.settings.key()}")
+
+
+def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
+    """stream.csv, run.json and the report page in --out; the summary (or JSON) on stdout."""
+    from seqvpr.io import atomic_write
+    from seqvpr.localization.replay import correct_best, score_replay, write_stream
+
+    out = Path(o["out_dir"])
+    scores = score_replay(run, gt, localizer.threshold, k_values) if gt is not None else None
+    write_stream(out / "stream.csv", run, correct_best(run, gt) if gt is not None else None)
+    summary = _summary(o, localizer, run, scores)
+    with atomic_write(out / "run.json") as handle:
+        json.dump(summary, handle, indent=2)
+    if scores is not None:
+        _write_page(out / "report", summary, run, gt, localizer.threshold)
+    click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
+
+
+def _summary(o: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
+    """What the replay did and, with ground truth, how well: everything run.json holds."""
+    from seqvpr.localization.localizer import read_calibrations
+
+    statuses = {s: int((run.status == s).sum()) for s in ("warming up", "localised", "uncertain", "lost")}
+    target = next((c.get("target_precision") for c in read_calibrations(o["map_dir"])
+                   if c.get("settings") == localizer.settings.key() and o["threshold"] is None), None)
+    summary: dict[str, Any] = {"map": o["map_dir"], "query": o["query"], "frames": len(run.best),
+                               "settings": localizer.settings.key(), "threshold": localizer.threshold,
+                               "target_precision": target, "status": statuses,
+                               "skipped_by_gating": int((~run.kept).sum())}
+    if scores is None:
+        return summary
+    e = scores.evaluation
+    summary.update({"recall": {str(k): v for k, v in e.recall.items()}, "pr_auc": e.pr.auc,
+                    "recall_at_100_precision": e.pr.recall_at_100_precision, "queries_evaluated": e.queries_evaluated,
+                    "precision_at_threshold": scores.precision, "recall_at_threshold": scores.recall,
+                    "time_to_correct": [{"frames": f, "seconds": s} for f, s in scores.time_to_correct],
+                    "latency_ms": scores.latency})
+    return summary
+
+
+def _summary_text(s: dict[str, Any]) -> str:
+    status = ", ".join(f"{k} {v}" for k, v in s["status"].items())
+    lines = [f"{s['frames']} frames: {status}"]
+    if "recall" in s:
+        recall = "  ".join(f"R@{k} {v:.3f}" for k, v in s["recall"].items())
+        lines.append(f"{recall}  PR-AUC {s['pr_auc']:.3f}  R@100P {s['recall_at_100_precision']:.3f}")
+        target = "" if s["target_precision"] is None else f" (target {s['target_precision']})"
+        lines.append(f"threshold {s['threshold']:.4f}: precision {s['precision_at_threshold']:.3f}{target}, "
+                     f"recall {s['recall_at_threshold']:.3f}")
+        first = s["time_to_correct"][0]
+        lines.append("first correct confident estimate: " + ("never" if first["frames"] is None else
+                     f"after {first['frames']} frames" + ("" if first["seconds"] is None else
+                                                          f" ({first['seconds']:.1f} s)")))
+        total = s["latency_ms"].get("total", {})
+        lines.append("latency ms per frame: " + ", ".join(f"{k} {v:.2f}" for k, v in total.items()))
+    return "\n".join(lines)
+
+
+def _write_page(folder: Path, summary: dict[str, Any], run, gt, threshold: float) -> None:
+    import numpy as np
+
+    from seqvpr.evaluation.plots import plot_localisation
+    from seqvpr.evaluation.report import write_localisation_report
+    from seqvpr.localization.replay import correct_best
+
+    right = correct_best(run, gt)
+    truth = np.array([p[len(p) // 2] if len(p) else -1 for p in (gt.positives_of(i) for i in range(len(run.best)))])
+    rows = [(k, f"{v:.3f}" if isinstance(v, float) else str(v)) for k, v in summary.items()
+            if k in ("frames", "threshold", "pr_auc", "recall_at_100_precision", "precision_at_threshold",
+                     "recall_at_threshold")]
+    rows += [(f"R@{k}", f"{v:.3f}") for k, v in summary["recall"].items()]
+    write_localisation_report(folder, title="seqvpr localisation", summary=_summary_text(summary), rows=rows,
+                              draw=lambda path: plot_localisation(run.best, truth, right, run.index >= 0, run.score,
+                                                                  threshold, path))

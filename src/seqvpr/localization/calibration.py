@@ -1,0 +1,50 @@
+"""A threshold a robot can trust: the lowest score threshold whose accepted estimates reach a target precision on a
+calibration traversal with ground truth (recall is what is left to maximise)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from seqvpr.errors import SeqvprError
+
+
+@dataclass(frozen=True)
+class Threshold:
+    """The chosen threshold, the precision and recall it gives where it was chosen, and whether the target was met
+    (when no threshold meets it, the threshold accepts nothing: above every score)."""
+
+    threshold: float
+    precision: float
+    recall: float
+    reached: bool
+
+
+def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float) -> Threshold:
+    """Over the scored frames' ``scores`` and whether their best match was right, the smallest threshold whose
+    accepted frames (score >= threshold) are right at least ``target`` of the time."""
+    if not 0.0 < target <= 1.0:
+        raise SeqvprError(f"--target-precision must be in (0, 1], got {target}")
+    scores, correct = np.asarray(scores, np.float64), np.asarray(correct, bool)
+    if not len(scores):
+        raise SeqvprError("cannot calibrate: no frame of the calibration traversal was scored")
+    order = np.argsort(-scores, kind="stable")
+    ranked, right = scores[order], correct[order]
+    last_of_tie = np.append(ranked[1:] != ranked[:-1], True)
+    accepted = np.arange(1, len(ranked) + 1)[last_of_tie]
+    hits = np.cumsum(right)[last_of_tie]
+    precision, recall = hits / accepted, hits / len(ranked)
+    meets = np.flatnonzero(precision >= target - 1e-12)
+    if not len(meets):
+        return Threshold(float(np.nextafter(ranked[0], np.inf)), 0.0, 0.0, False)
+    best = meets[-1]  # the lowest threshold (most accepted) that still meets the target
+    return Threshold(float(ranked[last_of_tie][best]), float(precision[best]), float(recall[best]), True)
+
+
+def precision_at(scores: np.ndarray, correct: np.ndarray, threshold: float) -> tuple[float, float]:
+    """Precision and recall of accepting the frames whose score reaches ``threshold`` (precision 1 if none is)."""
+    accepted = np.asarray(scores) >= threshold
+    n = int(accepted.sum())
+    right = int(np.asarray(correct)[accepted].sum())
+    return (right / n if n else 1.0), (right / len(accepted) if len(accepted) else 0.0)

@@ -1,0 +1,297 @@
+"""The online localiser: camera frames (or descriptors) in one at a time, an estimate of where on the map out.
+
+    localizer = Localizer.open("maps/route")             # the map's descriptor and calibrated threshold
+    for image in camera:
+        estimate = localizer.update(image, timestamp=t)
+        if estimate.status == "localised":
+            use(estimate.index, estimate.position)
+
+Each estimate carries a score (higher: surer), a status (warming up, localised, uncertain, lost) and the time each
+stage took. A run of ``lost_after`` frames below the threshold is ``lost``: the localiser then names no map frame
+instead of the nearest one, and finds the route again by itself once the frames match it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from seqvpr.errors import SeqvprError
+from seqvpr.io import atomic_write
+from seqvpr.localization.encoder import FrameEncoder, describes_images
+from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
+from seqvpr.maps.build import FrameDescription
+from seqvpr.maps.files import SavedMap, open_map
+from seqvpr.maps.match import check_map_models
+from seqvpr.models.registry import TrainedModel, load_trained_model
+from seqvpr.sequences.filter import FilterSettings
+
+Status = Literal["warming up", "localised", "uncertain", "lost"]
+LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
+#: thresholds used when the map has no calibration for the settings (``seqvpr localize --calibrate`` sets one)
+DEFAULT_THRESHOLDS = {"matching": 0.1, "single": 0.1, "seqmatchnet": 0.1, "hmm": 0.5}
+STATE_FORMAT = "seqvpr-localizer-state"
+
+
+@dataclass(frozen=True)
+class LocalizerSettings:
+    """How the localiser matches (``method``, ``length``, K, an optional shortlist of S per frame with ``history``),
+    when it trusts a match (``threshold`` on the score; None: the map's calibration, else a default), when it is
+    lost (``lost_after`` frames below it), the score's ``exclusion`` (frames around the best that do not count as
+    another place), keyframe gating (``keyframe_distance``: skip frames closer than this to the last kept one; 0:
+    off) and the filter's settings (``hmm``)."""
+
+    method: str = "matching"
+    length: int = 5
+    k: int = 20
+    shortlist: int = 0
+    history: int = 0
+    nprobe: int = 16
+    threshold: float | None = None
+    lost_after: int = 5
+    exclusion: int = 10
+    keyframe_distance: float = 0.0
+    filter: FilterSettings = field(default_factory=FilterSettings)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in LOCALIZER_METHODS:
+            raise SeqvprError(f"a localiser runs {', '.join(LOCALIZER_METHODS)}, not --method {self.method}")
+        if self.method == "hmm" and self.shortlist:
+            raise SeqvprError("--method hmm keeps a belief over every map frame: it takes no --shortlist")
+        if min(self.length, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
+            raise SeqvprError("localiser settings: seq_len, k and lost_after must be >= 1; shortlist, history and "
+                              "exclusion >= 0")
+        if self.history and not self.shortlist:
+            raise SeqvprError(f"--shortlist-history H needs a --shortlist (got H = {self.history})")
+
+    @property
+    def window(self) -> int:
+        """Frames a sequence spans: 1 for single-image retrieval and the filter, else ``length``."""
+        return 1 if self.method in ("single", "hmm") else self.length
+
+    def key(self) -> dict[str, Any]:
+        """What a calibrated threshold depends on (the score's meaning), as stored in ``localizer.json``."""
+        values = {"method": self.method, "length": self.window, "shortlist": self.shortlist, "history": self.history,
+                  "exclusion": self.exclusion}
+        if self.method == "hmm":
+            values["filter"] = self.filter.as_dict()
+        return values
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Where the localiser places one query frame.
+
+    ``index`` is the map frame it trusts (-1 while warming up or lost); ``best`` the best-scoring map frame even
+    then; ``indices``/``distances`` the top-K (sequence distances; 1 - belief mass for the filter); ``latency``
+    milliseconds per stage (describe, distance, sequence, total); ``kept`` False for a frame keyframe gating
+    skipped (the previous estimate is repeated)."""
+
+    frame: int
+    index: int
+    best: int
+    score: float
+    status: Status
+    indices: np.ndarray
+    distances: np.ndarray
+    position: tuple[float, ...] | None
+    name: str | None
+    timestamp: float | None
+    latency: dict[str, float]
+    kept: bool = True
+
+
+class Localizer:
+    """A streaming localiser over a saved map (``Localizer.open``); ``update`` per frame, ``reset`` on a restart."""
+
+    def __init__(self, saved: SavedMap, settings: LocalizerSettings, models: Mapping[str, TrainedModel],
+                 threshold: float, device: str = "cpu") -> None:
+        self.saved, self.settings, self.models, self.threshold = saved, settings, dict(models), threshold
+        self.encoder = (FrameEncoder(FrameDescription.from_json(saved.info.description), self.models, device)
+                        if describes_images(saved.info.description) else None)
+        self.transform = self.models.get("seqmatchnet")  # the map holds transformed frames; raw descriptors get it
+        self.matcher = _matcher(saved, settings)
+        self.frame, self.misses, self.since_reset = 0, 0, 0
+        self.last_kept: np.ndarray | None = None
+        self.last: Estimate | None = None
+
+    @classmethod
+    def open(cls, map_folder: str | Path | SavedMap, model: str | Path | Sequence[str | Path] | None = None,
+             device: str = "cpu", **settings: Any) -> Localizer:
+        """A localiser over the map in ``map_folder`` with ``LocalizerSettings(**settings)``; ``model`` the folder(s)
+        the map was built through (checked by sha256), or a SeqMatchNet model applied to both sides."""
+        saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
+        chosen = LocalizerSettings(**settings)
+        folders = [] if model is None else [model] if isinstance(model, (str, Path)) else list(model)
+        models = {m.kind: m for m in (load_trained_model(f, device) for f in folders)}
+        method = "matching" if chosen.method in ("hmm", "single") else chosen.method
+        check_map_models(saved.info, str(saved.folder), method, models)
+        if "seqmatchnet" in models and "seqmatchnet" not in (saved.info.model or {}):
+            raise SeqvprError(f"a localiser compares frames as {saved.folder} stores them: build the map through the "
+                              "SeqMatchNet model (seqvpr map build --model) to localise with it")
+        if chosen.method == "seqmatchnet" and "seqmatchnet" not in models:
+            raise SeqvprError("--method seqmatchnet needs its SeqMatchNet --model (the one the map was built through)")
+        threshold = chosen.threshold if chosen.threshold is not None else stored_threshold(saved.folder, chosen)
+        return cls(saved, chosen, models, threshold, device)
+
+    def reset(self) -> None:
+        """Start over: a new drive, a kidnapping, a restart with no trusted state."""
+        self.matcher.reset()
+        self.misses, self.since_reset, self.last_kept, self.last = 0, 0, None, None
+
+    def update(self, frame: Any, timestamp: float | None = None) -> Estimate:
+        """The estimate after one more frame: a camera image (path, PIL image, H x W x 3 uint8 array) or a
+        descriptor [D]. A bad frame is a one-line error and leaves the localiser as it was."""
+        started = time.perf_counter()
+        vector = self._describe(frame)
+        described = time.perf_counter()
+        gate = self.settings.keyframe_distance
+        if gate and self.last is not None and self.last_kept is not None \
+                and float(torch.linalg.vector_norm(vector - self.last_kept)) < gate:
+            self.frame += 1
+            latency = {**self.last.latency, "describe": (described - started) * 1e3}
+            return replace(self.last, frame=self.frame - 1, timestamp=timestamp, latency=latency, kept=False)
+        scored = self.matcher.push(vector)
+        self.last_kept, self.since_reset = vector, self.since_reset + 1
+        estimate = self._estimate(scored, timestamp, (described - started) * 1e3, started)
+        self.frame += 1
+        self.last = estimate
+        return estimate
+
+    def _describe(self, frame: Any) -> torch.Tensor:
+        """The frame as a map frame: described (images), transformed (SeqMatchNet at match time), normalised."""
+        array = frame if isinstance(frame, (np.ndarray, torch.Tensor)) else None
+        is_descriptor = array is not None and np.asarray(array).ndim == 1 and np.asarray(array).dtype != np.uint8
+        if is_descriptor:
+            vector = torch.as_tensor(np.asarray(frame, dtype=np.float32))
+        elif self.encoder is None:
+            raise SeqvprError(f"{self.saved.folder} holds descriptor-file frames: update() takes a descriptor [D]")
+        else:
+            vector = torch.from_numpy(self.encoder.encode(frame))
+        if vector.shape != (self.saved.info.dim,):
+            raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {self.saved.info.dim}-D"
+                              " frames")
+        if not torch.isfinite(vector).all():
+            raise SeqvprError("the frame's descriptor holds NaN or infinite values")
+        if self.transform is not None and is_descriptor:
+            with torch.no_grad():
+                vector = self.transform.module(vector[None])[0].float()
+        return torch.nn.functional.normalize(vector, dim=0) if self.saved.info.normalized else vector
+
+    def _estimate(self, scored: Scored | None, timestamp: float | None, describe_ms: float, started: float) -> Estimate:
+        status, self.misses = next_status(scored, self.threshold, self.misses, self.settings.lost_after)
+        if scored is None:
+            empty = np.zeros(0, np.int64)
+            latency = {"describe": describe_ms, "distance": 0.0, "sequence": 0.0}
+            return Estimate(self.frame, -1, -1, 0.0, status, empty, empty.astype(float), None, None, timestamp,
+                            {**latency, "total": (time.perf_counter() - started) * 1e3})
+        best = int(scored.indices[0])
+        index = best if status in ("localised", "uncertain") else -1
+        latency = {"describe": describe_ms, "distance": scored.distance_ms, "sequence": scored.sequence_ms,
+                   "total": (time.perf_counter() - started) * 1e3}
+        return Estimate(self.frame, index, best, scored.score, status, scored.indices, scored.distances,
+                        *self._place(best), timestamp, latency)
+
+    def _place(self, row: int) -> tuple[tuple[float, ...] | None, str | None]:
+        """The map frame's position and name, where the map has them."""
+        frames = self.saved.frames
+        position = None if frames.positions is None else tuple(float(v) for v in frames.positions[row])
+        name = None if frames.image_paths is None else str(frames.image_paths[row])
+        return position, name
+
+    def save_state(self, path: str | Path) -> None:
+        """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``)."""
+        header = {"format": STATE_FORMAT, "version": 1, "map": _map_identity(self.saved),
+                  "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
+                  "since_reset": self.since_reset}
+        arrays = {f"matcher_{k}": v for k, v in self.matcher.state().items()}
+        if self.last_kept is not None:
+            arrays["last_kept"] = self.last_kept.numpy()
+        with atomic_write(path, "wb") as handle:
+            np.savez(handle, header=np.array(json.dumps(header)), **arrays)
+
+    def restore(self, path: str | Path) -> None:
+        """Go on from a state ``save_state`` wrote, for this map and these settings; anything else is one line."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                header = json.loads(str(data["header"]))
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError, KeyError) as error:
+            raise SeqvprError(f"{path}: not a localiser state ({type(error).__name__})") from None
+        if header.get("format") != STATE_FORMAT or header.get("map") != _map_identity(self.saved):
+            raise SeqvprError(f"{path}: a localiser state for another map (or not one)")
+        if header.get("settings") != self.settings.key():
+            raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
+        self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items() if k.startswith("matcher_")})
+        self.frame, self.misses, self.since_reset = header["frame"], header["misses"], header["since_reset"]
+        self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
+
+
+def next_status(scored: Scored | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:
+    """The status of a frame and the run of frames below the threshold so far."""
+    if scored is None:
+        return "warming up", misses
+    if scored.score >= threshold:
+        return "localised", 0
+    misses += 1
+    return ("lost" if misses >= lost_after else "uncertain"), misses
+
+
+def _matcher(saved: SavedMap, settings: LocalizerSettings):
+    """The per-frame step the settings ask for."""
+    segments = saved.frames.segment_ids
+    if settings.method == "hmm":
+        return FilterMatcher(saved.descriptors, segments, settings.k, settings.filter, settings.seed)
+    if settings.shortlist:
+        from seqvpr.maps.index import open_frame_index
+
+        if (saved.info.index or {}).get("over") != "frames":
+            raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
+                              f"{saved.folder} --index SPEC")
+        return ShortlistMatcher(saved, open_frame_index(saved, settings.nprobe), settings.window, settings.k,
+                                settings.exclusion, settings.shortlist, settings.history)
+    return ExactMatcher(saved.descriptors, segments, settings.window, settings.k, settings.exclusion)
+
+
+def _map_identity(saved: SavedMap) -> dict[str, Any]:
+    return {"count": saved.info.count, "dim": saved.info.dim, "created": saved.info.created}
+
+
+# --- calibrated thresholds, kept with the map ---------------------------------------------------------------------
+
+CALIBRATION_FILE = "localizer.json"
+
+
+def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> float:
+    """The threshold ``seqvpr localize --calibrate`` stored for these settings, else the method's default."""
+    for entry in read_calibrations(folder):
+        if entry.get("settings") == settings.key():
+            return float(entry["threshold"])
+    return DEFAULT_THRESHOLDS[settings.method]
+
+
+def read_calibrations(folder: str | Path) -> list[dict[str, Any]]:
+    path = Path(folder) / CALIBRATION_FILE
+    if not path.exists():
+        return []
+    try:
+        return list(json.loads(path.read_text())["calibrations"])
+    except (ValueError, KeyError, TypeError) as error:
+        raise SeqvprError(f"{path}: malformed ({type(error).__name__}: {error})") from None
+
+
+def store_calibration(folder: str | Path, settings: LocalizerSettings, record: dict[str, Any]) -> None:
+    """Keep a calibrated threshold with the map (replacing one for the same settings), atomically."""
+    kept = [e for e in read_calibrations(folder) if e.get("settings") != settings.key()]
+    kept.append({"settings": settings.key(), **record})
+    with atomic_write(Path(folder) / CALIBRATION_FILE) as handle:
+        json.dump({"format": "seqvpr-localizer", "version": 1, "calibrations": kept}, handle, indent=2)
+

@@ -1,0 +1,168 @@
+"""The per-frame step of each localisation method: a new query frame's descriptor in, the K best map frames, their
+distances and a score out (None while warming up), with the time spent measuring distances and stepping.
+
+- ``ExactMatcher``: one distance pass over the map, then ``DiagonalSums`` (exact causal sequence matching).
+- ``ShortlistMatcher``: the map's faiss index gives candidates (the window's and the H frames before it, carried
+  forward), re-ranked by exact sequence distance; cost independent of the map's size.
+- ``FilterMatcher``: one distance pass, then the topological filter.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqvpr.errors import SeqvprError
+from seqvpr.maps.files import SavedMap
+from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, map_distance_scale
+from seqvpr.sequences.hierarchical import rerank
+from seqvpr.sequences.matching import TopK, distances_to_reference, reference_squared_norms
+from seqvpr.sequences.online import DiagonalSums, best_k, uniqueness
+from seqvpr.sequences.windows import SequenceSpec
+
+
+@dataclass(frozen=True)
+class Scored:
+    """One frame's answer: map rows and distances (ascending), the score (higher: surer), milliseconds spent."""
+
+    indices: np.ndarray
+    distances: np.ndarray
+    score: float
+    distance_ms: float
+    sequence_ms: float
+
+
+def _ms(since: float) -> float:
+    return (time.perf_counter() - since) * 1e3
+
+
+class ExactMatcher:
+    """Exact causal sequence matching of the last L frames against every map frame, incrementally."""
+
+    def __init__(self, rows, segments: np.ndarray, length: int, k: int, exclusion: int, norms: np.ndarray | None = None):
+        self.rows, self.k, self.exclusion = rows, k, exclusion
+        self.norms = reference_squared_norms(rows) if norms is None else norms
+        self.sums = DiagonalSums(segments, length)
+
+    def reset(self) -> None:
+        self.sums.reset()
+
+    def push(self, query: torch.Tensor) -> Scored | None:
+        started = time.perf_counter()
+        distances = distances_to_reference(query[None], self.rows, self.norms)[0]
+        measured = time.perf_counter()
+        means = self.sums.push(distances)
+        if means is None:
+            return None
+        indices, values = best_k(means, self.k)
+        score = uniqueness(means, int(indices[0]), self.exclusion)
+        return Scored(indices, values, score, (measured - started) * 1e3, _ms(measured))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return self.sums.state()
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.sums.load_state(state)
+
+
+class ShortlistMatcher:
+    """Candidates from the map's frame index (S per frame, over the window and ``history`` frames before it),
+    re-ranked by exact causal sequence distance."""
+
+    def __init__(self, saved: SavedMap, index, length: int, k: int, exclusion: int, shortlist: int, history: int):
+        self.saved, self.index, self.length, self.k, self.exclusion = saved, index, length, k, exclusion
+        self.shortlist, self.history = shortlist, history
+        self.spec = SequenceSpec(length, "causal")
+        self.frames: deque[np.ndarray] = deque(maxlen=length)
+        self.found: deque[np.ndarray] = deque(maxlen=length + history)
+        stored = saved.descriptors
+        self.reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
+
+    def reset(self) -> None:
+        self.frames.clear()
+        self.found.clear()
+
+    def push(self, query: torch.Tensor) -> Scored | None:
+        from seqvpr.maps.index import search_frames
+
+        started = time.perf_counter()
+        vector = query.numpy()[None]
+        self.found.appendleft(search_frames(self.index, vector, self.shortlist)[0][0])
+        self.frames.append(query)
+        measured = time.perf_counter()
+        if len(self.frames) < self.length:
+            return None
+        top = self._rerank(self._candidates())
+        indices, values = top.indices[-1], top.distances[-1]
+        score = _candidate_uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, _ms(measured))
+
+    def _candidates(self) -> np.ndarray:
+        """Map frames ending a candidate window: each neighbour of the frame ``lag`` frames ago, ``lag`` ahead."""
+        found = [rows[rows >= 0] + lag for lag, rows in enumerate(self.found)]
+        candidates = np.unique(np.concatenate(found))
+        return candidates[candidates < self.saved.info.count]
+
+    def _rerank(self, candidates: np.ndarray) -> TopK:
+        window = torch.stack(list(self.frames))
+        rows = np.full((self.length, max(len(candidates), 1)), -1, np.int64)
+        rows[-1, : len(candidates)] = candidates
+        has = np.zeros(self.length, bool)
+        has[-1] = True
+        shortlist = TopK(rows, np.zeros(rows.shape), has)
+        return rerank(window, self.reference, shortlist, self.spec, None, self.saved.frames.segment_ids)
+
+    def state(self) -> dict[str, np.ndarray]:
+        width = self.shortlist
+        found = np.array(list(self.found), np.int64).reshape(-1, width)
+        frames = torch.stack(list(self.frames)).numpy() if self.frames else np.zeros((0, self.saved.info.dim), np.float32)
+        return {"found": found, "frames": frames}
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        if state["found"].shape[1:] != (self.shortlist,):
+            raise SeqvprError(f"saved shortlist holds {state['found'].shape[1:]} neighbours, this one {self.shortlist}")
+        self.reset()
+        self.found.extend(state["found"])
+        self.frames.extend(torch.from_numpy(row) for row in state["frames"])
+
+
+def _candidate_uniqueness(indices: np.ndarray, values: np.ndarray, exclusion: int) -> float:
+    """``uniqueness`` over re-ranked candidates (ascending): the best against the first candidate outside its
+    neighbourhood (1 when no other place was shortlisted)."""
+    if not len(indices) or indices[0] < 0:
+        return 0.0
+    others = values[(np.abs(indices - indices[0]) > exclusion) & (indices >= 0)]
+    if not len(others) or not np.isfinite(others[0]):
+        return 1.0
+    return float(np.clip(1.0 - values[0] / others[0], 0.0, 1.0)) if others[0] > 0 else 0.0
+
+
+class FilterMatcher:
+    """The topological filter, one distance pass per frame; its likelihood scale calibrated on the map."""
+
+    def __init__(self, rows, segments: np.ndarray, k: int, settings: FilterSettings, seed: int = 0):
+        self.rows, self.k = rows, k
+        self.norms = reference_squared_norms(rows)
+        self.filter = TopologicalFilter(segments, map_distance_scale(rows, self.norms, settings, seed=seed), settings)
+
+    def reset(self) -> None:
+        self.filter.reset()
+
+    def push(self, query: torch.Tensor) -> Scored | None:
+        started = time.perf_counter()
+        distances = distances_to_reference(query[None], self.rows, self.norms)[0]
+        measured = time.perf_counter()
+        self.filter.step(distances.astype(np.float64))
+        mass = self.filter.mass()
+        indices, values = best_k(1.0 - mass, self.k)
+        return Scored(indices, values, float(mass[indices[0]]), (measured - started) * 1e3, _ms(measured))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return self.filter.state()
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.filter.load_state(state)
