@@ -66,6 +66,8 @@ def localize(**o: Any) -> None:
     k_values = parse_ks(o["ks"])
     if o["calibrate"] and not (o["radius"] or o["gt_file"]):
         raise SeqvprError("--calibrate needs ground truth: give --radius or --ground-truth")
+    if not 0.0 < o["target_precision"] <= 1.0:
+        raise SeqvprError(f"--target-precision must be in (0, 1], got {o['target_precision']}")
     localizer = _open(o, max(k_values))
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
     gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"]) \

@@ -62,7 +62,12 @@ class DiagonalSums:
 def best_k(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``k`` smallest finite values and their rows, ascending (ties: the lower row first); -1/+inf pad."""
     k = min(k, len(values))
-    picked = np.argpartition(values, k - 1)[:k] if k < len(values) else np.arange(len(values))
+    if k < len(values):  # every row below the k-th value, then the lowest rows equal to it (a stable cut)
+        kth = np.partition(values, k - 1)[k - 1]
+        below = np.flatnonzero(values < kth)
+        picked = np.concatenate([below, np.flatnonzero(values == kth)[: k - len(below)]])
+    else:
+        picked = np.arange(len(values))
     order = np.lexsort((picked, values[picked]))
     rows, best = picked[order], values[picked[order]]
     finite = np.isfinite(best)

@@ -1,0 +1,60 @@
+"""``seqvpr localize`` as a user runs it: calibrate on one traversal, replay another, read what it wrote."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from tests.helpers import run_cli, write_route_files
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory):
+    return write_route_files(tmp_path_factory.mktemp("route"), 120, 16, 7)
+
+
+def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, monkeypatch, capsys):
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    common = ("--map", tmp_path / "m", "-q", route / "qry.npz", "--radius", "10m")
+    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--calibrate", "--target-precision", "0.9")
+    assert code == 0, err
+    assert "for precision >= 0.9: reached" in out and "localizer.json" in out
+    stored = json.loads((tmp_path / "m" / "localizer.json").read_text())["calibrations"][0]
+    assert stored["settings"]["method"] == "matching" and stored["precision"] >= 0.9
+    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--out", tmp_path / "o", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["threshold"] == stored["threshold"] and summary["target_precision"] == 0.9
+    assert summary["precision_at_threshold"] >= 0.9  # the same traversal: the calibrated precision holds
+    assert set(summary["latency_ms"]) == {"describe", "distance", "sequence", "total"}
+    rows = list(csv.DictReader(open(tmp_path / "o" / "stream.csv")))
+    assert len(rows) == 120 and rows[0]["status"] == "warming up" and rows[-1]["correct"] in ("0", "1")
+    assert (tmp_path / "o" / "report" / "index.html").exists() and (tmp_path / "o" / "report" / "localisation.png").exists()
+
+
+def test_the_filter_and_a_saved_state_from_the_command_line(route, tmp_path, monkeypatch, capsys):
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    common = ("--map", tmp_path / "m", "-q", route / "qry.npz", "--method", "hmm", "--out", tmp_path / "o")
+    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--save-state", tmp_path / "s.npz")
+    assert code == 0 and "120 frames" in out and (tmp_path / "s.npz").exists(), err
+    code, _, err = run_cli(monkeypatch, capsys, "localize", *common, "--resume-state", tmp_path / "s.npz")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--calibrate",), "--calibrate needs ground truth"),
+    (("--shortlist", "5"), "--shortlist needs an index over"),
+    (("--shortlist-history", "3"), "--shortlist-history H needs a --shortlist"),
+    (("--method", "hmm", "--shortlist", "4"), "takes no --shortlist"),
+    (("--resume-state", "QRY"), "not a localiser state"),
+    (("--radius", "10m", "--calibrate", "--target-precision", "2"), "--target-precision must be in (0, 1]"),
+])
+def test_bad_localize_options_are_one_line(route, tmp_path, monkeypatch, capsys, args, message):
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    args = [route / "qry.npz" if a == "QRY" else a for a in args]
+    code, _, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", route / "qry.npz", *args,
+                           "--out", tmp_path / "o")
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
