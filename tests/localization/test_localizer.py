@@ -54,7 +54,7 @@ def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
         save_traversal_npz(Path(tmp) / "ref.npz", traversal(map_rows, map_segments, "ref"))
         saved = build_map([str(Path(tmp) / "ref.npz")], Path(tmp) / "m")
         query = traversal(query_rows, query_segments, "qry")
-        run = replay(Localizer.open(saved, length=length, k=4), query)
+        run = replay(Localizer.open(saved, seq_len=length, k=4), query)
         if not (run.scored.any()):
             return  # no window anywhere: the offline kernel refuses such a query (L longer than every segment)
         try:
@@ -102,7 +102,7 @@ def test_a_saved_state_resumes_exactly(route, tmp_path):
         for row in frames[40:60]:
             a, b = whole.update(row), resumed.update(row)
             assert (a.index, a.status, a.frame) == (b.index, b.status, b.frame) and abs(a.score - b.score) < 1e-12
-    raises_one_line("saved with other settings", Localizer.open(saved, length=3).restore, tmp_path / "state.npz")
+    raises_one_line("saved with other settings", Localizer.open(saved, seq_len=3).restore, tmp_path / "state.npz")
     (tmp_path / "junk.npz").write_bytes(b"junk")
     raises_one_line("not a localiser state", Localizer.open(saved).restore, tmp_path / "junk.npz")
 
@@ -152,10 +152,10 @@ def test_camera_frames_are_described_as_the_map_was(tmp_path):
             Image.fromarray(pixels).save(tmp_path / side / f"{i:03d}.png")
     saved = build_map([str(tmp_path / "ref")], tmp_path / "m")
     query = load_traversal(tmp_path / "qry", "query")
-    from_images = replay(Localizer.open(saved, length=3), query)
-    from_descriptors = replay(Localizer.open(saved, length=3), describe(query))
+    from_images = replay(Localizer.open(saved, seq_len=3), query)
+    from_descriptors = replay(Localizer.open(saved, seq_len=3), describe(query))
     np.testing.assert_array_equal(from_images.indices, from_descriptors.indices)
     np.testing.assert_allclose(from_images.score, from_descriptors.score, atol=1e-6)
     array = np.asarray(Image.open(tmp_path / "qry" / "000.png"))
-    localizer = Localizer.open(saved, length=1)
+    localizer = Localizer.open(saved, seq_len=1)
     assert localizer.update(array).best == localizer.update(tmp_path / "qry" / "000.png").best

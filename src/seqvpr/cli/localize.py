@@ -90,7 +90,7 @@ def _open(o: dict[str, Any], k: int):
     method = o["method"] or ("seqmatchnet" if o["model_dirs"] and _has_seqmatchnet(o["model_dirs"]) else "matching")
     steps = FilterSettings(o["min_step"], o["max_step"], o["floor"], o["sharpness"])
     return Localizer.open(o["map_dir"], list(o["model_dirs"]) or None, o["device"], method=method,
-                          length=o["seq_len"], k=k, shortlist=o["shortlist"], history=o["history"],
+                          seq_len=o["seq_len"], k=k, shortlist=o["shortlist"], history=o["history"],
                           nprobe=o["nprobe"], threshold=o["threshold"], lost_after=o["lost_after"],
                           exclusion=o["exclusion"], keyframe_distance=o["keyframe_distance"], filter=steps)
 

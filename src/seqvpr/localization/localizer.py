@@ -42,14 +42,14 @@ STATE_FORMAT = "seqvpr-localizer-state"
 
 @dataclass(frozen=True)
 class LocalizerSettings:
-    """How the localiser matches (``method``, ``length``, K, an optional shortlist of S per frame with ``history``),
+    """How the localiser matches (``method``, ``seq_len``, K, an optional shortlist of S per frame with ``history``),
     when it trusts a match (``threshold`` on the score; None: the map's calibration, else a default), when it is
     lost (``lost_after`` frames below it), the score's ``exclusion`` (frames around the best that do not count as
     another place), keyframe gating (``keyframe_distance``: skip frames closer than this to the last kept one; 0:
     off) and the filter's settings (``hmm``)."""
 
     method: str = "matching"
-    length: int = 5
+    seq_len: int = 5
     k: int = 20
     shortlist: int = 0
     history: int = 0
@@ -66,7 +66,7 @@ class LocalizerSettings:
             raise SeqvprError(f"a localiser runs {', '.join(LOCALIZER_METHODS)}, not --method {self.method}")
         if self.method == "hmm" and self.shortlist:
             raise SeqvprError("--method hmm keeps a belief over every map frame: it takes no --shortlist")
-        if min(self.length, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
+        if min(self.seq_len, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
             raise SeqvprError("localiser settings: seq_len, k and lost_after must be >= 1; shortlist, history and "
                               "exclusion >= 0")
         if self.history and not self.shortlist:
@@ -74,8 +74,8 @@ class LocalizerSettings:
 
     @property
     def window(self) -> int:
-        """Frames a sequence spans: 1 for single-image retrieval and the filter, else ``length``."""
-        return 1 if self.method in ("single", "hmm") else self.length
+        """Frames a sequence spans: 1 for single-image retrieval and the filter, else ``seq_len``."""
+        return 1 if self.method in ("single", "hmm") else self.seq_len
 
     def key(self) -> dict[str, Any]:
         """What a calibrated threshold depends on (the score's meaning), as stored in ``localizer.json``."""

@@ -19,10 +19,9 @@ import torch
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.files import SavedMap
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, map_distance_scale
-from seqvpr.sequences.hierarchical import rerank
-from seqvpr.sequences.matching import TopK, distances_to_reference, reference_squared_norms
+from seqvpr.sequences.matching import distances_to_reference, reference_squared_norms
 from seqvpr.sequences.online import DiagonalSums, best_k, uniqueness
-from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.sequences.windows import window_starts
 
 
 @dataclass(frozen=True)
@@ -76,11 +75,9 @@ class ShortlistMatcher:
     def __init__(self, saved: SavedMap, index, length: int, k: int, exclusion: int, shortlist: int, history: int):
         self.saved, self.index, self.length, self.k, self.exclusion = saved, index, length, k, exclusion
         self.shortlist, self.history = shortlist, history
-        self.spec = SequenceSpec(length, "causal")
-        self.frames: deque[np.ndarray] = deque(maxlen=length)
+        self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
-        stored = saved.descriptors
-        self.reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
+        self.window_exists = window_starts(saved.frames.segment_ids, length, length - 1, "drop") >= 0
 
     def reset(self) -> None:
         self.frames.clear()
@@ -96,8 +93,9 @@ class ShortlistMatcher:
         measured = time.perf_counter()
         if len(self.frames) < self.length:
             return None
-        top = self._rerank(self._candidates())
-        indices, values = top.indices[-1], top.distances[-1]
+        indices, values = self._rerank(self._candidates())
+        if not len(indices):  # no candidate window: nothing to name (scored as a miss)
+            indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
         score = _candidate_uniqueness(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, _ms(measured))
 
@@ -107,14 +105,21 @@ class ShortlistMatcher:
         candidates = np.unique(np.concatenate(found))
         return candidates[candidates < self.saved.info.count]
 
-    def _rerank(self, candidates: np.ndarray) -> TopK:
-        window = torch.stack(list(self.frames))
-        rows = np.full((self.length, max(len(candidates), 1)), -1, np.int64)
-        rows[-1, : len(candidates)] = candidates
-        has = np.zeros(self.length, bool)
-        has[-1] = True
-        shortlist = TopK(rows, np.zeros(rows.shape), has)
-        return rerank(window, self.reference, shortlist, self.spec, None, self.saved.frames.segment_ids)
+    def _rerank(self, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates with a window, ascending by exact causal sequence distance (ties: lower row)."""
+        candidates = candidates[self.window_exists[candidates]]
+        values = self._window_distances(candidates - (self.length - 1))
+        order = np.lexsort((candidates, values))
+        return candidates[order], values[order]
+
+    def _window_distances(self, starts: np.ndarray) -> np.ndarray:
+        """Mean order-aligned distances between the last L query frames and the map windows from ``starts``: a
+        gather of (L + H) S x L rows at most, too few for a parallel kernel (whose threads would only contend with
+        faiss's)."""
+        window = torch.stack(list(self.frames)).numpy()
+        frames = starts[:, None] + np.arange(self.length)[None, :]
+        rows = np.asarray(self.saved.descriptors[frames.ravel()], np.float32).reshape(len(starts), self.length, -1)
+        return np.linalg.norm(rows - window[None], axis=2).mean(axis=1).astype(np.float64)
 
     def state(self) -> dict[str, np.ndarray]:
         width = self.shortlist
