@@ -39,27 +39,39 @@ def _ms(since: float) -> float:
     return (time.perf_counter() - since) * 1e3
 
 
-class ExactMatcher:
+class FullMapPass:
+    """One distance pass per frame over every map frame, with the map's squared norms computed once."""
+
+    def __init__(self, rows, norms: np.ndarray | None = None) -> None:
+        self.rows = rows
+        self.norms = reference_squared_norms(rows) if norms is None else norms
+
+    def measure(self, query: torch.Tensor) -> tuple[np.ndarray, float]:
+        """The frame's distances to every map frame [N], and the milliseconds they took."""
+        started = time.perf_counter()
+        return distances_to_reference(query[None], self.rows, self.norms)[0], _ms(started)
+
+
+class ExactMatcher(FullMapPass):
     """Exact causal sequence matching of the last L frames against every map frame, incrementally."""
 
     def __init__(self, rows, segments: np.ndarray, length: int, k: int, exclusion: int, norms: np.ndarray | None = None):
-        self.rows, self.k, self.exclusion = rows, k, exclusion
-        self.norms = reference_squared_norms(rows) if norms is None else norms
+        super().__init__(rows, norms)
+        self.k, self.exclusion = k, exclusion
         self.sums = DiagonalSums(segments, length)
 
     def reset(self) -> None:
         self.sums.reset()
 
     def push(self, query: torch.Tensor) -> Scored | None:
-        started = time.perf_counter()
-        distances = distances_to_reference(query[None], self.rows, self.norms)[0]
+        distances, distance_ms = self.measure(query)
         measured = time.perf_counter()
         means = self.sums.push(distances)
         if means is None:
             return None
         indices, values = best_k(means, self.k)
         score = uniqueness(means, int(indices[0]), self.exclusion)
-        return Scored(indices, values, score, (measured - started) * 1e3, _ms(measured))
+        return Scored(indices, values, score, distance_ms, _ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.sums.state()
@@ -146,25 +158,24 @@ def _candidate_uniqueness(indices: np.ndarray, values: np.ndarray, exclusion: in
     return float(np.clip(1.0 - values[0] / others[0], 0.0, 1.0)) if others[0] > 0 else 0.0
 
 
-class FilterMatcher:
+class FilterMatcher(FullMapPass):
     """The topological filter, one distance pass per frame; its likelihood scale calibrated on the map."""
 
     def __init__(self, rows, segments: np.ndarray, k: int, settings: FilterSettings, seed: int = 0):
-        self.rows, self.k = rows, k
-        self.norms = reference_squared_norms(rows)
+        super().__init__(rows)
+        self.k = k
         self.filter = TopologicalFilter(segments, map_distance_scale(rows, self.norms, settings, seed=seed), settings)
 
     def reset(self) -> None:
         self.filter.reset()
 
     def push(self, query: torch.Tensor) -> Scored | None:
-        started = time.perf_counter()
-        distances = distances_to_reference(query[None], self.rows, self.norms)[0]
+        distances, distance_ms = self.measure(query)
         measured = time.perf_counter()
         self.filter.step(distances.astype(np.float64))
         mass = self.filter.mass()
         indices, values = best_k(1.0 - mass, self.k)
-        return Scored(indices, values, float(mass[indices[0]]), (measured - started) * 1e3, _ms(measured))
+        return Scored(indices, values, float(mass[indices[0]]), distance_ms, _ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.filter.state()
