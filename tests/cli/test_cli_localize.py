@@ -31,6 +31,8 @@ def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, 
     assert set(summary["latency_ms"]) == {"describe", "distance", "sequence", "total"}
     rows = list(csv.DictReader(open(tmp_path / "o" / "stream.csv")))
     assert len(rows) == 120 and rows[0]["status"] == "warming up" and rows[-1]["correct"] in ("0", "1")
+    assert rows[0]["best_row"] == "-1" and rows[-1]["best_frame"] == rows[-1]["best_row"]  # one source, from 0
+    assert rows[-1]["x"] != ""  # the route has positions
     assert (tmp_path / "o" / "report" / "index.html").exists() and (tmp_path / "o" / "report" / "localisation.png").exists()
 
 

@@ -131,7 +131,7 @@ def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
 
     out = Path(o["out_dir"])
     scores = score_replay(run, gt, localizer.threshold, k_values) if gt is not None else None
-    write_stream(out / "stream.csv", run, correct_best(run, gt) if gt is not None else None)
+    write_stream(out / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
     summary = _summary(o, localizer, run, scores)
     with atomic_write(out / "run.json") as handle:
         json.dump(summary, handle, indent=2)

@@ -126,15 +126,22 @@ def latency_percentiles(run: Replay) -> dict[str, dict[str, float]]:
             for i, stage in enumerate(STAGES)}
 
 
-def write_stream(path: str | Path, run: Replay, right: np.ndarray | None = None) -> None:
-    """One row per query frame: estimate, best, score, status, position, latencies, and correctness if known."""
+def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.ndarray | None = None) -> None:
+    """One row per query frame: status and score, the trusted and the best map frame (as map rows and as frames of
+    their source, the numbering ``predictions.csv`` uses), the best one's position, latencies, and correctness."""
     with atomic_write(path, newline="") as handle:
         out = csv.writer(handle)
-        out.writerow(["frame", "query_frame", "timestamp", "estimate", "best", "score", "status", "kept",
-                      *(f"{s}_ms" for s in STAGES), "correct"])
+        out.writerow(["frame", "query_frame", "timestamp", "status", "score", "estimate_row", "estimate_frame",
+                      "best_row", "best_frame", "x", "y", "kept", *(f"{s}_ms" for s in STAGES), "correct"])
         for i in range(len(run.best)):
-            stamp = "" if run.query.timestamps is None else f"{run.query.timestamps[i]:.6f}"
-            ok = "" if right is None or not run.scored[i] else int(right[i])
-            out.writerow([i, int(run.query.frame_index[i]), stamp, int(run.index[i]), int(run.best[i]),
-                          f"{run.score[i]:.6f}", run.status[i], int(run.kept[i]),
-                          *(f"{v:.3f}" for v in run.latency[i]), ok])
+            out.writerow(_stream_row(run, reference, right, i))
+
+
+def _stream_row(run: Replay, reference: Traversal, right: np.ndarray | None, i: int) -> list:
+    stamp = "" if run.query.timestamps is None else f"{run.query.timestamps[i]:.6f}"
+    estimate, best = int(run.index[i]), int(run.best[i])
+    source = lambda row: int(reference.frame_index[row]) if row >= 0 else -1  # noqa: E731
+    where = ["", ""] if best < 0 or reference.positions is None else [f"{v:.3f}" for v in reference.positions[best][:2]]
+    ok = "" if right is None or not run.scored[i] else int(right[i])
+    return [i, int(run.query.frame_index[i]), stamp, run.status[i], f"{run.score[i]:.6f}", estimate, source(estimate),
+            best, source(best), *where, int(run.kept[i]), *(f"{v:.3f}" for v in run.latency[i]), ok]
