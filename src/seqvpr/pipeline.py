@@ -30,7 +30,7 @@ from seqvpr.features.extraction import (
     extract_descriptors,
     init_netvlad,
 )
-from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_descriptors
+from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_extraction
 from seqvpr.features.whitening import fit_pca_whitening
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, filter_topk, map_distance_scale
 from seqvpr.sequences.matching import (
@@ -102,7 +102,12 @@ def describe(
     assert traversal.image_paths is not None
     tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
     if descriptor == "patchnorm":
-        return traversal.with_descriptors(patchnorm_descriptors(traversal.image_paths, config, tick))
+        if cache_dir is not None:
+            raise SeqvprError("--cache-dir applies to backbone descriptors: patch-normalised thumbnails are not cached "
+                              "(they cost about what reading the cache would)")
+        rows, kept = patchnorm_extraction(traversal.image_paths, config, tick, skip_bad)
+        kept_traversal = traversal if len(kept) == len(traversal) else traversal.select(kept)
+        return kept_traversal.with_descriptors(rows)
     extraction = extract_descriptors(traversal.image_paths, extractor, device=device, cache_dir=cache_dir,
                                      skip_bad=skip_bad, progress=tick, extractor=model)
     kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
@@ -125,6 +130,27 @@ def dropped_frames(original: Traversal, kept: Traversal) -> list[str]:
     present = set(int(i) for i in kept.frame_index)
     names = original.frame_names()
     return [names[row] for row, i in enumerate(original.frame_index) if int(i) not in present]
+
+
+def kept_rows(original: Traversal, kept: Traversal) -> np.ndarray:
+    """Rows of ``original`` that ``kept`` holds, ``kept`` being a subsequence of it (what ``describe(skip_bad=True)``
+    leaves)."""
+    same = ((lambda a, b: original.image_paths[a] == kept.image_paths[b]) if original.image_paths and kept.image_paths
+            else (lambda a, b: original.frame_index[a] == kept.frame_index[b]))
+    rows, j = [], 0
+    for row in range(len(original)):
+        if j < len(kept) and same(row, j):
+            rows.append(row)
+            j += 1
+    return np.asarray(rows, dtype=np.int64)
+
+
+def ground_truth_of_kept(gt: GroundTruth, pair: tuple[Traversal, Traversal], kept: tuple[Traversal, Traversal]) -> GroundTruth:
+    """The ground truth of the frames left after unreadable images were skipped (itself when none was)."""
+    (reference, query), (kept_reference, kept_query) = pair, kept
+    if len(reference) == len(kept_reference) and len(query) == len(kept_query):
+        return gt
+    return gt.restrict(kept_rows(query, kept_query), kept_rows(reference, kept_reference))
 
 
 def describe_pair(

@@ -133,7 +133,7 @@ def test_traversal_npz_keeps_positions_for_metric_radius(monkeypatch, capsys, tm
 def test_demo_bad_options_are_one_line_errors_without_output(monkeypatch, capsys, tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("x")
-    for args, message in ((["--out", afile], "--out exists and is not a folder"),
+    for args, message in ((["--out", afile], "afile is not a folder, and a folder goes there"),
                           (["--frames", "10", "--out", tmp_path / "d"], "--frames must be at least 50"),
                           (["--epochs", "0", "--out", tmp_path / "d"], "--epochs must be at least 1")):
         code, _, stderr = run(monkeypatch, capsys, "demo", *args)

@@ -41,6 +41,15 @@ def cli() -> None:
     """Sequence-based visual place recognition: match a query traversal against a reference traversal."""
 
 
+def _command_path(ctx: click.Context | None) -> str:
+    """``seqvpr`` and the subcommands of ``ctx``, whatever the program was started as."""
+    names = []
+    while ctx is not None:
+        names.append(ctx.info_name if ctx.parent is not None else "seqvpr")
+        ctx = ctx.parent
+    return " ".join(reversed(names))
+
+
 def main() -> None:
     """Entry point: run the CLI; a SeqvprError becomes one line on stderr and exit status 2."""
     try:
@@ -48,6 +57,11 @@ def main() -> None:
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)
+    except click.UsageError as error:  # a bad option or value: one line naming it, as every bad input gets
+        message = " ".join(error.format_message().split())
+        command = f" ({_command_path(error.ctx)} --help)" if error.ctx else ""
+        click.echo(f"seqvpr: error: {message}{command}", err=True)
+        sys.exit(2)
     except click.ClickException as error:
         error.show()
         sys.exit(error.exit_code)

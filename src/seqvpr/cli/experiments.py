@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
+from seqvpr.cli.options import OUT_FOLDER
 from seqvpr.errors import SeqvprError
 from seqvpr.synthetic import CONDITIONS
 
@@ -17,7 +18,7 @@ Example:
   seqvpr benchmark bench/benchmark.toml --out runs/benchmark
 """)
 @click.argument("config_file", metavar="CONFIG")
-@click.option("--out", "out_dir", default="seqvpr-benchmark", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqvpr-benchmark", show_default=True, type=OUT_FOLDER,
               help="Folder for trained models, results.csv and results.md.")
 def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
@@ -39,7 +40,7 @@ Examples:
   seqvpr demo --quick              # a smaller world, under a minute
   seqvpr demo --condition winter --seed 3 --out demo-winter
 """)
-@click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=OUT_FOLDER,
               help="Folder for the rendered world, the descriptor cache, the model and the report.")
 @click.option("--quick", is_flag=True, help="A smaller world (200 frames per traversal) and a short training run.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of the world and of training.")

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail
+from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -37,7 +37,7 @@ def map_group() -> None:
 
 @map_group.command(epilog=BUILD_EPILOG)
 @click.argument("sources", nargs=-1, required=True)
-@click.option("--out", "out_dir", required=True, type=click.Path(), help="The map folder to write.")
+@click.option("--out", "out_dir", required=True, type=OUT_FOLDER, help="The map folder to write.")
 @click.option("--frames", help="Keep source frames START:STOP of every source (e.g. 17:2000).")
 @click.option("--model", "model_dirs", type=click.Path(), multiple=True,
               help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform "

@@ -9,6 +9,8 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    OUT_FILE,
+    OUT_FOLDER,
     extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail, parse_velocities,
 )
 from seqvpr.cli.progress import tqdm_progress
@@ -74,7 +76,7 @@ Examples:
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--memory-budget", default="2G", show_default=True,
               help="Most bytes of distance matrix held at once (e.g. 512M); 'none' for the whole matrix.")
-@click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 def match(**o: Any) -> None:
@@ -88,7 +90,7 @@ def match(**o: Any) -> None:
         SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
     from seqvpr.data.sources import load_pair
     from seqvpr.methods import image_model, run_length, run_method
-    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
+    from seqvpr.pipeline import MatchSettings, evaluate_match, ground_truth_of_kept, resolve_ground_truth
 
     if bool(o["map_dir"]) == bool(o["reference"]):
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
@@ -102,7 +104,10 @@ def match(**o: Any) -> None:
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"])
     has_images = reference.image_paths is not None
+    pair = (reference, query)
     reference, query = _frames(reference, query, models, o)
+    gt = ground_truth_of_kept(gt, pair, (reference, query))
+    _say_skipped(pair, (reference, query))
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
@@ -114,6 +119,16 @@ def match(**o: Any) -> None:
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
+
+
+def _say_skipped(pair, kept) -> None:
+    """Name on stderr the images --skip-bad left out."""
+    from seqvpr.pipeline import dropped_frames
+
+    for original, described in zip(pair, kept):
+        skipped = dropped_frames(original, described)
+        if skipped:
+            click.echo(f"skipped {len(skipped)} unreadable images of {original.name}: {', '.join(skipped)}", err=True)
 
 
 def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
@@ -282,7 +297,7 @@ Examples:
 @click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
               help="Which side of a dbStruct or description file to read.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
-@click.option("--out", "out_file", required=True, type=click.Path(),
+@click.option("--out", "out_file", required=True, type=OUT_FILE,
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
 def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""

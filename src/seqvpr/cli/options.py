@@ -18,6 +18,43 @@ TORCHSCRIPT_PREFIX = "torchscript:"
 POOLINGS = ("gem", "netvlad")
 
 
+class WritablePath(click.ParamType):
+    """A path seqvpr will write (a ``folder`` or a ``file``), checked when the options are parsed, before any work:
+    an existing file where a folder goes, a path under a file, or a place nothing can be written is one line."""
+
+    name = "path"
+
+    def __init__(self, kind: str = "folder") -> None:
+        self.kind = kind
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        problem = output_problem(Path(value), self.kind)
+        if problem:
+            self.fail(problem, param, ctx)
+        return str(value)
+
+
+def output_problem(path: Path, kind: str) -> str | None:
+    """Why ``path`` cannot be written as a ``kind`` (``folder`` or ``file``), or None."""
+    import tempfile
+
+    if path.exists() and (path.is_dir() != (kind == "folder")):
+        return f"{path} is {'a folder' if path.is_dir() else 'not a folder'}, and a {kind} goes there"
+    target = path if path.is_dir() else path.parent
+    while not target.exists() and target != target.parent:
+        target = target.parent
+    if not target.is_dir():
+        return f"{path} lies under {target}, which is not a folder"
+    try:
+        Path(tempfile.mkdtemp(prefix=".seqvpr-probe-", dir=target)).rmdir()
+    except OSError as error:
+        return f"{path}: nothing can be written in {target} ({error.strerror})"
+    return None
+
+
+OUT_FOLDER, OUT_FILE = WritablePath("folder"), WritablePath("file")
+
+
 def with_options(options: list[Callable]) -> Callable[[Callable], Callable]:
     """A decorator adding click ``options`` to a command, in the order ``--help`` shows them."""
 
@@ -134,7 +171,7 @@ extraction_options = with_options([
                       "MEAN/STD as R,G,B/R,G,B."),
     click.option("--batch-size", "extract_batch", default=32, show_default=True, type=int,
                  help="Images per backbone batch."),
-    click.option("--cache-dir", type=click.Path(), help="Cache extracted descriptors here (keyed by model and images)."),
+    click.option("--cache-dir", type=OUT_FOLDER, help="Cache extracted descriptors here (keyed by model and images)."),
     click.option("--skip-bad", is_flag=True, help="Skip unreadable images (listed on stderr) instead of failing."),
 ])
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options
+from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
@@ -171,7 +171,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5):
       --radius 1f --model runs/nordland
 """)
 @training_options
-@click.option("--out", "out_dir", default="seqmatchnet-run", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqmatchnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
 def train_seqmatchnet_command(out_dir, resume, **o) -> None:
@@ -193,7 +193,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5, w=3):
       --radius 1f --model runs/seqnet-nordland --rerank 20
 """)
 @seqnet_options
-@click.option("--out", "out_dir", default="seqnet-run", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
 def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
@@ -285,7 +285,7 @@ Examples:
   seqvpr match -r nordland/summer -q nordland/winter --frames 1600:2000 --radius 1f --model runs/jist-nordland
 """)
 @jist_options
-@click.option("--out", "out_dir", default="jist-run", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="jist-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
 def train_jist_command(out_dir, resume, **o) -> None:
@@ -323,7 +323,7 @@ Example (SeqMatchNet Table 1 on Nordland):
 @click.option("--test-reference", help="Test reference (default: --reference).")
 @click.option("--test-query", help="Test query (default: --query).")
 @click.option("--test-radius", help="Test ground truth (default: --radius), e.g. to test in metres after training in frames.")
-@click.option("--out", "out_dir", default="seqmatchnet-ablation", show_default=True, type=click.Path(),
+@click.option("--out", "out_dir", default="seqmatchnet-ablation", show_default=True, type=OUT_FOLDER,
               help="Folder with one run per variant, ablation.csv and ablation.md.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
 def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **o) -> None:

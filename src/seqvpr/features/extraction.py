@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 from torch import nn
 
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
+from seqvpr.features.images import read_image
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write
@@ -188,13 +189,7 @@ def _micro_batches(images: torch.Tensor, device: str) -> list[torch.Tensor]:
 
 def load_image(path: Path, width: int, height: int) -> torch.Tensor:
     """An RGB image resized to width x height as a [3, H, W] float tensor in [0, 1]; one-line error if unreadable."""
-    try:
-        with Image.open(path) as image:
-            rgb = image.convert("RGB").resize((width, height), Image.BILINEAR)
-    except FileNotFoundError:
-        raise SeqvprError(f"{path}: no such image") from None
-    except (UnidentifiedImageError, OSError, ValueError) as error:
-        raise SeqvprError(f"{path}: not a readable image ({type(error).__name__})") from None
+    rgb = read_image(path, "RGB").resize((width, height), Image.BILINEAR)
     return torch.from_numpy(np.asarray(rgb, dtype=np.float32) / 255.0).permute(2, 0, 1)
 
 

@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
 from seqvpr.errors import SeqvprError
+from seqvpr.features.images import read_image
 
 
 @dataclass(frozen=True)
@@ -51,25 +52,34 @@ def patch_normalize(gray: np.ndarray, patch: int, eps: float = 1e-6) -> np.ndarr
 
 def load_gray(path: Path, width: int, height: int) -> np.ndarray:
     """Read an image as grayscale values in [0, 255], resized to width x height when it differs."""
-    try:
-        with Image.open(path) as image:
-            gray = image.convert("L")
-            if gray.size != (width, height):
-                gray = gray.resize((width, height), Image.Resampling.BILINEAR)
-            return np.asarray(gray, dtype=np.float64)
-    except FileNotFoundError:
-        raise SeqvprError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError) as error:
-        raise SeqvprError(f"{path}: cannot read image ({error.__class__.__name__})") from None
+    gray = read_image(path, "L")
+    if gray.size != (width, height):
+        gray = gray.resize((width, height), Image.Resampling.BILINEAR)
+    return np.asarray(gray, dtype=np.float64)
 
 
 def patchnorm_descriptors(
     paths: Sequence[Path], config: PatchNormConfig = PatchNormConfig(), progress: Callable[[int], None] | None = None
 ) -> np.ndarray:
     """Descriptors [N, width*height] (float32) of image files, in order."""
+    return patchnorm_extraction(paths, config, progress)[0]
+
+
+def patchnorm_extraction(
+    paths: Sequence[Path], config: PatchNormConfig = PatchNormConfig(), progress: Callable[[int], None] | None = None,
+    skip_bad: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptors of the readable images and their rows; with ``skip_bad`` an unreadable one is left out, else it
+    is a one-line error naming it."""
     out = np.empty((len(paths), config.dim), dtype=np.float32)
+    kept = []
     for row, path in enumerate(paths):
-        out[row] = patch_normalize(load_gray(Path(path), config.width, config.height), config.patch, config.eps)
+        try:
+            out[len(kept)] = patch_normalize(load_gray(Path(path), config.width, config.height), config.patch, config.eps)
+            kept.append(row)
+        except SeqvprError:
+            if not skip_bad:
+                raise
         if progress is not None:
             progress(1)
-    return out
+    return out[: len(kept)], np.asarray(kept, dtype=np.int64)

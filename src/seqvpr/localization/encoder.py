@@ -12,6 +12,7 @@ import torch
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
+from seqvpr.features.images import read_image, to_8bit
 from seqvpr.maps.build import FrameDescription
 from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel
@@ -22,15 +23,9 @@ Frame = str | Path | Image.Image | np.ndarray
 def rgb_image(frame: Frame) -> Image.Image:
     """An RGB PIL image from a path, a PIL image or an H x W x 3 (or H x W) uint8 array; one line if it is none."""
     if isinstance(frame, (str, Path)):
-        try:
-            with Image.open(frame) as image:
-                return image.convert("RGB")
-        except FileNotFoundError:
-            raise SeqvprError(f"{frame}: no such image") from None
-        except OSError as error:
-            raise SeqvprError(f"{frame}: not a readable image ({type(error).__name__})") from None
+        return read_image(frame, "RGB")
     if isinstance(frame, Image.Image):
-        return frame.convert("RGB")
+        return to_8bit(frame, "RGB")
     array = np.asarray(frame)
     if array.dtype != np.uint8 or array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] != 3):
         raise SeqvprError(f"a camera frame must be an H x W x 3 uint8 array, got {array.dtype} {array.shape}")

@@ -1,0 +1,36 @@
+"""Reading image files: one place that turns any file PIL opens (8-bit, 16-bit or 32-bit grayscale, palette,
+RGBA...) into 8-bit RGB or grayscale, and any unreadable, truncated or non-image file into one line naming it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from seqvpr.errors import SeqvprError
+
+#: integer modes wider than 8 bits, with the largest value each can hold
+WIDE_MODES = {"I;16": 65535, "I;16B": 65535, "I;16L": 65535, "I;16N": 65535, "I": None, "F": None}
+
+
+def to_8bit(image: Image.Image, mode: str = "RGB") -> Image.Image:
+    """``image`` as 8-bit ``mode`` ("RGB" or "L"): wide grayscale is scaled to 0-255 (16-bit by its full range,
+    32-bit integer or float by the image's own maximum), never clipped, so a 16-bit frame is not a white one."""
+    if image.mode in WIDE_MODES:
+        values = np.asarray(image, dtype=np.float64)
+        top = WIDE_MODES[image.mode] or max(float(values.max()), 1.0)
+        image = Image.fromarray(np.clip(np.rint(values / top * 255.0), 0, 255).astype(np.uint8), "L")
+    return image.convert(mode)
+
+
+def read_image(path: str | Path, mode: str = "RGB") -> Image.Image:
+    """The image file as 8-bit ``mode``, fully decoded (a truncated file fails here, not later)."""
+    try:
+        with Image.open(path) as image:
+            image.load()
+            return to_8bit(image, mode)
+    except FileNotFoundError:
+        raise SeqvprError(f"{path}: no such image") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as error:
+        raise SeqvprError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
