@@ -19,7 +19,7 @@ import torch
 from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 from seqvpr.features.extraction import (
     BACKBONES,
@@ -368,17 +368,37 @@ def ground_truth(
 
 def resolve_ground_truth(
     reference: Traversal, query: Traversal, radius: str | None = None, file: str | Path | None = None,
-    description: str | Path | None = None,
+    description: str | Path | None = None, whole: bool = False,
 ) -> GroundTruth:
     """Ground truth from a file, a radius (``25m``, ``2f``), or else the ``[ground_truth]`` table of a description
-    file (``dataset.toml``) the reference came from."""
+    file (``dataset.toml``) the reference came from. Both a radius and a file is an error; ``whole`` traversals (no
+    ``--frames`` cut) must be the file's size."""
     from seqvpr.data.groundtruth import parse_radius
     from seqvpr.data.sources import ground_truth_spec
 
+    if radius and file:
+        raise SeqvprError(f"give --radius or --ground-truth, not both: {file} decides which frames match")
     spec = ground_truth_spec(description) if description is not None else None
     if file is None and radius is None and spec is not None:
         return ground_truth(reference, query, spec.radius, spec.file)
+    if file is not None and whole:
+        check_ground_truth_covers(load_ground_truth_file(file), reference, query, file)
     return ground_truth(reference, query, parse_radius(radius) if radius else None, file)
+
+
+def check_ground_truth_covers(gt: GroundTruth, reference: Traversal, query: Traversal, file) -> None:
+    """Warn when a ground-truth file for whole traversals names frames they lack: their positives are dropped (a
+    file for another data set, or a known quirk such as Gardens Point's VPR-Bench file with 202 reference columns)."""
+    import warnings
+
+    for what, axis, traversal in (("query", 0, query), ("reference", 1, reference)):
+        frames = int(traversal.frame_index.max()) + 1 if len(traversal) else 0
+        named = gt.positives.nonzero()[axis]
+        beyond = np.unique(named[named >= frames])
+        if len(beyond):
+            warnings.warn(f"{file} names {len(beyond)} {what} frames the {what} traversal lacks ({int(beyond[0])}"
+                          f"{'' if len(beyond) == 1 else f'..{int(beyond[-1])}'}; it has {frames}): their positives "
+                          "are ignored", SeqvprWarning, stacklevel=3)
 
 
 def evaluate_match(

@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import importlib
 import sys
+import warnings
 
 import click
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SeqvprWarning
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
 COMMANDS = {
@@ -50,8 +51,17 @@ def _command_path(ctx: click.Context | None) -> str:
     return " ".join(reversed(names))
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A SeqvprWarning as one line on stderr; any other warning as Python shows it."""
+    if issubclass(category, SeqvprWarning):
+        click.echo(f"seqvpr: warning: {message}", err=True)
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def main() -> None:
     """Entry point: run the CLI; a SeqvprError becomes one line on stderr and exit status 2."""
+    warnings.showwarning = _show_warning
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort:

@@ -102,7 +102,7 @@ def match(**o: Any) -> None:
     if o["map_dir"]:
         return _match_map(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
-    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"])
+    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"])
     has_images = reference.image_paths is not None
     pair = (reference, query)
     reference, query = _frames(reference, query, models, o)
@@ -275,7 +275,7 @@ def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive
     from seqvpr.pipeline import resolve_ground_truth
 
     ref, qry = load_pair(reference, query)
-    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference)
+    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference, whole=True)
     evaluation = evaluate_predictions(predictions, ref, qry, gt, k_values, no_positive)
     if as_json:
         click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))

@@ -85,6 +85,9 @@ def read_predictions(path: str | Path) -> PredictionsFile:
             raise SeqvprError(f"{path}: line {line}: query, references and distances must be numbers") from None
         if len(dists[-1]) != len(refs[-1]):
             raise SeqvprError(f"{path}: line {line}: {len(refs[-1])} references but {len(dists[-1])} distances")
+        if row.get("distances") and not all(np.isfinite(d) or d == np.inf for d in dists[-1]):
+            raise SeqvprError(f"{path}: line {line}: distances must be numbers (found NaN or -inf)")
+    _check_unique_queries(path, queries, [line for line, _ in rows])
     k = max(len(r) for r in refs)
     references = np.full((len(rows), max(k, 1)), -1, dtype=np.int64)
     distances = np.full((len(rows), max(k, 1)), np.inf)
@@ -92,6 +95,15 @@ def read_predictions(path: str | Path) -> PredictionsFile:
         references[i, : len(r)] = r
         distances[i, : len(d)] = d
     return PredictionsFile(np.array(queries, dtype=np.int64), references, distances)
+
+
+def _check_unique_queries(path: Path, queries: list[int], lines: list[int]) -> None:
+    """Each query once: a second row for a query would silently replace the first."""
+    seen: dict[int, int] = {}
+    for query, line in zip(queries, lines):
+        if query in seen:
+            raise SeqvprError(f"{path}: line {line}: query {query} again (first on line {seen[query]}); one row a query")
+        seen[query] = line
 
 
 def save_match_predictions(path: str | Path, result: MatchResult, gt: GroundTruth) -> None:
