@@ -3,6 +3,7 @@
 import json
 import sys
 
+import numpy as np
 import pytest
 
 from seqvpr.cli import main
@@ -67,3 +68,19 @@ def test_nordland_through_a_saved_map(monkeypatch, capsys, tmp_path, shared_data
     capsys.readouterr()
     args = ["--map", tmp_path / "map", "-q", root / "winter", "--frames", "17:2000", "--radius", "1f", "-L", length]
     assert recall(monkeypatch, capsys, tmp_path / "out", *args) == expected
+
+
+def test_a_dense_ground_truth_matrix_gives_the_figures_of_its_gt_mat(monkeypatch, capsys, tmp_path, shared_data):
+    """Gardens Point's GThard [n_reference, n_query] saved as a dense boolean .npy: the same figures as the .mat
+    (square, so the layout must be given)."""
+    import scipy.io
+
+    ref, qry = (shared_data / GARDENS.format(name) for name in ("day_left", "night_right"))
+    gt_mat = shared_data / "gardenspoint_delf_hdc/ground_truth/GardensPointWalking/day_left--night_right/gt.mat"
+    hard = scipy.io.loadmat(gt_mat)["GT"]["GThard"][0, 0]
+    np.save(tmp_path / "dense.npy", np.asarray(hard != 0))
+    common = ("-r", ref, "-q", qry, "-L", 5)
+    by_mat = recall(monkeypatch, capsys, tmp_path / "a", *common, "--ground-truth", gt_mat)
+    by_dense = recall(monkeypatch, capsys, tmp_path / "b", *common, "--ground-truth", tmp_path / "dense.npy",
+                      "--gt-layout", "ref-query")
+    assert by_dense == by_mat

@@ -352,11 +352,13 @@ def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSetti
 
 
 def ground_truth(
-    reference: Traversal, query: Traversal, radius: Radius | None = None, file: str | Path | None = None
+    reference: Traversal, query: Traversal, radius: Radius | None = None, file: str | Path | None = None,
+    layout: str | None = None,
 ) -> GroundTruth:
-    """Positives between the rows of two traversals, from a radius or from a GT file over source indices."""
+    """Positives between the rows of two traversals, from a radius or from a GT file over source indices (a dense
+    matrix file oriented by ``layout``, else by the traversals' sizes)."""
     if file is not None:
-        gt = load_ground_truth_file(file)
+        gt = load_ground_truth_file(file, source_frames(query), source_frames(reference), layout)
         return gt.restrict(query.frame_index, reference.frame_index)
     if radius is None:
         if reference.positions is not None and query.positions is not None:
@@ -368,7 +370,7 @@ def ground_truth(
 
 def resolve_ground_truth(
     reference: Traversal, query: Traversal, radius: str | None = None, file: str | Path | None = None,
-    description: str | Path | None = None, whole: bool = False,
+    description: str | Path | None = None, whole: bool = False, layout: str | None = None,
 ) -> GroundTruth:
     """Ground truth from a file, a radius (``25m``, ``2f``), or else the ``[ground_truth]`` table of a description
     file (``dataset.toml``) the reference came from. Both a radius and a file is an error; ``whole`` traversals (no
@@ -382,8 +384,14 @@ def resolve_ground_truth(
     if file is None and radius is None and spec is not None:
         return ground_truth(reference, query, spec.radius, spec.file)
     if file is not None and whole:
-        check_ground_truth_covers(load_ground_truth_file(file), reference, query, file)
-    return ground_truth(reference, query, parse_radius(radius) if radius else None, file)
+        check_ground_truth_covers(load_ground_truth_file(file, source_frames(query), source_frames(reference), layout),
+                                  reference, query, file)
+    return ground_truth(reference, query, parse_radius(radius) if radius else None, file, layout)
+
+
+def source_frames(traversal: Traversal) -> int:
+    """Frames of the source a traversal was read from, as far as it shows (its last frame number + 1)."""
+    return int(traversal.frame_index.max()) + 1 if len(traversal) else 0
 
 
 def check_ground_truth_covers(gt: GroundTruth, reference: Traversal, query: Traversal, file) -> None:

@@ -45,7 +45,9 @@ Examples:
 @click.option("--floor", type=float, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
 @click.option("--sharpness", type=float, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
 @click.option("--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
-@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat or VPR-Bench .npy).")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
+@click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
+              help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
 @click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query and "
                                                 "store it with the map (needs ground truth).")
 @click.option("--target-precision", type=float, default=0.99, show_default=True)
@@ -70,7 +72,7 @@ def localize(**o: Any) -> None:
         raise SeqvprError(f"--target-precision must be in (0, 1], got {o['target_precision']}")
     localizer = _open(o, max(k_values))
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-    gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"]) \
+    gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"]) \
         if (o["radius"] or o["gt_file"]) else None
     if o["resume_state"]:
         localizer.restore(o["resume_state"])

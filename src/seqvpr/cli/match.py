@@ -49,7 +49,9 @@ Examples:
 @click.option("--velocities", default="1", show_default=True,
               help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
 @click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
-@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft) or VPR-Bench .npy.")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft), VPR-Bench .npy or a dense boolean matrix .npy/.npz.")
+@click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
+              help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
 @extraction_options
 @click.option("--method", type=click.Choice(list(METHODS)),
@@ -102,7 +104,8 @@ def match(**o: Any) -> None:
     if o["map_dir"]:
         return _match_map(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
-    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"])
+    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"],
+                              layout=o["gt_layout"])
     has_images = reference.image_paths is not None
     pair = (reference, query)
     reference, query = _frames(reference, query, models, o)
@@ -143,7 +146,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     saved = open_map(o["map_dir"])
     _check_map_options(o, saved.info.description["descriptor"])
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-    gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"])
+    gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
@@ -262,11 +265,13 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
 @click.option("--reference", "-r", required=True, help="The reference traversal the predictions index.")
 @click.option("--query", "-q", required=True, help="The query traversal.")
 @click.option("--radius", help="Ground-truth tolerance: 25m or 2f.")
-@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat or VPR-Bench .npy).")
+@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
+@click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
+              help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
-def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive, as_json) -> None:
+def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, no_positive, as_json) -> None:
     """Score a predictions CSV (query, references, distances) against ground truth."""
     k_values = parse_ks(ks)
     from seqvpr.data.sources import load_pair
@@ -275,7 +280,7 @@ def eval_command(predictions, reference, query, radius, gt_file, ks, no_positive
     from seqvpr.pipeline import resolve_ground_truth
 
     ref, qry = load_pair(reference, query)
-    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference, whole=True)
+    gt = resolve_ground_truth(ref, qry, radius, gt_file, reference, whole=True, layout=gt_layout)
     evaluation = evaluate_predictions(predictions, ref, qry, gt, k_values, no_positive)
     if as_json:
         click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))

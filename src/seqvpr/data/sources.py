@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
+
 import numpy as np
 import scipy.io
 
@@ -73,12 +74,25 @@ def ground_truth_spec(source: str | Path) -> GroundTruthSpec | None:
     path, _ = split_variable(str(source))
     if path.suffix.lower() != ".toml" or not path.exists():
         return None
-    table = _read_toml(path).get("ground_truth")
+    values = _read_toml(path)
+    table = values.get("ground_truth")
     if table is None:
-        return None
+        return _dbstruct_radius(path, values)
     radius = parse_radius(str(table["radius"])) if "radius" in table else None
     file = (path.parent / table["file"]) if "file" in table else None
     return GroundTruthSpec(radius, file)
+
+
+def _dbstruct_radius(path: Path, values: dict) -> GroundTruthSpec | None:
+    """A description without [ground_truth] whose reference names a dbStruct: its ``posDistThr`` (metres, or frames
+    for a frame-aligned struct) is the radius, as the seqNet and SeqMatchNet code evaluates."""
+    db_file = values.get("reference", {}).get("dbstruct")
+    if db_file is None:
+        return None
+    from seqvpr.data.loaders.dbstruct import load_dbstruct
+
+    db = load_dbstruct(path.parent / db_file)
+    return GroundTruthSpec(parse_radius(f"{db.pos_dist_thr:g}{'f' if db.frame_aligned else 'm'}"), None)
 
 
 def _traversal_from_folder(folder: Path, role: Role) -> Traversal:
@@ -150,23 +164,51 @@ def save_traversal_npz(path: Path, traversal: Traversal) -> None:
         np.savez(handle, **arrays)
 
 
+#: what a dataset description may hold: its tables, and the keys of each
+DESCRIPTION_KEYS = {
+    "reference": ("descriptors", "images", "positions", "dbstruct", "seq_bounds", "name"),
+    "query": ("descriptors", "images", "positions", "dbstruct", "seq_bounds", "name"),
+    "ground_truth": ("radius", "file"),
+}
+
+
 def _read_toml(path: Path) -> dict:
     if not path.exists():
         raise SeqvprError(f"{path}: description file not found")
     try:
-        return tomllib.loads(path.read_text())
+        values = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as error:
         raise SeqvprError(f"{path}: not valid TOML ({error})") from None
+    _check_description_keys(path, values)
+    return values
+
+
+def _check_description_keys(path: Path, values: dict) -> None:
+    """Every table and key known: a misspelt one (``raduis``) is an error naming it, never silently ignored."""
+    import difflib
+
+    for table, content in values.items():
+        allowed = DESCRIPTION_KEYS.get(table)
+        if allowed is None or not isinstance(content, dict):
+            raise SeqvprError(f"{path}: unknown table [{table}] (known: {', '.join(DESCRIPTION_KEYS)})")
+        for key in content:
+            if key not in allowed:
+                close = difflib.get_close_matches(key, allowed, n=1)
+                hint = f"; did you mean {close[0]}?" if close else f" (known: {', '.join(allowed)})"
+                raise SeqvprError(f"{path}: unknown key {key!r} in [{table}]{hint}")
 
 
 def _traversal_from_description(path: Path, role: Role) -> Traversal:
-    """The ``[reference]`` or ``[query]`` table: ``descriptors``, ``images`` (+ ``positions``) or ``dbstruct``."""
+    """The ``[reference]`` or ``[query]`` table: ``descriptors`` (with ``dbstruct``: its positions), ``images``
+    (+ ``positions``) or ``dbstruct``; ``seq_bounds`` a seqBounds file whose sequences become the segments."""
     table = _read_toml(path).get(role)
     if table is None:
         raise SeqvprError(f"{path}: no [{role}] table")
     base = path.parent
     if "descriptors" in table:
         traversal = load_traversal(str(base / table["descriptors"]), role)
+        if "dbstruct" in table:
+            traversal = _with_dbstruct_positions(traversal, base / table["dbstruct"], role)
     elif "dbstruct" in table:
         traversal = _dbstruct_side(base / table["dbstruct"], role)
     elif "images" in table:
@@ -176,8 +218,19 @@ def _traversal_from_description(path: Path, role: Role) -> Traversal:
         traversal = load_image_folder(base / table["images"], positions)
     else:
         raise SeqvprError(f"{path}: [{role}] needs one of descriptors, images or dbstruct")
-    if "name" in table:
-        from dataclasses import replace
+    if "seq_bounds" in table:
+        from seqvpr.data.loaders.seq_bounds import load_seq_bounds
 
+        traversal = replace(traversal, segment_ids=load_seq_bounds(base / table["seq_bounds"], len(traversal)))
+    if "name" in table:
         traversal = replace(traversal, name=str(table["name"]))
     return traversal
+
+
+def _with_dbstruct_positions(traversal: Traversal, db_path: Path, role: Role) -> Traversal:
+    """Descriptor rows with the positions (and timestamps) of the same side of a dbStruct, which must match them."""
+    side = _dbstruct_side(db_path, role)
+    if len(side) != len(traversal):
+        raise SeqvprError(f"{db_path}: its {role} side has {len(side)} frames, the descriptors "
+                          f"{traversal.source or traversal.name} have {len(traversal)}")
+    return replace(traversal, positions=side.positions, timestamps=side.timestamps)

@@ -16,16 +16,60 @@ from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.errors import SeqvprError
 
 
-def load_ground_truth_file(path: str | Path, n_query: int | None = None, n_reference: int | None = None) -> GroundTruth:
-    """Read a GT file into a [n_query, n_reference] sparse ground truth over source frame indices."""
+def load_ground_truth_file(
+    path: str | Path, n_query: int | None = None, n_reference: int | None = None, layout: str | None = None,
+) -> GroundTruth:
+    """Read a GT file into a [n_query, n_reference] sparse ground truth over source frame indices (a dense matrix is
+    oriented by ``layout`` or by the traversal sizes ``n_query``/``n_reference``)."""
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: ground-truth file not found")
     if path.suffix.lower() == ".mat":
         return _load_gt_mat(path)
-    if path.suffix.lower() == ".npy":
-        return _load_vprbench_npy(path, n_query, n_reference)
-    raise SeqvprError(f"{path}: unknown ground-truth format (expected a GT .mat or VPR-Bench .npy)")
+    if path.suffix.lower() in (".npy", ".npz"):
+        dense = _dense_matrix(path)
+        if dense is not None:
+            return _oriented(dense, path, n_query, n_reference, layout)
+        if path.suffix.lower() == ".npy":
+            return _load_vprbench_npy(path, n_query, n_reference)
+    raise SeqvprError(f"{path}: unknown ground-truth format (expected a GT .mat, a VPR-Bench .npy or a dense "
+                      "boolean matrix .npy/.npz)")
+
+
+def _dense_matrix(path: Path) -> np.ndarray | None:
+    """A 2-D boolean or 0/1 matrix stored in the file (an .npz: its one array, or ``gt``), else None."""
+    try:
+        if path.suffix.lower() == ".npz":
+            with np.load(path, allow_pickle=False) as archive:
+                names = archive.files
+                if not names:
+                    raise SeqvprError(f"{path}: an empty .npz")
+                value = archive["gt" if "gt" in names else names[0]]
+        else:
+            value = np.load(path, allow_pickle=True)
+    except (ValueError, OSError, EOFError) as error:
+        raise SeqvprError(f"{path}: not a readable NumPy file ({type(error).__name__})") from None
+    if value.dtype == object or value.ndim != 2:
+        if path.suffix.lower() == ".npz":
+            raise SeqvprError(f"{path}: expected a 2-D boolean matrix, got {value.dtype} {value.shape}")
+        return None
+    if value.dtype != bool and not np.isin(value, (0, 1)).all():
+        raise SeqvprError(f"{path}: a dense ground truth holds booleans or 0/1, found other values")
+    return value.astype(bool)
+
+
+def _oriented(matrix: np.ndarray, path: Path, n_query: int | None, n_reference: int | None,
+              layout: str | None) -> GroundTruth:
+    """The dense matrix as [n_query, n_reference]: as ``layout`` says (``ref-query``: the Brisbane event set's and
+    VPR-Bench's [n_reference, n_query]), else as the traversal sizes decide; a square one needs ``layout``."""
+    if layout not in (None, "ref-query", "query-ref"):
+        raise SeqvprError(f"--gt-layout must be ref-query or query-ref, got {layout!r}")
+    if layout is None:
+        if n_query is None or n_reference is None:
+            raise SeqvprError(f"{path}: a dense ground truth needs the traversal sizes or --gt-layout")
+        layout = _layout_from_sizes(matrix.shape, n_query, n_reference, path)
+    hard = matrix.T if layout == "ref-query" else matrix
+    return GroundTruth(sp.csr_array(hard), description=f"dense ground truth ({layout}) from {path.name}")
 
 
 def _load_gt_mat(path: Path) -> GroundTruth:
@@ -80,3 +124,18 @@ def _load_vprbench_npy(path: Path, n_query: int | None, n_reference: int | None)
     n_r = max(n_reference or 0, int(r_idx.max(initial=-1)) + 1)
     matrix = sp.csr_array((np.ones(len(pairs), dtype=bool), (q_idx, r_idx)), shape=(n_q, n_r))
     return GroundTruth(matrix, description=f"VPR-Bench ground truth from {path.name}")
+
+
+def _layout_from_sizes(shape: tuple[int, int], n_query: int, n_reference: int, path: Path) -> str:
+    """``ref-query`` or ``query-ref``: the one orientation whose sizes are the traversals' exactly, else the one
+    that covers them (a cut of the traversals); both or neither is a one-line error."""
+    for covers in (lambda a, b: a == b, lambda a, b: a >= b):
+        rq = covers(shape[0], n_reference) and covers(shape[1], n_query)
+        qr = covers(shape[0], n_query) and covers(shape[1], n_reference)
+        if rq != qr:
+            return "ref-query" if rq else "query-ref"
+        if rq and qr:
+            raise SeqvprError(f"{path}: a {shape[0]} x {shape[1]} matrix fits {n_reference} reference and {n_query} "
+                              "query frames both ways: give --gt-layout ref-query or query-ref")
+    raise SeqvprError(f"{path}: a {shape[0]} x {shape[1]} matrix fits neither {n_reference} reference x {n_query} "
+                      "query frames nor the reverse")
