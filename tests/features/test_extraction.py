@@ -18,6 +18,7 @@ from seqvpr.features.extraction import (
     load_image,
 )
 from seqvpr.features.pooling import GeM, NetVLAD
+from seqvpr.errors import SeqvprWarning
 from tests.helpers import raises_one_line
 
 
@@ -81,6 +82,40 @@ def test_cache_is_reused_and_invalidated_by_config_or_images(tmp_path, images):
     changed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
     assert model.backbone.images_seen == 39  # an image changed: recomputed
     assert not np.allclose(changed.descriptors[4], first.descriptors[4])
+
+
+def test_an_image_rewritten_with_its_old_size_and_mtime_is_not_served_stale(tmp_path, images):
+    cache = tmp_path / "cache"
+    model = tiny()
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    stat = images[2].stat()
+    data = bytearray(images[2].read_bytes())
+    other = images[3].read_bytes()
+    images[2].write_bytes(other[: len(data)] + bytes(max(0, len(data) - len(other))))  # cp -p / rsync -t
+    os.utime(images[2], ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert images[2].stat().st_size == stat.st_size and images[2].stat().st_mtime_ns == stat.st_mtime_ns
+    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, skip_bad=True)
+    assert model.backbone.images_seen == 20 and again.cache_file != first.cache_file
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_a_damaged_cache_entry_is_recomputed_never_used(tmp_path, images, damage):
+    cache = tmp_path / "cache"
+    model = tiny()
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    data = bytearray(first.cache_file.read_bytes())
+    if damage == "truncate":  # a full disk or a killed writer
+        first.cache_file.write_bytes(bytes(data[: len(data) // 2]))
+    else:  # flip one byte of the stored descriptors (np.savez stores them uncompressed)
+        at = data.index(first.descriptors[0].tobytes()[:8]) + 4
+        data[at] ^= 0xFF
+        first.cache_file.write_bytes(bytes(data))
+    with pytest.warns(SeqvprWarning, match="damaged cache entry"):
+        again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    assert model.backbone.images_seen == 20  # recomputed
+    np.testing.assert_array_equal(again.descriptors, first.descriptors)
+    assert extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model).cache_file == first.cache_file
+    assert model.backbone.images_seen == 20  # and the new entry is sound
 
 
 def test_interrupted_extraction_resumes_where_it_stopped(tmp_path, images):

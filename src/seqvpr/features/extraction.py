@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -204,17 +203,36 @@ class Extraction:
 
 
 def cache_key(config: ExtractorConfig, paths: Sequence[Path], head: str = "") -> str:
-    """A digest of the configuration, the weights file, the pooling head's state (``head``, from ``model_digest``)
-    and every image's path, size and mtime; a TorchScript encoder's normalisation is in it as used."""
+    """A digest of the configuration, the weights file's content, the pooling head's state (``head``, from
+    ``model_digest``) and every image's path and content (so an image rewritten with its old size and mtime, as
+    ``cp -p`` or ``rsync -t`` leave it, gets a new key); a TorchScript encoder's normalisation is in it as used."""
     # batching does not change rows; a built-in backbone's normalisation is part of the backbone
     settings = {k: v for k, v in asdict(config).items() if k not in ("batch_size", "mean", "std")}
     if config.backbone == TORCHSCRIPT:
         settings["normalization"] = config.normalization()
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode() + head.encode())
     for path in _weights_files(config) + list(paths):
-        stat = os.stat(path) if os.path.exists(path) else None
-        digest.update(f"{Path(path).resolve()}|{stat.st_size if stat else -1}|{stat.st_mtime_ns if stat else -1}\n".encode())
+        digest.update(f"{Path(path).resolve()}|{file_digest(path)}\n".encode())
     return digest.hexdigest()[:24]
+
+
+def file_digest(path: str | Path) -> str:
+    """A content digest of a file (BLAKE2b, read in 1 MiB blocks), or ``missing``."""
+    try:
+        with open(path, "rb") as handle:
+            return hashlib.file_digest(handle, lambda: hashlib.blake2b(digest_size=16)).hexdigest()
+    except OSError:
+        return "missing"
+
+
+def array_digest(*arrays: np.ndarray) -> str:
+    """A digest of arrays' shapes, types and bytes: a cache entry's checksum."""
+    digest = hashlib.blake2b(digest_size=16)
+    for array in arrays:
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def _weights_files(config: ExtractorConfig) -> list[Path]:
@@ -267,14 +285,36 @@ def _extraction_key(
 
 
 def _load_cached(final: Path | None, paths: list[Path], progress: Callable[[int], None] | None) -> Extraction | None:
-    """The finished extraction stored in ``final``, reported as all done, or None when there is none to reuse."""
+    """The finished extraction stored in ``final``, reported as all done, or None when there is none to reuse. An
+    entry that cannot be read or fails its checksum (a full disk, a killed writer) is deleted and recomputed."""
     if final is None or not final.is_file():
         return None
-    with np.load(final, allow_pickle=False) as cached:
-        if progress:
-            progress(len(paths))
-        skipped = tuple(paths[i] for i in cached["skipped"])
-        return Extraction(cached["descriptors"], cached["rows"], skipped, final)
+    arrays = _read_checked(final, ("descriptors", "rows", "skipped"))
+    if arrays is None:
+        return None
+    if progress:
+        progress(len(paths))
+    return Extraction(arrays["descriptors"], arrays["rows"], tuple(paths[i] for i in arrays["skipped"]), final)
+
+
+def _read_checked(file: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+    """The named arrays of a cache file whose stored checksum matches them; else the file is removed, a one-line
+    warning says so, and None is returned."""
+    import warnings
+    import zipfile
+
+    from seqvpr.errors import SeqvprWarning
+
+    try:
+        with np.load(file, allow_pickle=False) as saved:
+            arrays = {name: saved[name] for name in (*names, "checksum")}
+        if str(arrays.pop("checksum")) == array_digest(*(arrays[name] for name in names)):
+            return arrays
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        pass
+    warnings.warn(f"{file}: a damaged cache entry, removed; computing it again", SeqvprWarning, stacklevel=2)
+    file.unlink(missing_ok=True)
+    return None
 
 
 def _prepare_model(config: ExtractorConfig, extractor: nn.Module | None, device: str) -> nn.Module:
@@ -338,8 +378,10 @@ def _assemble(paths: list[Path], part: _Partial, final: Path | None) -> Extracti
         np.concatenate(part.rows), np.asarray(part.kept, np.int64), tuple(paths[i] for i in skipped), final
     )
     if final is not None:
+        skipped_rows = np.asarray(skipped, np.int64)
         with atomic_write(final, "wb") as handle:
-            np.savez(handle, descriptors=result.descriptors, rows=result.rows, skipped=np.asarray(skipped, np.int64))
+            np.savez(handle, descriptors=result.descriptors, rows=result.rows, skipped=skipped_rows,
+                     checksum=array_digest(result.descriptors, result.rows, skipped_rows))
         part.remove()
     return result
 
@@ -348,6 +390,9 @@ def _describe_batch(model: nn.Module, images: list[torch.Tensor], device: str) -
     """Descriptors [n, D] of one batch of loaded images."""
     parts = [model(chunk).cpu() for chunk in _micro_batches(torch.stack(images), device)]
     return torch.cat(parts).numpy().astype(np.float32)
+
+
+BATCH_ARRAYS = ("begin", "end", "descriptors", "kept", "skipped")
 
 
 class _Partial:
@@ -362,23 +407,24 @@ class _Partial:
         if folder is None or not folder.is_dir():
             return
         for file in sorted(folder.glob("batch_*.npz")):
-            with np.load(file, allow_pickle=False) as saved:
-                if int(saved["begin"]) != self.done:
-                    break  # only a contiguous run of batches from the start is reused
-                if len(saved["kept"]):
-                    self.rows.append(saved["descriptors"])
-                self.kept.extend(int(i) for i in saved["kept"])
-                self.skipped.extend(int(i) for i in saved["skipped"])
-                self.done = int(saved["end"])
+            saved = _read_checked(file, BATCH_ARRAYS)
+            if saved is None or int(saved["begin"]) != self.done:
+                break  # only a contiguous run of sound batches from the start is reused
+            if len(saved["kept"]):
+                self.rows.append(saved["descriptors"])
+            self.kept.extend(int(i) for i in saved["kept"])
+            self.skipped.extend(int(i) for i in saved["skipped"])
+            self.done = int(saved["end"])
 
     def save_batch(self, begin: int, end: int, descriptors: np.ndarray | None, kept: list[int], skipped: list[int]) -> None:
         if self.folder is None:
             return
         self.folder.mkdir(parents=True, exist_ok=True)
+        arrays = {"begin": np.asarray(begin), "end": np.asarray(end),
+                  "descriptors": descriptors if descriptors is not None else np.zeros((0, 0), np.float32),
+                  "kept": np.asarray(kept, np.int64), "skipped": np.asarray(skipped, np.int64)}
         with atomic_write(self.folder / f"batch_{begin:09d}.npz", "wb") as handle:
-            np.savez(handle, begin=begin, end=end,
-                     descriptors=descriptors if descriptors is not None else np.zeros((0, 0), np.float32),
-                     kept=np.asarray(kept, np.int64), skipped=np.asarray(skipped, np.int64))
+            np.savez(handle, **arrays, checksum=array_digest(*(arrays[name] for name in BATCH_ARRAYS)))
 
     def remove(self) -> None:
         if self.folder is not None and self.folder.is_dir():
