@@ -1,19 +1,45 @@
-"""Progress on stderr: tqdm bars (hidden when stderr is not a terminal) and one summary line per training epoch."""
+"""Progress on stderr: a tqdm bar on a terminal, else (a log, CI, nohup, ssh) a progress line at least every
+``LINE_SECONDS``; and one summary line per training epoch."""
 
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable
 
 import click
 
 
+LINE_SECONDS = 10.0
+
+
 def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
-    """A tqdm bar on stderr; returns its update function."""
+    """Progress of ``total`` frames on stderr: a tqdm bar on a terminal, else ``line_progress``; returns its update
+    function."""
+    if not sys.stderr.isatty():
+        return line_progress(total, label)
     from tqdm import tqdm
 
-    bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, leave=False, disable=None)
+    bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, leave=False)
     return bar.update
+
+
+def line_progress(total: int, label: str, every: float = LINE_SECONDS, clock=time.monotonic,
+                  echo: Callable[[str], None] | None = None) -> Callable[[int], None]:
+    """An update function printing ``label: done/total frames (p %)`` when ``every`` seconds have passed since the
+    last line, and once at the end: long work never looks dead in a log."""
+    say = echo or (lambda text: click.echo(text, err=True))
+    state = {"done": 0, "last": clock()}
+
+    def update(n: int = 1) -> None:
+        state["done"] += n
+        now = clock()
+        finished = state["done"] >= total
+        if now - state["last"] >= every or (finished and state["done"] - n < total):
+            state["last"] = now
+            say(f"{label}: {state['done']}/{total} frames ({100 * state['done'] / max(total, 1):.0f} %)")
+
+    return update
 
 
 class TqdmMonitor:
@@ -23,6 +49,7 @@ class TqdmMonitor:
     def __init__(self, label: str = "") -> None:
         self.label = label
         self.bar = None
+        self.line: Callable[[int], None] | None = None
         self.losses: list[float] = []
 
     def start_run(self, data, trainable_queries: int) -> None:
@@ -37,12 +64,17 @@ class TqdmMonitor:
         from tqdm import tqdm
 
         self.losses = []
-        self.bar = tqdm(total=queries, desc=f"{self.label}epoch {epoch}/{epochs}", unit="query",
-                        file=sys.stderr, leave=False, disable=None)
+        label = f"{self.label}epoch {epoch}/{epochs}"
+        if sys.stderr.isatty():
+            self.bar, self.line = tqdm(total=queries, desc=label, unit="query", file=sys.stderr, leave=False), None
+        else:
+            self.bar, self.line = None, line_progress(queries, label)
 
     def advance(self, queries: int, loss: float | None) -> None:
         if loss is not None:
             self.losses.append(loss)
+        if self.line is not None:
+            self.line(queries)
         if self.bar is not None:
             self.bar.update(queries)
             if loss is not None:
