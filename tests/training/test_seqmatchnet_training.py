@@ -1,6 +1,7 @@
 """SeqMatchNet training end to end on small problems: learning, resume, checkpoints, and the command line."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -263,3 +264,25 @@ def test_the_untrained_epoch_is_kept_only_when_asked(tmp_path):
     assert untrained.best_epoch == 0
     nothing = train_seqmatchnet(data, TransformConfig(16), replace(still, epochs=0), tmp_path / "none")
     assert nothing.best_epoch == 0 and (tmp_path / "none" / "config.json").is_file()
+
+
+def test_two_processes_with_one_seed_give_bit_identical_weights(tmp_path):
+    """Fresh processes (threads and all), as two users' runs are: the weights are equal to the bit (CPU)."""
+    import subprocess
+    import sys
+
+    from seqvpr.data.sources import save_traversal_npz
+
+    reference, query = route(600, 256, 3)
+    save_traversal_npz(tmp_path / "ref.npz", Traversal.from_descriptors(reference, "ref"))
+    save_traversal_npz(tmp_path / "qry.npz", Traversal.from_descriptors(query, "qry"))
+    runs = []
+    for name in ("a", "b"):
+        command = [sys.executable, "-c", "from seqvpr.cli import main; main()", "train", "seqmatchnet",
+                   "-r", str(tmp_path / "ref.npz"), "-q", str(tmp_path / "qry.npz"), "--train-frames", "0:450",
+                   "--val-frames", "450:600", "--radius", "1f", "-L", "5", "--epochs", "2", "--out", str(tmp_path / name)]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "2"})
+        assert done.returncode == 0, done.stderr
+        runs.append(weights(tmp_path / name))
+    for key in runs[0]:
+        assert torch.equal(runs[0][key], runs[1][key]), key
