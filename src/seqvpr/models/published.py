@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import pickle
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,7 +67,7 @@ def read_container(path: str | Path) -> dict[str, Any]:
     try:
         with torch.serialization.safe_globals(numpy_scalar_globals()):
             content = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as error:
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, struct.error, IndexError) as error:
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         if first.startswith("Weights only load failed"):  # torch's advice to unpickle anything is not ours to give
             first = "not a torch file, or it holds objects beyond tensors and numpy scalars"

@@ -1,0 +1,199 @@
+"""Every bad input a user can give: one line on stderr naming the file, field or option, exit status 2, and no
+partial output under ``--out``. One row a case: the command, a fragment of the message (and the exit status when
+not 2). The failures issue 16 listed are here by name."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from seqvpr.data.sources import save_traversal_npz
+from seqvpr.data.traversal import Traversal
+from tests.helpers import run_cli, write_route_files
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """Files for every case: good traversals, broken ones, images, predictions, descriptions, a map."""
+    w = tmp_path_factory.mktemp("bad")
+    write_route_files(w, 80, 16, 2)
+    rng = np.random.default_rng(0)
+    save_traversal_npz(w / "ref32.npz", Traversal.from_descriptors(rng.random((80, 32), dtype=np.float32), "r32"))
+    nan = rng.random((80, 16)).astype(np.float32)
+    nan[5, 3] = np.nan
+    np.save(w / "nan.npy", nan)
+    np.save(w / "empty.npy", np.zeros((0, 16), np.float32))
+    np.save(w / "flat.npy", np.zeros(16, np.float32))
+    (w / "text.npy").write_text("not an array")
+    (w / "afile").write_text("a file, not a folder")
+    for name in ("imgs", "imgs_bad"):
+        (w / name).mkdir()
+        for i in range(6):
+            Image.fromarray(rng.integers(0, 255, (32, 64, 3), dtype=np.uint8)).save(w / name / f"{i:03d}.png")
+    (w / "imgs_bad" / "002.png").write_bytes((w / "imgs" / "002.png").read_bytes()[:80])  # truncated
+    (w / "imgs_bad" / "004.png").write_text("text named .png")
+    (w / "noimages").mkdir()
+    (w / "preds_dup.csv").write_text("query,references,distances\n3,1 2,0.1 0.2\n3,5 6,0.1 0.2\n")
+    (w / "preds_nan.csv").write_text("query,references,distances\n3,1 2,nan 0.2\n")
+    (w / "preds_cols.csv").write_text("q,refs\n3,1\n")
+    (w / "preds_ghost.csv").write_text("query,references,distances\n3,999,0.1\n")
+    (w / "typo.toml").write_text('[reference]\ndescriptors = "ref.npz"\n[query]\ndescriptors = "qry.npz"\n'
+                                 '[ground_truth]\nraduis = "10m"\n')
+    (w / "table.toml").write_text('[refrence]\ndescriptors = "ref.npz"\n')
+    (w / "bad.toml").write_text("[reference\n")
+    np.save(w / "gt_wrong.npy", np.ones((3, 4), bool))
+    (w / "seqb.txt").write_text("0 5\n")
+    (w / "not_a_model").mkdir()
+    (w / "junk.pth").write_bytes(b"junk")
+    assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
+    return w
+
+
+class _Capsys:
+    def readouterr(self):
+        return "", ""
+
+
+M = ("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m")
+CASES = {
+    # --- match: files and shapes
+    "match: missing reference": (("match", "-r", "{w}/nope.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "nope.npz"),
+    "match: empty .npy (was exit 130, 'aborted')": (("match", "-r", "{w}/empty.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "empty.npy"),
+    "match: text file named .npy": (("match", "-r", "{w}/text.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "text.npy"),
+    "match: 1-D descriptors": (("match", "-r", "{w}/flat.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "flat.npy"),
+    "match: NaN descriptors": (("match", "-r", "{w}/nan.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "nan.npy"),
+    "match: dimensions differ": (("match", "-r", "{w}/ref32.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "32"),
+    "match: L longer than every segment": ((*M, "-L", "500"), "longer than every segment"),
+    "match: L zero": ((*M, "-L", "0"), "seq_len"),
+    "match: negative k": ((*M, "--k", "0"), "--k"),
+    "match: bad radius": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "ten"), "radius"),
+    "match: --radius with --ground-truth (was silently ignored)": ((*M, "--ground-truth", "{w}/gt_wrong.npy"), "not both"),
+    "match: GT of the wrong size": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--ground-truth", "{w}/gt_wrong.npy"), "gt_wrong.npy"),
+    "match: missing GT file": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--ground-truth", "{w}/gt.mat"), "gt.mat"),
+    "match: unknown method (was a usage block)": ((*M, "--method", "nope"), "'--method'"),
+    "match: unknown descriptor (was a usage block)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--descriptor", "vgg"), "vgg"),
+    "match: unknown option": ((*M, "--bogus"), "--bogus"),
+    "match: bad velocities": ((*M, "-L", "5", "--velocities", "0"), "velocit"),
+    "match: bad memory budget": ((*M, "--memory-budget", "lots"), "lots"),
+    "match: --out is a file (was a traceback, after the work)": ((*M, "--out", "{w}/afile"), "afile is not a folder"),
+    "match: --out under a file": ((*M, "--out", "{w}/afile/sub"), "lies under"),
+    "match: --out in /proc": ((*M, "--out", "/proc/seqvpr-out"), "nothing can be written"),
+    "match: --out /dev/null": ((*M, "--out", "/dev/null"), "/dev/null is not a folder"),
+    "match: --cache-dir is a file (was a traceback)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--descriptor", "efficientnet-lite0", "--cache-dir", "{w}/afile"), "--cache-dir"),
+    "match: --cache-dir under a file": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--cache-dir", "{w}/afile/c"), "lies under"),
+    "match: --cache-dir with patchnorm (was silently ignored)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--cache-dir", "{w}/cache"), "not cached"),
+    "match: --device cuda on a CPU torch": ((*M, "--device", "cuda"), "cuda"),
+    "match: truncated image without --skip-bad": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs_bad", "--radius", "2f"), "002.png"),
+    "match: folder without images": (("match", "-r", "{w}/noimages", "-q", "{w}/imgs", "--radius", "2f"), "no images"),
+    "match: reference and map both": (("match", "-r", "{w}/ref.npz", "--map", "{w}/map", "-q", "{w}/qry.npz", "--radius", "10m"), "one of them"),
+    "match: misspelt dataset.toml key (was ignored)": (("match", "-r", "{w}/typo.toml", "-q", "{w}/typo.toml"), "'raduis'"),
+    "match: unknown dataset.toml table": (("match", "-r", "{w}/table.toml", "-q", "{w}/qry.npz", "--radius", "2f"), "[refrence]"),
+    "match: dataset.toml not TOML": (("match", "-r", "{w}/bad.toml", "-q", "{w}/qry.npz", "--radius", "2f"), "not valid TOML"),
+    "match: bad --frames": ((*M, "--frames", "abc"), "frames"),
+    "match: --frames beyond the traversal": ((*M, "--frames", "500:600"), "frames"),
+    "match: missing model folder": ((*M, "--model", "{w}/nomodel"), "nomodel"),
+    "match: a folder that is not a model": ((*M, "--model", "{w}/not_a_model"), "not_a_model"),
+    "match: --shortlist without a map": ((*M, "--shortlist", "5"), "--shortlist"),
+    "match: map without an index and --shortlist": (("match", "--map", "{w}/map", "-q", "{w}/qry.npz", "--radius", "10m", "--shortlist", "4"), "has no index"),
+    "match: not a map": (("match", "--map", "{w}/noimages", "-q", "{w}/qry.npz", "--radius", "10m"), "not a seqvpr map"),
+    "match: map of another dimension": (("match", "--map", "{w}/map", "-q", "{w}/ref32.npz", "--radius", "2f"), "32-D"),
+    # --- eval
+    "eval: duplicate query rows (the later silently won)": (("eval", "{w}/preds_dup.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "query 3 again"),
+    "eval: NaN distances (were accepted)": (("eval", "{w}/preds_nan.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "NaN"),
+    "eval: missing columns": (("eval", "{w}/preds_cols.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "missing column"),
+    "eval: a reference frame that does not exist": (("eval", "{w}/preds_ghost.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "999"),
+    "eval: missing predictions file": (("eval", "{w}/nope.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "nope.csv"),
+    # --- extract
+    "extract: truncated image without --skip-bad (--skip-bad did not skip)": (("extract", "{w}/imgs_bad", "--out", "{out}/d.npz"), "002.png"),
+    "extract: --out is a folder": (("extract", "{w}/imgs", "--out", "{w}/imgs"), "is a folder"),
+    "extract: --out under a file": (("extract", "{w}/imgs", "--out", "{w}/afile/d.npz"), "lies under"),
+    "extract: descriptors, not images": (("extract", "{w}/ref.npz", "--out", "{out}/d.npz"), "ref.npz"),
+    "extract: bad image size": (("extract", "{w}/imgs", "--descriptor", "efficientnet-lite0", "--image-size", "big", "--out", "{out}/d.npz"), "--image-size"),
+    # --- train
+    "train: unknown model kind": (("train", "nope"), "nope"),
+    "train: --out is a file": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--out", "{w}/afile"), "afile is not a folder"),
+    "train: overlapping splits": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "40:80", "--out", "{out}"), "overlap"),
+    "train: negative epochs": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--epochs", "-1", "--out", "{out}"), "epochs"),
+    # --- map
+    "map build: missing source": (("map", "build", "{w}/nope.npz", "--out", "{out}"), "nope.npz"),
+    "map build: unknown dtype": (("map", "build", "{w}/ref.npz", "--dtype", "int4", "--out", "{out}"), "int4"),
+    "map build: bad index spec": (("map", "build", "{w}/ref.npz", "--index", "lsh", "--out", "{out}"), "lsh"),
+    "map build: --out is a file": (("map", "build", "{w}/ref.npz", "--out", "{w}/afile"), "afile is not a folder"),
+    "map info: not a map": (("map", "info", "{w}/noimages"), "not a seqvpr map"),
+    # --- localize
+    "localize: --calibrate without ground truth": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--calibrate", "--out", "{out}"), "needs ground truth"),
+    "localize: a query of another dimension": (("localize", "--map", "{w}/map", "-q", "{w}/ref32.npz", "--out", "{out}"), "16-D"),
+    "localize: unknown method": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--method", "delta", "--out", "{out}"), "'--method'"),
+    "localize: --out is a file": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--out", "{w}/afile"), "afile is not a folder"),
+    # --- demo and import
+    "demo: --out is a file": (("demo", "--out", "{w}/afile"), "afile is not a folder"),
+    "demo: too few frames": (("demo", "--frames", "10", "--out", "{out}"), "--frames"),
+    "import: not a checkpoint": (("import", "{w}/junk.pth", "--out", "{out}"), "junk.pth"),
+    "import: missing checkpoint": (("import", "{w}/nope.pth", "--out", "{out}"), "nope.pth"),
+    # --- the command itself
+    "unknown command": (("nope",), "No such command"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_one_line_exit_2_and_no_partial_output(world, tmp_path, monkeypatch, capsys, case):
+    args, fragment = CASES[case]
+    out = tmp_path / "out"
+    before = (world / "afile").read_text()
+    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
+    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
+    assert code == 2, f"exit {code}: {err}"
+    assert len(lines) == 1 and "Traceback" not in err, err  # progress lines and warnings may come before it
+    assert fragment in lines[0], lines[0]
+    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    assert (world / "afile").read_text() == before
+
+
+def test_the_table_covers_at_least_fifty_cases():
+    assert len(CASES) >= 50
+    assert {args[0] for args, _ in CASES.values()} >= {"match", "eval", "extract", "train", "map", "demo", "import",
+                                                        "localize"}
+
+
+def test_skip_bad_skips_in_match_and_extract(world, tmp_path, monkeypatch, capsys):
+    code, out, err = run_cli(monkeypatch, capsys, "extract", world / "imgs_bad", "--skip-bad", "--out", tmp_path / "d.npz")
+    assert code == 0 and "skipped 2 unreadable images" in err, err
+    code, out, err = run_cli(monkeypatch, capsys, "match", "-r", world / "imgs", "-q", world / "imgs_bad", "--skip-bad",
+                             "--radius", "2f", "--json", "--out", tmp_path / "m")
+    assert code == 0 and json.loads(out)["queries_evaluated"] == 4, err
+
+
+def test_a_16_bit_png_is_described_not_zeroed(tmp_path, monkeypatch, capsys):
+    """Was: an ``I;16`` PNG became an all-zero descriptor, exit 0, no warning."""
+    rng = np.random.default_rng(1)
+    folder = tmp_path / "wide"
+    folder.mkdir()
+    pixels = rng.integers(0, 65535, (32, 64)).astype(np.uint16)
+    Image.fromarray(pixels).save(folder / "0.png")
+    Image.fromarray((pixels >> 8).astype(np.uint8)).save(tmp_path / "narrow.png")
+    assert Image.open(folder / "0.png").mode.startswith("I;16")
+    for descriptor in ("patchnorm", "efficientnet-lite0"):
+        code, _, err = run_cli(monkeypatch, capsys, "extract", folder, "--descriptor", descriptor, "--out",
+                               tmp_path / f"{descriptor}.npz")
+        assert code == 0, err
+        rows = np.load(tmp_path / f"{descriptor}.npz")["descriptors"]
+        assert np.isfinite(rows).all() and (np.abs(rows) > 0).mean() > 0.5
+    from seqvpr.features.images import read_image
+
+    np.testing.assert_allclose(np.asarray(read_image(folder / "0.png", "L"), float),
+                               np.asarray(read_image(tmp_path / "narrow.png", "L"), float), atol=1)
+
+
+def test_a_ground_truth_file_naming_missing_frames_is_flagged(world, tmp_path, monkeypatch, capsys):
+    """Was: a GT file naming frames that do not exist was used silently."""
+    positives = np.zeros((82, 80), bool)  # [n_reference + 2, n_query]: two reference frames the traversal lacks
+    positives[np.arange(80), np.arange(80)] = True
+    positives[81, 3] = True
+    np.save(tmp_path / "gt.npy", positives)
+    code, _, err = run_cli(monkeypatch, capsys, "match", "-r", world / "ref.npz", "-q", world / "qry.npz",
+                           "--ground-truth", tmp_path / "gt.npy", "--gt-layout", "ref-query", "--out", tmp_path / "o")
+    assert code == 0, err
+    assert "seqvpr: warning:" in err and "names 1 reference frames the reference traversal lacks (81" in err
