@@ -53,6 +53,8 @@ Examples:
 @click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
               help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
 @click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
+@click.option("--msls-subtask", type=click.Choice(["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"]),
+              help="An MSLS query side: keep the frames subtask_index.csv marks for this subtask.")
 @extraction_options
 @click.option("--method", type=click.Choice(list(METHODS)),
               help="; ".join(f"{m.name}: {m.summary}" for m in METHODS.values())
@@ -104,6 +106,8 @@ def match(**o: Any) -> None:
     if o["map_dir"]:
         return _match_map(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
+    if o["msls_subtask"]:
+        query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"],
                               layout=o["gt_layout"])
     has_images = reference.image_paths is not None
@@ -122,6 +126,16 @@ def match(**o: Any) -> None:
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
+
+
+def _msls_subtask(query: str, subtask: str, frames: str | None):
+    """The MSLS query side with only the frames of ``subtask``."""
+    from seqvpr.data.loaders.msls import is_msls_side, load_msls_side
+    from seqvpr.data.traversal import slice_frame_range
+
+    if not is_msls_side(Path(query)):
+        raise SeqvprError(f"--msls-subtask needs an MSLS query folder (seq_info.csv, images/): {query} is not one")
+    return slice_frame_range(load_msls_side(query, subtask), frames)
 
 
 def _say_skipped(pair, kept) -> None:

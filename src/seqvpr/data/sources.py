@@ -96,8 +96,11 @@ def _dbstruct_radius(path: Path, values: dict) -> GroundTruthSpec | None:
 
 
 def _traversal_from_folder(folder: Path, role: Role) -> Traversal:
+    from seqvpr.data.loaders.msls import is_msls_side, load_msls_side
     from seqvpr.data.loaders.utm_names import is_utm_named_folder, load_utm_named_folder
 
+    if is_msls_side(folder):
+        return load_msls_side(folder)
     if is_utm_named_folder(folder):
         return load_utm_named_folder(folder, role=role)
     from seqvpr.data.loaders.image_folder import load_image_folder
