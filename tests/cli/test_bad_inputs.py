@@ -181,7 +181,7 @@ def test_a_16_bit_png_is_described_not_zeroed(tmp_path, monkeypatch, capsys):
         assert code == 0, err
         rows = np.load(tmp_path / f"{descriptor}.npz")["descriptors"]
         assert np.isfinite(rows).all() and (np.abs(rows) > 0).mean() > 0.5
-    from seqvpr.features.images import read_image
+    from seqvpr.data.images import read_image
 
     np.testing.assert_allclose(np.asarray(read_image(folder / "0.png", "L"), float),
                                np.asarray(read_image(tmp_path / "narrow.png", "L"), float), atol=1)

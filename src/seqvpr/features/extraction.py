@@ -23,7 +23,7 @@ from torch import nn
 
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
-from seqvpr.features.images import read_image
+from seqvpr.data.images import read_image
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write

@@ -15,7 +15,7 @@ import numpy as np
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
-from seqvpr.features.images import read_image
+from seqvpr.data.images import read_image
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
-from seqvpr.features.images import read_image, to_8bit
+from seqvpr.data.images import read_image, to_8bit
 from seqvpr.maps.build import FrameDescription
 from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel

@@ -193,7 +193,7 @@ def _checked_image(
 def _csv_rows(path: Path, cols: _Columns, values: _RowValues) -> _CsvRows:
     """The parsed columns as arrays, latitude/longitude converted to UTM metres."""
     if cols.latlon:
-        positions = _latlon_to_utm(path, np.asarray(values.first), np.asarray(values.second))
+        positions = latlon_to_utm(path, np.asarray(values.first), np.asarray(values.second))
     else:
         positions = np.column_stack([values.first, values.second]).astype(np.float64)
     return _CsvRows(
@@ -279,7 +279,7 @@ def _integer(row: list[str], col: int, header: list[str], where: str) -> int:
     return int(value)
 
 
-def _latlon_to_utm(path: Path, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+def latlon_to_utm(path: Path, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     """UTM (easting, northing) in metres for all rows, in the zone of the first row."""
     bad_lat = np.flatnonzero((lat < -80.0) | (lat > 84.0))
     if len(bad_lat):
