@@ -19,7 +19,7 @@ COMMANDS = {
     "train": "seqvpr.cli.train:train", "ablate": "seqvpr.cli.train:ablate",
     "benchmark": "seqvpr.cli.experiments:benchmark", "demo": "seqvpr.cli.experiments:demo",
     "import": "seqvpr.cli.published:import_command", "map": "seqvpr.cli.maps:map_group",
-    "localize": "seqvpr.cli.localize:localize",
+    "localize": "seqvpr.cli.localize:localize", "convert": "seqvpr.cli.convert:convert",
 }
 
 

@@ -307,3 +307,34 @@ def _as_text(value: np.ndarray) -> str | None:
 def _one_line(exc: BaseException) -> str:
     """An exception's message folded onto one line."""
     return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def write_dbstruct(path: str | Path, reference: Traversal, query: Traversal, radius: float, dataset: str = "seqvpr",
+                   which_set: str = "test") -> Path:
+    """A seqNet/SeqMatchNet ``.db`` struct of two traversals (written atomically): image names (or frame names),
+    ``utmDb``/``utmQ`` as [2, N] positions or, for frame-aligned traversals, [1, N] frame indices, timestamps when
+    both have them, and ``posDistThr`` = ``radius`` (metres, or frames when frame-aligned)."""
+    from seqvpr.io import atomic_write
+
+    aligned = reference.positions is None or query.positions is None
+    fields: dict = {"whichSet": which_set, "dataset": dataset, "posDistThr": float(radius),
+                    "posDistSqThr": float(radius) ** 2, "nonTrivPosDistSqThr": float(radius) ** 2}
+    for side, traversal in ((_REFERENCE, reference), (_QUERY, query)):
+        fields[side.images[0]] = _name_cell(traversal)
+        fields[side.utm] = (traversal.frame_index[None, :].astype(np.float64) if aligned
+                            else np.ascontiguousarray(traversal.positions.T, dtype=np.float64))
+        fields[side.count[1]] = len(traversal)
+        if traversal.timestamps is not None:
+            fields[side.time] = np.asarray(traversal.timestamps, dtype=np.float64)[None, :]
+    with atomic_write(path, "wb") as handle:
+        scipy.io.savemat(handle, {"dbStruct": fields})
+    return Path(path)
+
+
+def _name_cell(traversal: Traversal) -> np.ndarray:
+    """A MATLAB cell [N, 1] of the frames' image names (their source names when there are no images)."""
+    names = ([str(p) for p in traversal.image_paths] if traversal.image_paths is not None
+             else traversal.frame_names())
+    cell = np.empty((len(names), 1), dtype=object)
+    cell[:, 0] = names
+    return cell

@@ -1,0 +1,79 @@
+"""``seqvpr convert``: any source seqvpr reads into the files the upstream research code reads (a seqNet /
+SeqMatchNet ``.db`` struct with per-side descriptors and seqBounds files, tied by a ``dataset.toml``) or into a
+traversal ``.npz``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from seqvpr.cli.options import OUT_FILE
+from seqvpr.errors import SeqvprError
+
+
+@click.command("convert", epilog="""\b
+Examples:
+  seqvpr convert -r day/ -q night/ --frames 0:200 --radius 2f --to dbstruct --out gp/gardens.db
+  seqvpr convert -r run1.bag -q run2.bag --radius 25m --to dbstruct --out city/city.db
+  seqvpr convert -r dataset.toml --role query --to npz --out query.npz""")
+@click.option("-r", "--reference", required=True, type=click.Path(), help="Reference source (or the one source, npz).")
+@click.option("-q", "--query", type=click.Path(), help="Query source (dbstruct).")
+@click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
+              help="npz: which side of a two-sided source (a .db or dataset.toml) to write.")
+@click.option("--frames", help="Keep source frames START:STOP.")
+@click.option("--radius", help="dbstruct: posDistThr, e.g. 25m (positions) or 2f (frame-aligned).")
+@click.option("--to", "target", type=click.Choice(["dbstruct", "npz"]), required=True)
+@click.option("--out", "out_file", required=True, type=OUT_FILE, help="The .db (its siblings beside it) or .npz.")
+def convert(**o: Any) -> None:
+    """Write SOURCE(s) as a .db struct + descriptors + seqBounds + dataset.toml, or as a traversal .npz."""
+    from seqvpr.data.sources import load_traversal, save_traversal_npz
+    from seqvpr.data.traversal import slice_frame_range
+
+    if o["target"] == "npz":
+        traversal = slice_frame_range(load_traversal(o["reference"], o["role"]), o["frames"])
+        if traversal.descriptors is None:
+            raise SeqvprError(f"{o['reference']}: images, not descriptors: describe them with seqvpr extract --out FILE.npz")
+        save_traversal_npz(Path(o["out_file"]), traversal)
+        click.echo(f"{o['out_file']}: {len(traversal)} frames, {len(set(traversal.segment_ids.tolist()))} segments")
+        return
+    if not o["query"] or not o["radius"]:
+        raise SeqvprError("--to dbstruct needs a --query and a --radius (the struct's posDistThr)")
+    written = write_dbstruct_set(Path(o["out_file"]), *(slice_frame_range(load_traversal(o[role], role), o["frames"])
+                                                        for role in ("reference", "query")), o["radius"])
+    click.echo("wrote " + ", ".join(str(p) for p in written))
+
+
+def write_dbstruct_set(out: Path, reference, query, radius_text: str) -> list[Path]:
+    """The .db, each side's seqBounds (and descriptors .npy, when it has them) and the dataset.toml naming them."""
+    import numpy as np
+
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.loaders.dbstruct import write_dbstruct
+    from seqvpr.data.loaders.seq_bounds import seq_bounds_rows
+    from seqvpr.io import atomic_write
+
+    radius = parse_radius(radius_text)
+    aligned = reference.positions is None or query.positions is None
+    if (radius.unit == "m") == aligned:
+        raise SeqvprError(f"--radius {radius_text}: use {'frames (e.g. 2f)' if aligned else 'metres (e.g. 25m)'} for "
+                          f"{'frame-aligned traversals' if aligned else 'traversals with positions'}")
+    written, table = [write_dbstruct(out, reference, query, radius.value, out.stem)], []
+    for role, side, traversal in (("reference", "database", reference), ("query", "query", query)):
+        bounds = out.with_name(f"{out.stem}_{side}_seqBounds.txt")
+        with atomic_write(bounds) as handle:
+            np.savetxt(handle, seq_bounds_rows(traversal.segment_ids), fmt="%d")
+        entry = f'[{role}]\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'
+        written.append(bounds)
+        if traversal.descriptors is not None:
+            rows = out.with_name(f"{out.stem}_{side}.npy")
+            with atomic_write(rows, "wb") as handle:
+                np.save(handle, np.asarray(traversal.descriptors, dtype=np.float32))
+            entry = f'[{role}]\ndescriptors = "{rows.name}"\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'
+            written.append(rows)
+        table.append(entry)
+    description = out.with_suffix(".toml")
+    with atomic_write(description) as handle:
+        handle.write("\n".join(table))
+    return [*written, description]
