@@ -174,8 +174,12 @@ def _frames_folder(path: Path, topic: str | None) -> Path:
     """Where a bag's frames are decoded: a folder keyed by the bag's path, size, mtime and topic."""
     stat = path.stat() if path.is_file() else (path / "metadata.yaml").stat()
     key = hashlib.sha256(f"{path.absolute()}|{stat.st_size}|{stat.st_mtime_ns}|{topic}".encode()).hexdigest()[:16]
-    root = Path(os.environ.get("SEQVPR_BAG_FRAMES", Path(tempfile.gettempdir()) / "seqvpr-bag-frames"))
-    return root / key
+    return _frames_root() / key
+
+
+def _frames_root() -> Path:
+    """The folder of decoded bag frames: ``$SEQVPR_BAG_FRAMES``, else ``seqvpr-bag-frames`` in the temp folder."""
+    return Path(os.environ.get("SEQVPR_BAG_FRAMES", Path(tempfile.gettempdir()) / "seqvpr-bag-frames"))
 
 
 def _write_frames(folder: Path, keep: list[int], images: list[np.ndarray]) -> tuple[Path, ...]:
