@@ -70,3 +70,40 @@ def _replace_folder(new: Path, target: Path) -> None:
         raise
     finally:
         shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def output_lock(path: str | Path) -> Iterator[Path]:
+    """Hold ``.<name>.seqvpr-lock`` beside an output file or folder for the duration: a second seqvpr writing the
+    same output fails with one line naming the first's process, never interleaving with it. A lock left by a
+    process that is gone (killed) is taken over."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    lock = target.parent / f".{target.name}.seqvpr-lock"
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            holder = _lock_holder(lock)
+            if holder is not None:
+                raise SeqvprError(f"{target} is being written by another seqvpr (process {holder}; lock {lock})") from None
+            lock.unlink(missing_ok=True)  # stale: its process is gone
+    else:
+        raise SeqvprError(f"{target}: cannot take the lock {lock}")
+    with os.fdopen(fd, "w") as handle:
+        handle.write(str(os.getpid()))
+    try:
+        yield lock
+    finally:
+        lock.unlink(missing_ok=True)
+
+
+def _lock_holder(lock: Path) -> int | None:
+    """The live process holding a lock file, or None when it is gone (or the file is unreadable)."""
+    try:
+        pid = int(lock.read_text().strip() or "0")
+        os.kill(pid, 0)
+    except (ValueError, OSError):
+        return None
+    return pid if pid != os.getpid() else None

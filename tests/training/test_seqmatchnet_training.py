@@ -286,3 +286,43 @@ def test_two_processes_with_one_seed_give_bit_identical_weights(tmp_path):
         runs.append(weights(tmp_path / name))
     for key in runs[0]:
         assert torch.equal(runs[0][key], runs[1][key]), key
+
+
+def test_kill_9_mid_run_then_resume_gives_bit_identical_weights(tmp_path):
+    """A training process killed with SIGKILL once an epoch's state is saved, then ``--resume``: the weights of an
+    uninterrupted run, to the bit."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from seqvpr.data.sources import save_traversal_npz
+
+    reference, query = route(600, 64, 4)
+    save_traversal_npz(tmp_path / "ref.npz", Traversal.from_descriptors(reference, "ref"))
+    save_traversal_npz(tmp_path / "qry.npz", Traversal.from_descriptors(query, "qry"))
+
+    def command(out, *extra):
+        return [sys.executable, "-c", "from seqvpr.cli import main; main()", "train", "seqmatchnet",
+                "-r", str(tmp_path / "ref.npz"), "-q", str(tmp_path / "qry.npz"), "--train-frames", "0:450",
+                "--val-frames", "450:600", "--radius", "1f", "-L", "5", "--epochs", "6", "--out", str(out), *extra]
+
+    env = {**os.environ, "OMP_NUM_THREADS": "2"}
+    whole = subprocess.run(command(tmp_path / "whole"), capture_output=True, text=True, timeout=300, env=env)
+    assert whole.returncode == 0, whole.stderr
+    killed = subprocess.Popen(command(tmp_path / "killed"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    state = tmp_path / "killed" / STATE_JSON
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (state.exists() and json.loads(state.read_text())["state_dir"] != "state/epoch_0000"):
+        time.sleep(0.05)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert killed.returncode == -signal.SIGKILL
+    saved = json.loads(state.read_text())["state_dir"]
+    assert saved != "state/epoch_0006"  # it really was cut short
+    resumed = subprocess.run(command(tmp_path / "killed", "--resume"), capture_output=True, text=True, timeout=300,
+                             env=env)
+    assert resumed.returncode == 0, resumed.stderr
+    a, b = weights(tmp_path / "whole"), weights(tmp_path / "killed")
+    for key in a:
+        assert torch.equal(a[key], b[key]), key

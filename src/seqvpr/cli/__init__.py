@@ -6,6 +6,7 @@ loads no torch, numba, faiss or matplotlib: each command imports what it uses wh
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 import warnings
 
@@ -60,9 +61,15 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
 
 
+def _terminated(signum, frame) -> None:
+    """SIGTERM unwinds like Ctrl-C: temporary files are removed and locks released (exit 143)."""
+    raise SystemExit(143)
+
+
 def main() -> None:
     """Entry point: run the CLI; a SeqvprError becomes one line on stderr and exit status 2."""
     warnings.showwarning = _show_warning
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
-from seqvpr.cli.options import OUT_FOLDER
+from seqvpr.cli.options import OUT_FOLDER, locks_output
 from seqvpr.errors import SeqvprError
 from seqvpr.synthetic import CONDITIONS
 
@@ -20,6 +20,7 @@ Example:
 @click.argument("config_file", metavar="CONFIG")
 @click.option("--out", "out_dir", default="seqvpr-benchmark", show_default=True, type=OUT_FOLDER,
               help="Folder for trained models, results.csv and results.md.")
+@locks_output("out_dir")
 def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
     from seqvpr.experiments.benchmark import length_table, main_table, read_config, run_benchmark, write_results
@@ -50,6 +51,7 @@ Examples:
 @click.option("--epochs", type=int, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
 @click.option("--no-train", is_flag=True, help="Skip SeqMatchNet training (matching baselines only).")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@locks_output("out_dir")
 def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) -> None:
     """Render a synthetic route world, describe it with EfficientNet-Lite0, match single images and sequences,
     train SeqMatchNet, and write an HTML report (OUT/report/index.html)."""

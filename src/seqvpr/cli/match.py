@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    locks_output,
     OUT_FILE,
     OUT_FOLDER,
     extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail, parse_velocities,
@@ -83,6 +84,7 @@ Examples:
 @click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
+@locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
     from seqvpr.sequences.windows import SequenceSpec
@@ -318,6 +320,7 @@ Examples:
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--out", "out_file", required=True, type=OUT_FILE,
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
+@locks_output("out_file")
 def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
     descriptor, patchnorm, extraction = extraction_settings(o, device)

@@ -55,6 +55,27 @@ def output_problem(path: Path, kind: str) -> str | None:
 OUT_FOLDER, OUT_FILE = WritablePath("folder"), WritablePath("file")
 
 
+def locks_output(option: str) -> Callable[[Callable], Callable]:
+    """Run a command holding ``seqvpr.io.output_lock`` on the output its ``option`` names (applied below the
+    click decorators): two runs writing one ``--out`` never interleave."""
+    import functools
+
+    def decorate(function: Callable) -> Callable:
+        @functools.wraps(function)
+        def locked(*args: Any, **kwargs: Any) -> Any:
+            target = kwargs.get(option)
+            if not target:
+                return function(*args, **kwargs)
+            from seqvpr.io import output_lock
+
+            with output_lock(target):
+                return function(*args, **kwargs)
+
+        return locked
+
+    return decorate
+
+
 def with_options(options: list[Callable]) -> Callable[[Callable], Callable]:
     """A decorator adding click ``options`` to a command, in the order ``--help`` shows them."""
 

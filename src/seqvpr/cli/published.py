@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from seqvpr.cli.options import OUT_FOLDER
+from seqvpr.cli.options import OUT_FOLDER, locks_output
 
 
 @click.command(name="import", epilog="""\b
@@ -18,6 +18,7 @@ Examples:
 @click.argument("checkpoint", type=click.Path())
 @click.option("--flags", "flags_file", type=click.Path(), help="The run's flags.json (SeqNet/SeqMatchNet: seqL, w, outDims; JIST: seq_length), if you have it.")
 @click.option("--out", "out_dir", required=True, type=OUT_FOLDER, help="The seqvpr model folder to write.")
+@locks_output("out_dir")
 def import_command(checkpoint, flags_file, out_dir) -> None:
     """Convert a published SeqNet, SeqMatchNet, CosPlace or JIST checkpoint into a model folder for seqvpr match
     --model (strictly: a missing or unexpected key is an error)."""

@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER
+from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER, locks_output
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
@@ -174,6 +174,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5):
 @click.option("--out", "out_dir", default="seqmatchnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@locks_output("out_dir")
 def train_seqmatchnet_command(out_dir, resume, **o) -> None:
     """SeqMatchNet: a per-frame transform trained with a sequence-matching triplet loss and sequence mining."""
     from seqvpr.training.seqmatchnet import train_seqmatchnet
@@ -196,6 +197,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5, w=3):
 @click.option("--out", "out_dir", default="seqnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@locks_output("out_dir")
 def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
     """SeqNet: a temporal Conv1d over each window of frame descriptors, one descriptor per sequence, trained with a
     triplet loss and hard negatives mined in its own descriptor space (velocity 1)."""
@@ -288,6 +290,7 @@ Examples:
 @click.option("--out", "out_dir", default="jist-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@locks_output("out_dir")
 def train_jist_command(out_dir, resume, **o) -> None:
     """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
     single images, from the traversals' images (best epoch by validation Recall@K)."""
