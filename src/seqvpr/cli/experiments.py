@@ -37,8 +37,8 @@ def benchmark(config_file, out_dir) -> None:
 
 @click.command(epilog="""\b
 Examples:
-  seqvpr demo                      # about 3 minutes on 2 cores
-  seqvpr demo --quick              # a smaller world, under a minute
+  seqvpr demo                      # about 1.5 minutes on 2 cores
+  seqvpr demo --quick              # a smaller world, about 35 s
   seqvpr demo --condition winter --seed 3 --out demo-winter
 """)
 @click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=OUT_FOLDER,

@@ -127,7 +127,7 @@ def match(**o: Any) -> None:
     run = _run_settings(o, method, models, descriptor, gt.description, settings.as_dict())
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
-    _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (reference, query))
+    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (reference, query))
 
 
 def _msls_subtask(query: str, subtask: str, frames: str | None):
@@ -138,6 +138,16 @@ def _msls_subtask(query: str, subtask: str, frames: str | None):
     if not is_msls_side(Path(query)):
         raise SeqvprError(f"--msls-subtask needs an MSLS query folder (seq_info.csv, images/): {query} is not one")
     return slice_frame_range(load_msls_side(query, subtask), frames)
+
+
+def run_label(method: str, length: int, o: dict[str, Any]) -> str:
+    """The table's row label: the method, L, and the re-ranking or shortlist that shaped the result."""
+    label = f"{method} L={length}"
+    if o.get("rerank"):
+        label += f" + rerank {o['rerank']}"
+    if o.get("shortlist"):
+        label += f" + shortlist {o['shortlist']}" + (f" (history {o['history']})" if o.get("history") else "")
+    return label
 
 
 def _say_skipped(pair, kept) -> None:
@@ -180,7 +190,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
                             "recall": shortlist_recall(result, gt)}
         click.echo(f"shortlist: {run['shortlist']['recall']:.3f} of the scored queries have a true place among "
                    f"their candidates", err=True)
-    _write_and_print(o, result, gt, evaluation, run, f"L={spec.length}", (saved.frames, result.query))
+    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (saved.frames, result.query))
 
 
 def _check_map_options(o: dict[str, Any], built: str) -> None:
@@ -301,7 +311,7 @@ def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, 
     if as_json:
         click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))
     else:
-        click.echo(recall_table(evaluation, Path(predictions).name[:14]))
+        click.echo(recall_table(evaluation, Path(predictions).name))
 
 
 @click.command(epilog="""\b

@@ -13,7 +13,9 @@ def recall_table(evaluation: Evaluation, label: str, width: int = 14) -> str:
 
 
 def recall_rows(rows: Sequence[tuple[str, Evaluation]], width: int = 14) -> str:
-    """One row per (label, evaluation) under one header, then the first evaluation's query counts."""
+    """One row per (label, evaluation) under one header, then the first evaluation's query counts; the label
+    column widens to the longest label (never cut)."""
+    width = max(width, *(len(label) + 2 for label, _ in rows))
     ks = list(rows[0][1].recall)
     header = f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'R@100P':>8}"
     lines = [recall_row(evaluation, label, width) for label, evaluation in rows]
