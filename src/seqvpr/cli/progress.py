@@ -25,8 +25,8 @@ def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
 
 
 def line_progress(total: int, label: str, every: float = LINE_SECONDS, clock=time.monotonic,
-                  echo: Callable[[str], None] | None = None) -> Callable[[int], None]:
-    """An update function printing ``label: done/total frames (p %)`` when ``every`` seconds have passed since the
+                  echo: Callable[[str], None] | None = None, unit: str = "frames") -> Callable[[int], None]:
+    """An update function printing ``label: done/total UNIT (p %)`` when ``every`` seconds have passed since the
     last line, and once at the end: long work never looks dead in a log."""
     say = echo or (lambda text: click.echo(text, err=True))
     state = {"done": 0, "last": clock()}
@@ -37,7 +37,7 @@ def line_progress(total: int, label: str, every: float = LINE_SECONDS, clock=tim
         finished = state["done"] >= total
         if now - state["last"] >= every or (finished and state["done"] - n < total):
             state["last"] = now
-            say(f"{label}: {state['done']}/{total} frames ({100 * state['done'] / max(total, 1):.0f} %)")
+            say(f"{label}: {state['done']}/{total} {unit} ({100 * state['done'] / max(total, 1):.0f} %)")
 
     return update
 
@@ -68,7 +68,7 @@ class TqdmMonitor:
         if sys.stderr.isatty():
             self.bar, self.line = tqdm(total=queries, desc=label, unit="query", file=sys.stderr, leave=False), None
         else:
-            self.bar, self.line = None, line_progress(queries, label)
+            self.bar, self.line = None, line_progress(queries, label, unit="queries")
 
     def advance(self, queries: int, loss: float | None) -> None:
         if loss is not None:
