@@ -40,31 +40,105 @@ def test_two_matches_into_one_out_do_not_interleave(tmp_path, monkeypatch, capsy
     assert code == 2 and "being written by another seqvpr" in err and not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
-def test_a_signalled_match_leaves_no_partial_output_and_no_lock(tmp_path, signum):
-    """Interrupted mid-work: the folder holds no file under a final name, and the lock is gone."""
-    import signal
-    import sys
-    import time
-
+def _inputs(folder):
+    """Work long enough to be interrupted (a few seconds each), and small inputs for a previous complete output."""
     import numpy as np
+    from PIL import Image
 
     from seqvpr.data.sources import save_traversal_npz
     from seqvpr.data.traversal import Traversal
 
     rng = np.random.default_rng(0)
-    save_traversal_npz(tmp_path / "ref.npz", Traversal.from_descriptors(rng.random((40000, 64), np.float32), "r"))
-    save_traversal_npz(tmp_path / "qry.npz", Traversal.from_descriptors(rng.random((4000, 64), np.float32), "q"))
-    command = [sys.executable, "-c", "from seqvpr.cli import main; main()", "match", "-r", str(tmp_path / "ref.npz"),
-               "-q", str(tmp_path / "qry.npz"), "--radius", "2f", "-L", "5", "--out", str(tmp_path / "o")]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    lock = tmp_path / ".o.seqvpr-lock"
+    save_traversal_npz(folder / "ref.npz", Traversal.from_descriptors(rng.random((40000, 64), np.float32), "r"))
+    save_traversal_npz(folder / "qry.npz", Traversal.from_descriptors(rng.random((4000, 64), np.float32), "q"))
+    save_traversal_npz(folder / "big.npz", Traversal.from_descriptors(rng.random((200000, 64), np.float32), "b"))
+    for name, count in (("imgs", 3000), ("few", 4)):
+        (folder / name).mkdir()
+        for i in range(count):
+            Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(folder / name / f"{i:05d}.png")
+    (folder / "route").mkdir()
+    write_route_files(folder / "route", 80, 16, 2)
+
+
+#: a command whose work is interrupted, and the same command on small inputs (its previous complete output)
+INTERRUPTED = {
+    "match": (("match", "-r", "{d}/ref.npz", "-q", "{d}/qry.npz", "--radius", "2f", "-L", "5", "--out", "{d}/o"),
+              ("match", "-r", "{d}/route/ref.npz", "-q", "{d}/route/qry.npz", "--radius", "10m", "--out", "{d}/o")),
+    "extract": (("extract", "{d}/imgs", "--out", "{d}/o.npz"), ("extract", "{d}/few", "--out", "{d}/o.npz")),
+    "map build": (("map", "build", "{d}/big.npz", "--dtype", "pq:8", "--out", "{d}/o"),
+                  ("map", "build", "{d}/route/ref.npz", "--out", "{d}/o")),
+    "train": (("train", "seqmatchnet", "-r", "{d}/route/ref.npz", "-q", "{d}/route/qry.npz", "--radius", "10m",
+               "--train-frames", "0:50", "--val-frames", "50:80", "-L", "3", "--epochs", "400", "--out", "{d}/o"),
+              None),
+}
+
+
+@pytest.fixture(scope="module")
+def interrupt_inputs(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("interrupt")
+    _inputs(folder)
+    return folder
+
+
+def _snapshot(out) -> dict[str, bytes]:
+    """Every file under ``out`` (a file or a folder) by relative name, with its bytes."""
+    if out.is_file():
+        return {out.name: out.read_bytes()}
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("command,signum", [("match", "SIGINT"), ("match", "SIGTERM"), ("extract", "SIGTERM"),
+                                            ("map build", "SIGINT"), ("train", "SIGTERM")])
+def test_a_signalled_command_leaves_the_previous_output_or_none(interrupt_inputs, tmp_path, command, signum):
+    """Interrupted mid-work: the previous complete output is still there byte for byte (or, for training, only
+    complete checkpoint files are), no temporary file is left beside it, and the lock is gone."""
+    import signal
+    import sys
+    import time
+
+    work, before = ([a.format(d=tmp_path) if "{d}/o" in a else a.format(d=interrupt_inputs) for a in args]
+                    if args else None for args in INTERRUPTED[command])
+    out = tmp_path / ("o.npz" if command == "extract" else "o")
+    if before:
+        assert run_cli(pytest.MonkeyPatch(), _NoCapture(), *before)[0] == 0
+    previous = _snapshot(out) if out.exists() else None
+    process = subprocess.Popen([sys.executable, "-c", "from seqvpr.cli import main; main()", *work],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / f".{out.name}.seqvpr-lock"
+    started = out / "history.csv" if command == "train" else lock  # training: once checkpoints are being written
     deadline = time.monotonic() + 60
-    while not lock.exists() and time.monotonic() < deadline:
+    while not started.exists() and time.monotonic() < deadline:
         time.sleep(0.02)
-    time.sleep(0.5)
+    time.sleep(0.3 if command == "train" else 1.0)
+    assert process.poll() is None, "the work ended before the signal; give it more to do"
     process.send_signal(getattr(signal, signum))
     _, err = process.communicate(timeout=60)
-    assert process.returncode in (130, 143), err
+    assert process.returncode == {"SIGINT": 130, "SIGTERM": 143}[signum], err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("seqvpr: "), err
     assert not lock.exists()
-    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+    assert not [p.name for p in tmp_path.rglob("*") if p.name.endswith((".part", ".old"))]
+    if previous is not None:
+        assert _snapshot(out) == previous
+    else:
+        _assert_training_files_complete(out)
+
+
+def _assert_training_files_complete(out) -> None:
+    """Whatever a signalled training left is whole: its JSON parses, its tensors load, its history rows are full."""
+    import json
+
+    from safetensors.numpy import load_file
+
+    for path in out.rglob("*") if out.exists() else ():
+        if path.suffix == ".json":
+            json.loads(path.read_text())
+        elif path.suffix == ".safetensors":
+            load_file(path)
+        elif path.suffix == ".csv":
+            rows = path.read_text().splitlines()
+            assert len({row.count(",") for row in rows}) == 1, rows
+
+
+class _NoCapture:
+    def readouterr(self):
+        return "", ""

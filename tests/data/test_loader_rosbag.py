@@ -35,8 +35,10 @@ def image_folder(src, dst, lat, lon):
     return dst
 
 
-def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compressed: bool = False):
-    """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them."""
+def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compressed: bool = False,
+              odometry: bool = False):
+    """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them; with
+    ``odometry``, also a second camera topic and an Odometry topic (x = 2 m a frame, y = -i)."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -76,7 +78,32 @@ def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compres
                       position_covariance_type=0)
             writer.write(gps, int((t + 0.1) * 1e9), store.serialize_ros1(fix, Fix.__msgtype__) if ros1
                          else store.serialize_cdr(fix, Fix.__msgtype__))
+        if odometry:
+            _write_odometry_and_second_camera(writer, store, header, images, ros1)
     return path
+
+
+def _write_odometry_and_second_camera(writer, store, header, images, ros1: bool):
+    """A /camera2 topic (the frames flipped) and an /odom topic stamped with the frames."""
+    T = store.types
+    Img, Odom = T["sensor_msgs/msg/Image"], T["nav_msgs/msg/Odometry"]
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    camera = writer.add_connection("/camera2/image_raw", Img.__msgtype__, typestore=store)
+    odom = writer.add_connection("/odom", Odom.__msgtype__, typestore=store)
+    for i, file in enumerate(images):
+        t = 100.0 + i * STEP_S
+        pixels = np.ascontiguousarray(np.asarray(Image.open(file).convert("RGB"))[:, ::-1])
+        frame = Img(header=header(t), height=pixels.shape[0], width=pixels.shape[1], encoding="rgb8",
+                    is_bigendian=0, step=pixels.shape[1] * 3, data=pixels.reshape(-1))
+        writer.write(camera, int(t * 1e9), serialize(frame, Img.__msgtype__))
+        pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=2.0 * i, y=-float(i), z=0.0),
+                                           orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+        zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+        message = Odom(header=header(t), child_frame_id="base",
+                       pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                       twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                           twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))
+        writer.write(odom, int(t * 1e9), serialize(message, Odom.__msgtype__))
 
 
 @pytest.fixture(scope="module")
@@ -123,3 +150,58 @@ def test_bad_topics_are_one_line(walking, tmp_path, monkeypatch):
     bag = write_bag(tmp_path / "b", images[:3], lat, lon, ros1=False)
     raises_one_line("no image topic /nope (its image topics: /camera/image_raw)", load_traversal, f"{bag}:/nope",
                     "reference")
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_topic_options_choose_the_camera_and_the_position_source(walking, tmp_path, monkeypatch, capsys, ros1):
+    _, sides = walking
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    _, images, lat, lon = sides["day_left"]
+    bag = write_bag(tmp_path / ("r.bag" if ros1 else "r"), images[:6], lat, lon, ros1=ros1, odometry=True)
+
+    def extracted(name, *options):
+        code, _, err = run_cli(monkeypatch, capsys, "extract", bag, "--out", tmp_path / name, *options)
+        assert code == 0, err
+        return np.load(tmp_path / name)
+
+    by_odom = extracted("odom.npz", "--topic", "/camera2/image_raw", "--odom-topic", "/odom")
+    np.testing.assert_allclose(by_odom["positions"], np.c_[2.0 * np.arange(6), -np.arange(6.0)])
+    by_gps = extracted("gps.npz", "--topic", "/camera/image_raw", "--gps-topic", "/gps/fix")
+    steps = np.linalg.norm(np.diff(by_gps["positions"], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 1.0, atol=0.01)  # one metre a frame north, in UTM
+    frames = sorted((tmp_path / "frames").rglob("*.png"))
+    assert len(frames) == 12  # six frames of each camera, decoded once each
+    first = load_traversal(f"{bag}:/camera2/image_raw", "query").image_paths[0]
+    np.testing.assert_array_equal(np.asarray(Image.open(first)),
+                                  np.asarray(Image.open(images[0]).convert("RGB"))[:, ::-1])
+
+
+def test_bad_topic_options_are_one_line(walking, tmp_path, monkeypatch, capsys):
+    _, sides = walking
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    _, images, lat, lon = sides["day_left"]
+    bag = write_bag(tmp_path / "r", images[:3], lat, lon, ros1=False, odometry=True)
+    out = tmp_path / "o.npz"
+    for options, fragment in [
+        ((), "name the image topic with --topic (its image topics: /camera/image_raw, /camera2/image_raw)"),
+        (("--topic", "/camera/image_raw", "--gps-topic", "/odom"), "no NavSatFix topic /odom (its NavSatFix topics: /gps/fix)"),
+        (("--topic", "/camera/image_raw", "--odom-topic", "/gps/fix"), "no Odometry topic /gps/fix"),
+        (("--topic", "/camera/image_raw", "--gps-topic", "/gps/fix", "--odom-topic", "/odom"), "not both"),
+        (("--topic", "/camera/image_raw", "--stamp-tolerance", "0"), "tolerance must be a positive"),
+    ]:
+        code, _, err = run_cli(monkeypatch, capsys, "extract", bag, "--out", out, *options)
+        assert (code, err.count("\n")) == (2, 1) and fragment in err, (options, err)
+        assert not out.exists()
+    code, _, err = run_cli(monkeypatch, capsys, "extract", images[0].parent, "--out", out, "--topic", "/camera/image_raw")
+    assert code == 2 and "--topic: for ROS bag sources, and no source here is a bag" in err, err
+
+
+def test_a_bag_source_text_reads_back_what_it_names(tmp_path):
+    from seqvpr.data.loaders.rosbag import BagTopics, bag_source, parse_bag_source
+
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    for topics in [BagTopics(), BagTopics("/cam/image"), BagTopics(None, "/fix"), BagTopics("/c", None, "/odom", 0.2)]:
+        assert parse_bag_source(bag_source(bag, topics)) == (bag, topics)
+    assert parse_bag_source(str(tmp_path / "run.npz")) is None
+    raises_one_line("'speed' is not a bag option", parse_bag_source, f"{bag}?speed=2")

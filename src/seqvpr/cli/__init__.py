@@ -61,9 +61,15 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
 
 
+class Terminated(BaseException):
+    """Raised by SIGTERM so the work unwinds like Ctrl-C: temporary files are removed and locks released."""
+
+
 def _terminated(signum, frame) -> None:
-    """SIGTERM unwinds like Ctrl-C: temporary files are removed and locks released (exit 143)."""
-    raise SystemExit(143)
+    raise Terminated()
+
+
+INTERRUPTED = "nothing half-written is left under an output's name"
 
 
 def main() -> None:
@@ -73,8 +79,11 @@ def main() -> None:
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort:
-        click.echo("aborted", err=True)
+        click.echo(f"seqvpr: interrupted (SIGINT); {INTERRUPTED}", err=True)
         sys.exit(130)
+    except Terminated:
+        click.echo(f"seqvpr: terminated (SIGTERM); {INTERRUPTED}", err=True)
+        sys.exit(143)
     except click.UsageError as error:  # a bad option or value: one line naming it, as every bad input gets
         message = " ".join(error.format_message().split())
         command = f" ({_command_path(error.ctx)} --help)" if error.ctx else ""
@@ -87,4 +96,5 @@ def main() -> None:
         click.echo(f"seqvpr: error: {error}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:
+        click.echo(f"seqvpr: interrupted (SIGINT); {INTERRUPTED}", err=True)
         sys.exit(130)

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import OUT_FILE, locks_output
+from seqvpr.cli.options import OUT_FILE, bag_topic_options, locks_output
 from seqvpr.errors import SeqvprError
 
 
@@ -26,6 +26,7 @@ Examples:
 @click.option("--radius", help="dbstruct: posDistThr, e.g. 25m (positions) or 2f (frame-aligned).")
 @click.option("--to", "target", type=click.Choice(["dbstruct", "npz"]), required=True)
 @click.option("--out", "out_file", required=True, type=OUT_FILE, help="The .db (its siblings beside it) or .npz.")
+@bag_topic_options("reference", "query")
 @locks_output("out_file")
 def convert(**o: Any) -> None:
     """Write SOURCE(s) as a .db struct + descriptors + seqBounds + dataset.toml, or as a traversal .npz."""

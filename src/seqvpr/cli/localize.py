@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, OUT_FILE, OUT_FOLDER, locks_output
+from seqvpr.cli.options import parse_ks, OUT_FILE, OUT_FOLDER, bag_topic_options, locks_output
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -58,6 +58,7 @@ Examples:
 @click.option("--out", "out_dir", default="seqvpr-localize", show_default=True, type=OUT_FOLDER,
               help="Folder for stream.csv, run.json and report/.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
+@bag_topic_options("query")
 @locks_output("out_dir")
 def localize(**o: Any) -> None:
     """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""

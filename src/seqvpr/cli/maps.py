@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, locks_output
+from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options, locks_output
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -55,6 +55,7 @@ def map_group() -> None:
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@bag_topic_options("sources")
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,

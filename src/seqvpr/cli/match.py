@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    bag_topic_options,
     locks_output,
     OUT_FILE,
     OUT_FOLDER,
@@ -27,6 +28,7 @@ Examples:
   seqvpr match -r ref.npz -q qry.npz --radius 25m --model runs/seqnet --model runs/seqmatchnet --method hvpr
   seqvpr match -r day/ -q night/ --radius 25m --model runs/cosplace-r18 --method matching -L 5
   seqvpr match --map maps/summer -q winter.npy --radius 1f -L 5
+  seqvpr match -r run1.bag -q run2.bag --topic /camera/image_raw --gps-topic /fix --descriptor efficientnet-lite0
 """
 
 
@@ -84,6 +86,7 @@ Examples:
 @click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
+@bag_topic_options("reference", "query")
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
@@ -297,6 +300,7 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@bag_topic_options("reference", "query")
 def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, no_positive, as_json) -> None:
     """Score a predictions CSV (query, references, distances) against ground truth."""
     k_values = parse_ks(ks)
@@ -330,6 +334,7 @@ Examples:
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--out", "out_file", required=True, type=OUT_FILE,
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
+@bag_topic_options("images", "cluster_images")
 @locks_output("out_file")
 def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""

@@ -76,6 +76,67 @@ def locks_output(option: str) -> Callable[[Callable], Callable]:
     return decorate
 
 
+def bag_topic_options(*sources: str) -> Callable[[Callable], Callable]:
+    """``--topic``, ``--gps-topic``, ``--odom-topic`` and ``--stamp-tolerance`` for the ROS bags among the command's
+    ``sources`` options: each bag source is rewritten to name them (a topic in the source itself, ``BAG:/topic``,
+    is kept), so the library, run.json and a re-run see one source text. Given with no bag source, they are an error."""
+    import functools
+
+    def decorate(function: Callable) -> Callable:
+        @functools.wraps(function)
+        def rewritten(*args: Any, **kwargs: Any) -> Any:
+            given = {k: kwargs.pop(k) for k in ("topic", "gps_topic", "odom_topic", "stamp_tolerance")}
+            _apply_bag_topics(kwargs, sources, given)
+            return function(*args, **kwargs)
+
+        return with_options(BAG_OPTIONS)(rewritten)
+
+    return decorate
+
+
+BAG_OPTIONS = [
+    click.option("--topic", help="ROS bag sources: the image topic (sensor_msgs/Image or CompressedImage)  "
+                                 "[default: the bag's only image topic]."),
+    click.option("--gps-topic", help="ROS bag sources: the NavSatFix topic giving positions (to UTM metres)  "
+                                     "[default: the bag's NavSatFix topic, else its Odometry topic]."),
+    click.option("--odom-topic", help="ROS bag sources: the nav_msgs/Odometry topic giving positions (x, y metres)."),
+    click.option("--stamp-tolerance", type=float, help="ROS bag sources: most seconds between a frame and its "
+                                                       "position fix (frames without one are left out)  [default: 0.5]."),
+]
+
+
+def _apply_bag_topics(kwargs: dict[str, Any], sources: tuple[str, ...], given: dict[str, Any]) -> None:
+    """Rewrite the bag sources among ``kwargs[sources]`` (a text or a tuple of texts) to carry the ``given`` topics."""
+    if all(v is None for v in given.values()):
+        return
+    from dataclasses import replace
+
+    from seqvpr.data.loaders.rosbag import bag_source, parse_bag_source
+
+    def rewrite(text: str) -> str:
+        bag = parse_bag_source(text)
+        if bag is None:
+            return text
+        path, topics = bag
+        named = {"image": topics.image or given["topic"], "gps": given["gps_topic"] or topics.gps,
+                 "odom": given["odom_topic"] or topics.odom}
+        if given["stamp_tolerance"] is not None:
+            named["tolerance"] = given["stamp_tolerance"]
+        bags.append(text)
+        out = bag_source(path, replace(topics, **named))
+        parse_bag_source(out)  # both position topics, or a bad tolerance, fail here, before any work
+        return out
+
+    bags: list[str] = []
+    for name in sources:
+        value = kwargs.get(name)
+        if value:
+            kwargs[name] = tuple(rewrite(v) for v in value) if isinstance(value, tuple) else rewrite(value)
+    if not bags:
+        flags = ", ".join("--" + k.replace("_", "-") for k, v in given.items() if v is not None)
+        raise SeqvprError(f"{flags}: for ROS bag sources, and no source here is a bag")
+
+
 def with_options(options: list[Callable]) -> Callable[[Callable], Callable]:
     """A decorator adding click ``options`` to a command, in the order ``--help`` shows them."""
 

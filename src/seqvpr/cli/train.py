@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER, locks_output
+from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER, bag_topic_options, locks_output
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
@@ -174,6 +174,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5):
 @click.option("--out", "out_dir", default="seqmatchnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@bag_topic_options("reference", "query", "val_reference", "val_query")
 @locks_output("out_dir")
 def train_seqmatchnet_command(out_dir, resume, **o) -> None:
     """SeqMatchNet: a per-frame transform trained with a sequence-matching triplet loss and sequence mining."""
@@ -197,6 +198,7 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5, w=3):
 @click.option("--out", "out_dir", default="seqnet-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@bag_topic_options("reference", "query", "val_reference", "val_query")
 @locks_output("out_dir")
 def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
     """SeqNet: a temporal Conv1d over each window of frame descriptors, one descriptor per sequence, trained with a
@@ -290,6 +292,7 @@ Examples:
 @click.option("--out", "out_dir", default="jist-run", show_default=True, type=OUT_FOLDER,
               help="Run folder: best model (model.safetensors + config.json), history.csv, resumable state.")
 @run_options
+@bag_topic_options("reference", "query", "val_reference", "val_query", "class_images")
 @locks_output("out_dir")
 def train_jist_command(out_dir, resume, **o) -> None:
     """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
@@ -329,6 +332,7 @@ Example (SeqMatchNet Table 1 on Nordland):
 @click.option("--out", "out_dir", default="seqmatchnet-ablation", show_default=True, type=OUT_FOLDER,
               help="Folder with one run per variant, ablation.csv and ablation.md.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
+@bag_topic_options("reference", "query", "val_reference", "val_query", "test_reference", "test_query")
 def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **o) -> None:
     """SeqMatchNet Table 1: loss {single, seqmatch} x mining {single, seqmatch}, plus untransformed descriptors."""
     from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius

@@ -43,11 +43,11 @@ class GroundTruthSpec:
 def load_traversal(source: str | Path, role: Role) -> Traversal:
     """The traversal a command-line source names, for the given role."""
     text = str(source)
-    bag, topic = _bag_and_topic(text)
-    if bag is not None:
-        from seqvpr.data.loaders.rosbag import load_rosbag
+    from seqvpr.data.loaders.rosbag import load_rosbag, parse_bag_source
 
-        return load_rosbag(bag, topic)
+    bag = parse_bag_source(text)
+    if bag is not None:
+        return load_rosbag(*bag)
     path, _ = split_variable(text)
     if path.suffix.lower() == ".toml":
         return _traversal_from_description(path, role)
@@ -64,17 +64,6 @@ def load_traversal(source: str | Path, role: Role) -> Traversal:
         name = f"{path.parent.name}/{path.stem}" if path.parent.name else path.stem
         return Traversal.from_descriptors(load_descriptor_array(text), name=name, source=text)
     raise SeqvprError(f"{path}: not a descriptor file (.npy/.npz/.mat), dbStruct (.db), folder or description (.toml)")
-
-
-def _bag_and_topic(source: str) -> tuple[Path | None, str | None]:
-    """``BAG`` or ``BAG:/topic`` when the path is a ROS bag, else (None, None)."""
-    from seqvpr.data.loaders.rosbag import is_rosbag
-
-    head, sep, topic = source.partition(":/")
-    path = Path(head if sep else source)
-    if not is_rosbag(path):
-        return None, None
-    return path, ("/" + topic) if sep else None
 
 
 def load_pair(reference: str | Path, query: str | Path, frames: str | None = None) -> tuple[Traversal, Traversal]:

@@ -1,11 +1,12 @@
 """Robot recordings: ROS 1 ``.bag`` files and ROS 2 bags (a folder with ``metadata.yaml`` and ``.db3``/``.mcap``
 files), read with the pure-Python ``rosbags`` package.
 
-A source is ``BAG`` or ``BAG:/image/topic``: the frames of that ``sensor_msgs/Image`` or ``CompressedImage`` topic
-(the bag's only image topic when none is named), stamped by their headers. Positions come from the bag's
-``NavSatFix`` topic (to UTM metres) or else its ``nav_msgs/Odometry`` topic (x, y), matched to each frame by the
-nearest stamp within ``tolerance`` seconds (frames without one are left out, and counted). Segments break at time
-gaps. The frames are decoded once into a folder of PNGs (keyed by the bag's path, size and mtime) so every
+A source is ``BAG[:/image/topic][?gps=/fix|odom=/odom][&tolerance=S]`` (the CLI's ``--topic``, ``--gps-topic``,
+``--odom-topic`` and ``--stamp-tolerance`` write it): the frames of that ``sensor_msgs/Image`` or ``CompressedImage``
+topic (the bag's only image topic when none is named), stamped by their headers. Positions come from the named
+``NavSatFix`` topic (to UTM metres) or ``nav_msgs/Odometry`` topic (x, y), else the bag's NavSatFix topic, else its
+Odometry topic, matched to each frame by the nearest stamp within ``tolerance`` seconds (frames without one are left
+out). Segments break at time gaps. The frames are decoded once into a folder of PNGs (keyed by the bag's path, size and mtime) so every
 descriptor reads them as images.
 """
 
@@ -28,6 +29,16 @@ GPS_TYPE, ODOM_TYPE = "sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry"
 TOLERANCE = 0.5  # seconds between a frame and the position fix it takes
 
 
+@dataclass(frozen=True)
+class BagTopics:
+    """Which topics of a bag give the frames and the positions, and how near in time a fix must be to its frame."""
+
+    image: str | None = None
+    gps: str | None = None
+    odom: str | None = None
+    tolerance: float = TOLERANCE
+
+
 def is_rosbag(path: Path) -> bool:
     """A ROS 1 bag file, or a ROS 2 bag folder (metadata.yaml) or its single ``.mcap``/``.db3`` file."""
     return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
@@ -43,30 +54,66 @@ class Recording:
     fixes: np.ndarray | None
 
 
-def load_rosbag(path: str | Path, topic: str | None = None, frames_dir: str | Path | None = None,
-                tolerance: float = TOLERANCE) -> Traversal:
+def parse_bag_source(text: str) -> tuple[Path, BagTopics] | None:
+    """The bag and topics a source ``BAG[:/image][?gps=/fix|odom=/odom][&tolerance=S]`` names; None if not a bag."""
+    base, _, query = text.partition("?")
+    head, sep, image = base.partition(":/")
+    path = Path(head if sep else base)
+    if not is_rosbag(path):
+        return None
+    fields = _query_fields(text, query)
+    try:
+        tolerance = float(fields.get("tolerance", TOLERANCE))
+    except ValueError:
+        tolerance = -1.0
+    if not (tolerance > 0 and np.isfinite(tolerance)):
+        raise SeqvprError(f"{text}: the stamp tolerance must be a positive number of seconds, got {fields['tolerance']!r}")
+    if "gps" in fields and "odom" in fields:
+        raise SeqvprError(f"{text}: positions come from a gps topic or an odom topic, not both")
+    return path, BagTopics("/" + image if sep else None, fields.get("gps"), fields.get("odom"), tolerance)
+
+
+def _query_fields(text: str, query: str) -> dict[str, str]:
+    """The ``key=value`` pairs after a bag source's ``?``; an unknown key or a pair without ``=`` is an error."""
+    fields = dict(part.partition("=")[::2] for part in query.split("&")) if query else {}
+    unknown = sorted(k for k in fields if k not in ("gps", "odom", "tolerance") or not fields[k])
+    if unknown:
+        raise SeqvprError(f"{text}: {unknown[0]!r} is not a bag option with a value (gps=TOPIC, odom=TOPIC, "
+                          "tolerance=SECONDS)")
+    return fields
+
+
+def bag_source(path: str | Path, topics: BagTopics) -> str:
+    """The source text naming ``path`` with ``topics`` (what ``parse_bag_source`` reads back)."""
+    fields = [f"{k}={v}" for k, v in (("gps", topics.gps), ("odom", topics.odom)) if v]
+    if topics.tolerance != TOLERANCE:
+        fields.append(f"tolerance={topics.tolerance:g}")
+    return f"{path}{':' + topics.image if topics.image else ''}{'?' + '&'.join(fields) if fields else ''}"
+
+
+def load_rosbag(path: str | Path, topics: BagTopics = BagTopics(), frames_dir: str | Path | None = None) -> Traversal:
     """The bag's image topic as a traversal of PNG frames with header timestamps, positions and time-gap segments."""
     from seqvpr.data.loaders.dbstruct import time_gap_segments
 
     path = Path(path)
-    recording = read_recording(path, topic)
-    keep, positions = _positions(recording, tolerance, path)
-    folder = Path(frames_dir) if frames_dir is not None else _frames_folder(path, topic)
+    recording = read_recording(path, topics)
+    keep, positions = _positions(recording, topics.tolerance, path)
+    folder = Path(frames_dir) if frames_dir is not None else _frames_folder(path, topics.image)
     paths = _write_frames(folder, keep, recording.images)
     stamps = recording.stamps[keep]
-    return Traversal(f"{path.stem}{topic or ''}".replace("/", "_"), np.asarray(keep, np.int64),
+    return Traversal(f"{path.stem}{topics.image or ''}".replace("/", "_"), np.asarray(keep, np.int64),
                      time_gap_segments(stamps), None, paths, positions, stamps, source=str(path))
 
 
-def read_recording(path: Path, topic: str | None) -> Recording:
+def read_recording(path: Path, topics: BagTopics = BagTopics()) -> Recording:
     """Every frame of the image topic and every fix of the position topic, in stamp order."""
     from rosbags.highlevel import AnyReader
 
     try:
         with AnyReader([path]) as reader:
-            image = _one_topic(reader, IMAGE_TYPES, topic, path, "image")
+            image = _one_topic(reader, IMAGE_TYPES, topics.image, path, "image")
             frames = [(_stamp(m), _decode(m, path)) for m in _messages(reader, image)]
-            position = _position_topic(reader)
+            position = _position_topic(reader, topics, path)
             fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
     except (OSError, ValueError, KeyError) as error:
         raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {error})") from None
@@ -91,12 +138,16 @@ def _one_topic(reader, types: tuple[str, ...], topic: str | None, path: Path, wh
         raise SeqvprError(f"{path}: no {what} topic {topic} (its {what} topics: {', '.join(names) or 'none'})")
     if len({c.topic for c in found}) != 1:
         listing = ", ".join(names) or "none"
-        raise SeqvprError(f"{path}: name the {what} topic as {path}:/TOPIC (its {what} topics: {listing})")
+        raise SeqvprError(f"{path}: name the {what} topic with --topic (its {what} topics: {listing})")
     return found[0]
 
 
-def _position_topic(reader):
-    """The bag's NavSatFix topic if it has one, else its Odometry topic, else None."""
+def _position_topic(reader, topics: BagTopics, path: Path):
+    """The named gps or odom topic (checked), else the bag's NavSatFix topic, else its Odometry topic, else None."""
+    if topics.gps:
+        return _one_topic(reader, (GPS_TYPE,), topics.gps, path, "NavSatFix")
+    if topics.odom:
+        return _one_topic(reader, (ODOM_TYPE,), topics.odom, path, "Odometry")
     for msgtype in (GPS_TYPE, ODOM_TYPE):
         found = [c for c in reader.connections if c.msgtype == msgtype]
         if found:
