@@ -67,7 +67,7 @@ CASES = {
     "match: NaN descriptors": (("match", "-r", "{w}/nan.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "nan.npy"),
     "match: dimensions differ": (("match", "-r", "{w}/ref32.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "32"),
     "match: L longer than every segment": ((*M, "-L", "500"), "longer than every segment"),
-    "match: L zero": ((*M, "-L", "0"), "seq_len"),
+    "match: L zero": ((*M, "-L", "0"), "--seq-len"),
     "match: negative k": ((*M, "--k", "0"), "--k"),
     "match: bad radius": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "ten"), "radius"),
     "match: --radius with --ground-truth (was silently ignored)": ((*M, "--ground-truth", "{w}/gt_wrong.npy"), "not both"),

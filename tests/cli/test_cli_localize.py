@@ -51,7 +51,7 @@ def test_the_filter_and_a_saved_state_from_the_command_line(route, tmp_path, mon
     (("--shortlist-history", "3"), "--shortlist-history H needs a --shortlist"),
     (("--method", "hmm", "--shortlist", "4"), "takes no --shortlist"),
     (("--resume-state", "QRY"), "not a localiser state"),
-    (("--radius", "10m", "--calibrate", "--target-precision", "2"), "--target-precision must be in (0, 1]"),
+    (("--radius", "10m", "--calibrate", "--target-precision", "2"), "'--target-precision': 2 is not in (0, 1]"),
 ])
 def test_bad_localize_options_are_one_line(route, tmp_path, monkeypatch, capsys, args, message):
     assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0

@@ -75,7 +75,7 @@ def test_index_and_shortlisted_match_report_the_shortlist_recall(route, tmp_path
 @pytest.mark.parametrize("args, message", [
     (("-r", "REF", "--shortlist", "5"), "--shortlist S needs S >= 0 and a --map"),
     (("--map", "MAP", "--shortlist-history", "5"), "--shortlist-history H needs H >= 0 and a --shortlist"),
-    (("--map", "MAP", "--shortlist", "5", "--shortlist-history", "-1"), "--shortlist-history H needs H >= 0"),
+    (("--map", "MAP", "--shortlist", "5", "--shortlist-history", "-1"), "'--shortlist-history': -1 is not in [0, inf]"),
     (("--map", "MAP", "--shortlist", "5"), "has no index: add one with seqvpr map index"),
     (("--map", "MAP", "--shortlist", "5", "--method", "delta"), "applies to the frame-matching methods"),
 ])

@@ -232,7 +232,7 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
         "single at another length": ([*match, "--method", "single", "-L", "5"], "uses L = 1"),
         "cells wider than negatives": (["train", "jist", *images, *JIST_ARGS, "--cell-size", "20"],
                                        "wider than the negative radius 25m"),
-        "hue beyond half a turn": (["train", "jist", *images, *JIST_ARGS, "--hue", "0.7"], "hue must be in [0, 0.5]"),
+        "hue beyond half a turn": (["train", "jist", *images, *JIST_ARGS, "--hue", "0.7"], "'--hue': 0.7 is not in [0, 0.5]"),
         "missing class images": (["train", "jist", *images, *JIST_ARGS, "--class-images", tmp_path / "nowhere"],
                                  f"{tmp_path / 'nowhere'}: no such file or folder"),
     }

@@ -187,7 +187,7 @@ def test_bad_topic_options_are_one_line(walking, tmp_path, monkeypatch, capsys):
         (("--topic", "/camera/image_raw", "--gps-topic", "/odom"), "no NavSatFix topic /odom (its NavSatFix topics: /gps/fix)"),
         (("--topic", "/camera/image_raw", "--odom-topic", "/gps/fix"), "no Odometry topic /gps/fix"),
         (("--topic", "/camera/image_raw", "--gps-topic", "/gps/fix", "--odom-topic", "/odom"), "not both"),
-        (("--topic", "/camera/image_raw", "--stamp-tolerance", "0"), "tolerance must be a positive"),
+        (("--topic", "/camera/image_raw", "--stamp-tolerance", "0"), "'--stamp-tolerance': 0 is not in (0, inf]"),
     ]:
         code, _, err = run_cli(monkeypatch, capsys, "extract", bag, "--out", out, *options)
         assert (code, err.count("\n")) == (2, 1) and fragment in err, (options, err)

@@ -8,7 +8,9 @@ from pathlib import Path
 import click
 
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
-from seqvpr.cli.options import OUT_FOLDER, locks_output
+from seqvpr.cli.options import (
+    COUNT, NONNEGATIVE, SEED, OUT_FOLDER, locks_output
+)
 from seqvpr.errors import SeqvprError
 from seqvpr.synthetic import CONDITIONS
 
@@ -44,11 +46,11 @@ Examples:
 @click.option("--out", "out_dir", default="seqvpr-demo", show_default=True, type=OUT_FOLDER,
               help="Folder for the rendered world, the descriptor cache, the model and the report.")
 @click.option("--quick", is_flag=True, help="A smaller world (200 frames per traversal) and a short training run.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the world and of training.")
-@click.option("--frames", "n_frames", type=int, help="Frames per traversal.  [default: 600; --quick: 200]")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the world and of training.")
+@click.option("--frames", "n_frames", type=COUNT, help="Frames per traversal.  [default: 600; --quick: 200]")
 @click.option("--condition", type=click.Choice(list(CONDITIONS)), default="night", show_default=True,
               help="The query drive's condition (the reference is driven by day).")
-@click.option("--epochs", type=int, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
+@click.option("--epochs", type=NONNEGATIVE, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
 @click.option("--no-train", is_flag=True, help="Skip SeqMatchNet training (matching baselines only).")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @locks_output("out_dir")

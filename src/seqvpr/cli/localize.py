@@ -9,7 +9,10 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, OUT_FILE, OUT_FOLDER, bag_topic_options, locks_output
+from seqvpr.cli.options import (
+    COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
+    bag_topic_options, locks_output
+)
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -26,31 +29,31 @@ Examples:
               help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through "
                    "it; hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet "
                    "with its --model]")
-@click.option("-L", "--seq-len", type=int, default=5, show_default=True, help="Frames of a causal window.")
+@click.option("-L", "--seq-len", type=COUNT, default=5, show_default=True, help="Frames of a causal window.")
 @click.option("--model", "model_dirs", multiple=True, type=click.Path(), help="The model(s) the map was built through.")
-@click.option("--shortlist", type=int, default=0, show_default=True,
+@click.option("--shortlist", type=NONNEGATIVE, default=0, show_default=True,
               help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map).")
-@click.option("--shortlist-history", "history", type=int, default=0, show_default=True,
+@click.option("--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
               help="With --shortlist: the H frames before the window place candidates too.")
-@click.option("--nprobe", type=int, default=16, show_default=True, help="IVF lists a shortlist search visits.")
-@click.option("--threshold", type=float, help="Score from which an estimate is trusted [default: the map's "
+@click.option("--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits.")
+@click.option("--threshold", type=FINITE, help="Score from which an estimate is trusted [default: the map's "
                                               "calibrated one for these settings, else the method's default].")
-@click.option("--lost-after", type=int, default=5, show_default=True, help="Frames below the threshold before 'lost'.")
-@click.option("--exclusion", type=int, default=10, show_default=True,
+@click.option("--lost-after", type=COUNT, default=5, show_default=True, help="Frames below the threshold before 'lost'.")
+@click.option("--exclusion", type=NONNEGATIVE, default=10, show_default=True,
               help="Frames around the best that are not 'another place' for the score.")
-@click.option("--keyframe-distance", type=float, default=0.0, show_default=True,
+@click.option("--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
               help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
-@click.option("--min-step", type=int, default=0, show_default=True, help="hmm: fewest map frames moved per frame.")
-@click.option("--max-step", type=int, default=2, show_default=True, help="hmm: most map frames moved per frame.")
-@click.option("--floor", type=float, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
-@click.option("--sharpness", type=float, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
+@click.option("--min-step", type=NONNEGATIVE, default=0, show_default=True, help="hmm: fewest map frames moved per frame.")
+@click.option("--max-step", type=NONNEGATIVE, default=2, show_default=True, help="hmm: most map frames moved per frame.")
+@click.option("--floor", type=FRACTION, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
+@click.option("--sharpness", type=POSITIVE, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
 @click.option("--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
 @click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
               help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
 @click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query and "
                                                 "store it with the map (needs ground truth).")
-@click.option("--target-precision", type=float, default=0.99, show_default=True)
+@click.option("--target-precision", type=FRACTION, default=0.99, show_default=True)
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--resume-state", type=click.Path(), help="Start from a saved localiser state.")
 @click.option("--save-state", type=OUT_FILE, help="Save the localiser's state after the last frame.")

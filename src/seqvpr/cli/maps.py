@@ -7,7 +7,10 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options, locks_output
+from seqvpr.cli.options import (
+    NONNEGATIVE, SEED, extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options,
+    locks_output
+)
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -49,11 +52,11 @@ def map_group() -> None:
                    "decodes them.")
 @click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
 @click.option("--index", "index_spec", help=INDEX_HELP)
-@click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
+@click.option("--windows", type=NONNEGATIVE, default=0, show_default=True, help=WINDOWS_HELP)
 @click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
               show_default=True, help=METHOD_HELP)
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @bag_topic_options("sources")
 @locks_output("out_dir")
@@ -81,10 +84,10 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
 @map_group.command(name="index")
 @click.argument("map_dir", type=click.Path())
 @click.option("--index", "index_spec", required=True, help=INDEX_HELP)
-@click.option("--windows", default=0, show_default=True, help=WINDOWS_HELP)
+@click.option("--windows", type=NONNEGATIVE, default=0, show_default=True, help=WINDOWS_HELP)
 @click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
               show_default=True, help=METHOD_HELP)
-@click.option("--seed", default=0, show_default=True, help="Seed of the index's training sample and k-means.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 def index_command(map_dir: str, index_spec: str, windows: int, window_method: str, seed: int,
                   index_model: str | None) -> None:

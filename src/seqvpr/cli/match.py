@@ -9,6 +9,8 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    COUNT,
+    NONNEGATIVE,
     bag_topic_options,
     locks_output,
     OUT_FILE,
@@ -38,7 +40,7 @@ Examples:
               help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described "
                    "as the map was (--frames then cuts the query only), and frame matching reads the map in chunks.")
 @click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
-@click.option("--seq-len", "-L", type=int, help="Frames per sequence window.  [default: 1, or the --model's L]")
+@click.option("--seq-len", "-L", type=COUNT, help="Frames per sequence window.  [default: 1, or the --model's L]")
 @click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
               help="Window around the frame (centred) or ending at it (causal, for online use).")
 @click.option("--model", "model_dirs", type=click.Path(), multiple=True,
@@ -64,16 +66,16 @@ Examples:
               + ".  [default: matching, or the --model's method]")
 @click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
               help="faiss index for sequence-descriptor methods: exact (flat) or approximate (HNSW).")
-@click.option("--shortlist", type=int, default=0, show_default=True,
+@click.option("--shortlist", type=NONNEGATIVE, default=0, show_default=True,
               help="With --map: re-rank only the windows placed by each query frame's S nearest map frames (the "
                    "map's faiss index, seqvpr map index) by exact sequence distance (0: exhaustive).")
-@click.option("--shortlist-history", "history", type=int, default=0, show_default=True,
+@click.option("--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
               help="With --shortlist: the H query frames before each window place candidates too, carried forward "
                    "at one frame per frame (where the robot just was; raises the shortlist's recall).")
-@click.option("--nprobe", type=int, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
-@click.option("--rerank", type=int, default=0, show_default=True,
+@click.option("--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
+@click.option("--rerank", type=NONNEGATIVE, default=0, show_default=True,
               help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
-@click.option("--pca-dim", default=0, show_default=True, type=int,
+@click.option("--pca-dim", default=0, show_default=True, type=NONNEGATIVE,
               help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,

@@ -76,6 +76,39 @@ def locks_output(option: str) -> Callable[[Callable], Callable]:
     return decorate
 
 
+class Number(click.ParamType):
+    """An int or a finite float within [low, high] (``open_low``: above low), checked when options are parsed: a
+    NaN, an infinity or a value out of range is one line naming the option."""
+
+    def __init__(self, kind: type, low: float | None = None, high: float | None = None, open_low: bool = False):
+        self.kind, self.low, self.high, self.open_low = kind, low, high, open_low
+        self.name = "integer" if kind is int else "number"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        import math
+
+        try:
+            number = self.kind(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a{'n integer' if self.kind is int else ' number'}", param, ctx)
+        if self.kind is float and not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        below = self.low is not None and (number <= self.low if self.open_low else number < self.low)
+        if below or (self.high is not None and number > self.high):
+            self.fail(f"{value} is not in {self._range()}", param, ctx)
+        return number
+
+    def _range(self) -> str:
+        low = "-inf" if self.low is None else f"{self.low:g}"
+        high = "inf" if self.high is None else f"{self.high:g}"
+        return f"{'(' if self.open_low else '['}{low}, {high}]"
+
+
+COUNT, NONNEGATIVE, SEED = Number(int, 1), Number(int, 0), Number(int, 0, 2**32 - 1)
+POSITIVE, NONNEGATIVE_FLOAT, FINITE = Number(float, 0, open_low=True), Number(float, 0), Number(float)
+FRACTION = Number(float, 0, 1, open_low=True)  # (0, 1]
+
+
 def bag_topic_options(*sources: str) -> Callable[[Callable], Callable]:
     """``--topic``, ``--gps-topic``, ``--odom-topic`` and ``--stamp-tolerance`` for the ROS bags among the command's
     ``sources`` options: each bag source is rewritten to name them (a topic in the source itself, ``BAG:/topic``,
@@ -100,7 +133,7 @@ BAG_OPTIONS = [
     click.option("--gps-topic", help="ROS bag sources: the NavSatFix topic giving positions (to UTM metres)  "
                                      "[default: the bag's NavSatFix topic, else its Odometry topic]."),
     click.option("--odom-topic", help="ROS bag sources: the nav_msgs/Odometry topic giving positions (x, y metres)."),
-    click.option("--stamp-tolerance", type=float, help="ROS bag sources: most seconds between a frame and its "
+    click.option("--stamp-tolerance", type=POSITIVE, help="ROS bag sources: most seconds between a frame and its "
                                                        "position fix (frames without one are left out)  [default: 0.5]."),
 ]
 
@@ -240,18 +273,18 @@ extraction_options = with_options([
                       "encoder (a TorchScript or torch.export file: normalised [B,3,H,W] images -> [B,D] "
                       "descriptors, used as returned). Descriptor files are used as they are."),
     click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT."),
-    click.option("--patch", default=8, show_default=True, type=int, help="patchnorm: patch side in pixels."),
+    click.option("--patch", default=8, show_default=True, type=COUNT, help="patchnorm: patch side in pixels."),
     click.option("--weights", default="imagenet", show_default=True,
                  help="Backbone weights: 'imagenet' (EfficientNet-Lite0's packaged weights) or a checkpoint path."),
     click.option("--pooling", type=click.Choice(list(POOLINGS)), default="gem", show_default=True,
                  help="Backbone pooling: GeM, or NetVLAD with clusters from k-means of local features."),
-    click.option("--clusters", default=64, show_default=True, type=int, help="netvlad: number of clusters."),
+    click.option("--clusters", default=64, show_default=True, type=COUNT, help="netvlad: number of clusters."),
     click.option("--image-size", default="320x240", show_default=True,
                  help="Backbone or torchscript encoder input WIDTHxHEIGHT (images are resized to it)."),
     click.option("--normalize", default="imagenet", show_default=True,
                  help="torchscript: input normalisation: imagenet (its mean and std), none (pixels in [0, 1]) or "
                       "MEAN/STD as R,G,B/R,G,B."),
-    click.option("--batch-size", "extract_batch", default=32, show_default=True, type=int,
+    click.option("--batch-size", "extract_batch", default=32, show_default=True, type=COUNT,
                  help="Images per backbone batch."),
     click.option("--cache-dir", type=OUT_FOLDER, help="Cache extracted descriptors here (keyed by model and images)."),
     click.option("--skip-bad", is_flag=True, help="Skip unreadable images (listed on stderr) instead of failing."),

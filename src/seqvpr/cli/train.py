@@ -10,7 +10,10 @@ from typing import Any
 
 import click
 
-from seqvpr.cli.options import parse_ks, parse_stages, parse_thumbnail, with_options, OUT_FOLDER, bag_topic_options, locks_output
+from seqvpr.cli.options import (
+    COUNT, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, Number, POSITIVE, SEED, parse_ks, parse_stages,
+    parse_thumbnail, with_options, OUT_FOLDER, bag_topic_options, locks_output
+)
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import JIST_BACKBONES, JistConfig
@@ -48,54 +51,54 @@ def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetS
     per_epoch = defaults.refresh_every is None
     return with_options([
         *data_options(kind),
-        click.option("--seq-len", "-L", default=defaults.sequence.length, show_default=True, type=int,
+        click.option("--seq-len", "-L", default=defaults.sequence.length, show_default=True, type=COUNT,
                      help="Frames per sequence window."),
         click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True),
         click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
                      help="Windows at segment ends: dropped (training never uses shifted windows) or shifted."),
-        click.option("--margin", default=defaults.margin, show_default=True, type=float,
+        click.option("--margin", default=defaults.margin, show_default=True, type=POSITIVE,
                      help="Triplet margin on sequence distances (default sqrt(0.1), as the reference)."),
-        click.option("--negatives", default=defaults.negatives, show_default=True, type=int,
+        click.option("--negatives", default=defaults.negatives, show_default=True, type=COUNT,
                      help="Hard negatives per query."),
         click.option("--negative-pool", default=pool, show_default=True,
                      help="Random negative candidates per query (plus its previous negatives), or 'all'."),
-        click.option("--refresh-every", default=defaults.refresh_every, show_default=not per_epoch, type=int,
+        click.option("--refresh-every", default=defaults.refresh_every, show_default=not per_epoch, type=COUNT,
                      help="Re-mine with the current model every N queries." + per_epoch * "  [default: once per epoch]"),
-        click.option("--batch-size", default=defaults.batch_size, show_default=True, type=int,
+        click.option("--batch-size", default=defaults.batch_size, show_default=True, type=COUNT,
                      help="Queries (triplet groups) per step."),
-        click.option("--epochs", default=defaults.epochs, show_default=True, type=int),
+        click.option("--epochs", default=defaults.epochs, show_default=True, type=NONNEGATIVE),
         click.option("--optimizer", type=click.Choice(["sgd", "adam"]), default=defaults.optimizer, show_default=True),
-        click.option("--lr", default=defaults.lr, show_default=True, type=float),
-        click.option("--momentum", default=defaults.momentum, show_default=True, type=float, help="SGD momentum."),
-        click.option("--weight-decay", default=defaults.weight_decay, show_default=True, type=float),
-        click.option("--lr-step", default=defaults.lr_step, show_default=True, type=int,
+        click.option("--lr", default=defaults.lr, show_default=True, type=POSITIVE),
+        click.option("--momentum", default=defaults.momentum, show_default=True, type=Number(float, 0, 0.999), help="SGD momentum."),
+        click.option("--weight-decay", default=defaults.weight_decay, show_default=True, type=NONNEGATIVE_FLOAT),
+        click.option("--lr-step", default=defaults.lr_step, show_default=True, type=COUNT,
                      help="Epochs between learning-rate steps."),
-        click.option("--lr-gamma", default=defaults.lr_gamma, show_default=True, type=float,
+        click.option("--lr-gamma", default=defaults.lr_gamma, show_default=True, type=POSITIVE,
                      help="Learning-rate factor per step."),
-        click.option("--select", "select_k", default=defaults.select_k, show_default=True, type=int,
+        click.option("--select", "select_k", default=defaults.select_k, show_default=True, type=COUNT,
                      help="Keep the checkpoint with the best validation Recall@K for this K."),
         click.option("--k", "ks", default=",".join(map(str, defaults.ks)), show_default=True,
                      help="Recall@K values reported."),
         SELECT_UNTRAINED,
         *model_options,
-        click.option("--seed", default=defaults.seed, show_default=True, type=int),
+        click.option("--seed", default=defaults.seed, show_default=True, type=SEED),
         click.option("--device", default="cpu", show_default=True),
         click.option("--thumbnail", default="64x32", show_default=True, help="Image folders: patch-normalised thumbnail size."),
-        click.option("--patch", default=8, show_default=True, type=int, help="Image folders: patch side."),
+        click.option("--patch", default=8, show_default=True, type=COUNT, help="Image folders: patch side."),
     ])
 
 
 training_options = sequence_training_options("seqmatchnet", SeqMatchNetSettings(), [
-    click.option("--out-dim", type=int, help="Output dimension of the transform (default: input dimension)."),
+    click.option("--out-dim", type=COUNT, help="Output dimension of the transform (default: input dimension)."),
     click.option("--hidden", default="", help="Hidden layer sizes for the deeper MLP variant, e.g. 4096."),
     click.option("--init", type=click.Choice(["reference", "identity"]), default="reference", show_default=True,
                  help="PyTorch default initialisation (as the reference code) or identity W, zero B."),
 ])
 
 seqnet_options = sequence_training_options("seqnet", SeqNetSettings(), [
-    click.option("--w", "w", default=SeqNetSettings.w, show_default=True, type=int,
+    click.option("--w", "w", default=SeqNetSettings.w, show_default=True, type=COUNT,
                  help="Temporal kernel width of SeqNet's Conv1d (at most -L)."),
-    click.option("--out-dim", type=int, help="Output dimension of the sequence descriptor (default: input dimension)."),
+    click.option("--out-dim", type=COUNT, help="Output dimension of the sequence descriptor (default: input dimension)."),
 ])
 
 run_options = with_options([
@@ -222,16 +225,16 @@ jist_options = with_options([
     click.option("--trainable-stages", help="Comma list of backbone stages to train (ResNet: stem, layer1..layer4; "
                  "efficientnet-lite0: stem, stage1..stage7, head).  [default: the backbone's last stage: layer4; "
                  "efficientnet-lite0: stage7,head]"),
-    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=int, help="Frame descriptor size."),
-    click.option("--seq-len", "-L", default=JIST_DEFAULTS.seq_length, show_default=True, type=int,
+    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=COUNT, help="Frame descriptor size."),
+    click.option("--seq-len", "-L", default=JIST_DEFAULTS.seq_length, show_default=True, type=COUNT,
                  help="Frames per sequence window."),
-    click.option("--epochs", default=JIST_RUN.epochs, show_default=True, type=int),
-    click.option("--refreshes", default=JIST_RUN.refreshes, show_default=True, type=int,
+    click.option("--epochs", default=JIST_RUN.epochs, show_default=True, type=NONNEGATIVE),
+    click.option("--refreshes", default=JIST_RUN.refreshes, show_default=True, type=COUNT,
                  help="Triplet mining refreshes per epoch."),
-    click.option("--max-iterations", type=int, help="Most iterations per refresh.  [default: every mined batch]"),
-    click.option("--batch-size", default=JIST_RUN.batch_size, show_default=True, type=int,
+    click.option("--max-iterations", type=COUNT, help="Most iterations per refresh.  [default: every mined batch]"),
+    click.option("--batch-size", default=JIST_RUN.batch_size, show_default=True, type=COUNT,
                  help="Sequence triplets per iteration."),
-    click.option("--images-per-batch", default=JIST_RUN.images_per_batch, show_default=True, type=int,
+    click.option("--images-per-batch", default=JIST_RUN.images_per_batch, show_default=True, type=COUNT,
                  help="Single images per iteration for the CosPlace classification branch."),
     click.option("--image-size", default=f"{JIST_RUN.width}x{JIST_RUN.height}", show_default=True,
                  help="Image size WIDTHxHEIGHT for training and for seqvpr match --model."),
@@ -239,26 +242,26 @@ jist_options = with_options([
                  help="Another traversal of the training route (another condition; frame-aligned, or with positions) "
                       "whose --train-frames images join the CosPlace classification branch. Repeatable.  "
                       "[default: the training reference and query only]"),
-    click.option("--cell-size", default=CellGrouping.cell_m, show_default=True, type=float,
+    click.option("--cell-size", default=CellGrouping.cell_m, show_default=True, type=POSITIVE,
                  help="CosPlace class cells, in the radius unit (metres, or frames with a frame radius)."),
-    click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=int,
+    click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=COUNT,
                  help="Images a CosPlace class needs to be used."),
     click.option("--seqgem-normalize/--no-seqgem-normalize", default=JIST_DEFAULTS.seqgem_normalize, show_default=True,
                  help="L2-normalise SeqGeM's sequence descriptor (--no-seqgem-normalize: upstream JIST's forward)."),
-    click.option("--lr", default=JIST_DEFAULTS.lr, show_default=True, type=float, help="Adam learning rate of the model."),
-    click.option("--classifier-lr", default=JIST_DEFAULTS.classifier_lr, show_default=True, type=float,
+    click.option("--lr", default=JIST_DEFAULTS.lr, show_default=True, type=POSITIVE, help="Adam learning rate of the model."),
+    click.option("--classifier-lr", default=JIST_DEFAULTS.classifier_lr, show_default=True, type=POSITIVE,
                  help="Adam learning rate of the CosFace classifiers."),
-    click.option("--select", "select_k", default=JIST_RUN.select_k, show_default=True, type=int,
+    click.option("--select", "select_k", default=JIST_RUN.select_k, show_default=True, type=COUNT,
                  help="Keep the epoch with the best validation Recall@K for this K (one of --k)."),
     click.option("--k", "ks", default=",".join(map(str, JIST_RUN.ks)), show_default=True, help="Recall@K values reported."),
     SELECT_UNTRAINED,
-    click.option("--jitter", default=JIST_RUN.jitter, show_default=True, type=float,
+    click.option("--jitter", default=JIST_RUN.jitter, show_default=True, type=NONNEGATIVE_FLOAT,
                  help="Classification images: brightness, contrast and saturation factors in [1 - J, 1 + J]."),
-    click.option("--hue", default=JIST_RUN.hue, show_default=True, type=float,
+    click.option("--hue", default=JIST_RUN.hue, show_default=True, type=Number(float, 0, 0.5),
                  help="Classification images: hue turned by up to this fraction of a turn."),
-    click.option("--crop-scale", default=JIST_RUN.crop_scale, show_default=True, type=float,
+    click.option("--crop-scale", default=JIST_RUN.crop_scale, show_default=True, type=FRACTION,
                  help="Classification images: random crops keep this share of the area or more (1: no crop)."),
-    click.option("--seed", default=JIST_RUN.seed, show_default=True, type=int),
+    click.option("--seed", default=JIST_RUN.seed, show_default=True, type=SEED),
     click.option("--device", default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
 ])
 

@@ -22,7 +22,7 @@ import scipy.io
 from seqvpr.data.groundtruth import Radius, parse_radius
 from seqvpr.data.loaders.descriptors import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, reading
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -41,8 +41,14 @@ class GroundTruthSpec:
 
 
 def load_traversal(source: str | Path, role: Role) -> Traversal:
-    """The traversal a command-line source names, for the given role."""
-    text = str(source)
+    """The traversal a command-line source names, for the given role; whatever a malformed file raises while it is
+    read becomes one error naming the source."""
+    with reading(source, f"a {role} traversal"):
+        traversal = _load_traversal(str(source), role)
+    return traversal
+
+
+def _load_traversal(text: str, role: Role) -> Traversal:
     from seqvpr.data.loaders.rosbag import load_rosbag, parse_bag_source
 
     bag = parse_bag_source(text)
@@ -83,7 +89,11 @@ def ground_truth_spec(source: str | Path) -> GroundTruthSpec | None:
     table = values.get("ground_truth")
     if table is None:
         return _dbstruct_radius(path, values)
-    radius = parse_radius(str(table["radius"])) if "radius" in table else None
+    for key in ("radius", "file"):
+        if key in table and not isinstance(table[key], str):
+            raise SeqvprError(f"{path}: [ground_truth] {key} must be in quotes (e.g. \"25m\", \"gt.mat\"), "
+                              f"got {table[key]!r}")
+    radius = parse_radius(table["radius"]) if "radius" in table else None
     file = (path.parent / table["file"]) if "file" in table else None
     return GroundTruthSpec(radius, file)
 
@@ -212,6 +222,7 @@ def _traversal_from_description(path: Path, role: Role) -> Traversal:
     table = _read_toml(path).get(role)
     if table is None:
         raise SeqvprError(f"{path}: no [{role}] table")
+    _check_file_values(path, role, table)
     base = path.parent
     if "descriptors" in table:
         traversal = load_traversal(str(base / table["descriptors"]), role)
@@ -233,6 +244,18 @@ def _traversal_from_description(path: Path, role: Role) -> Traversal:
     if "name" in table:
         traversal = replace(traversal, name=str(table["name"]))
     return traversal
+
+
+def _check_file_values(path: Path, role: Role, table: dict) -> None:
+    """Every file a side names is a path text, and not another description (which could name this one)."""
+    for key in ("descriptors", "dbstruct", "images", "positions", "seq_bounds"):
+        value = table.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, str) or not value:
+            raise SeqvprError(f"{path}: [{role}] {key} must be a file name in quotes, got {value!r}")
+        if value.lower().endswith(".toml"):
+            raise SeqvprError(f"{path}: [{role}] {key} names a description ({value}); name the data files")
 
 
 def _with_dbstruct_positions(traversal: Traversal, db_path: Path, role: Role) -> Traversal:

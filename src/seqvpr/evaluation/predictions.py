@@ -17,7 +17,7 @@ import numpy as np
 
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, reading
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 from seqvpr.io import atomic_write
 
@@ -67,6 +67,11 @@ def read_predictions(path: str | Path) -> PredictionsFile:
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: predictions file not found")
+    with reading(path, "a predictions CSV (UTF-8 text)"):
+        return _read_predictions(path)
+
+
+def _read_predictions(path: Path) -> PredictionsFile:
     with open(path, newline="") as handle:
         reader = csv.DictReader(handle)
         missing = [c for c in ("query", "references") if c not in (reader.fieldnames or [])]
@@ -91,6 +96,8 @@ def read_predictions(path: str | Path) -> PredictionsFile:
     k = max(len(r) for r in refs)
     references = np.full((len(rows), max(k, 1)), -1, dtype=np.int64)
     distances = np.full((len(rows), max(k, 1)), np.inf)
+    if min(queries) < 0 or min((min(r) for r in refs if r), default=0) < 0:
+        raise SeqvprError(f"{path}: query and reference rows must be >= 0")
     for i, (r, d) in enumerate(zip(refs, dists)):
         references[i, : len(r)] = r
         distances[i, : len(d)] = d

@@ -13,7 +13,7 @@ import scipy.io
 import scipy.sparse as sp
 
 from seqvpr.data.groundtruth import GroundTruth
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, reading
 
 
 def load_ground_truth_file(
@@ -24,6 +24,12 @@ def load_ground_truth_file(
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: ground-truth file not found")
+    with reading(path, "a ground-truth file"):
+        return _load_ground_truth_file(path, n_query, n_reference, layout)
+
+
+def _load_ground_truth_file(path: Path, n_query: int | None, n_reference: int | None, layout: str | None
+                            ) -> GroundTruth:
     if path.suffix.lower() == ".mat":
         return _load_gt_mat(path)
     if path.suffix.lower() in (".npy", ".npz"):
