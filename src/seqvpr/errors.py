@@ -19,6 +19,9 @@ class SeqvprWarning(UserWarning):
 READ_ERRORS = (OSError, EOFError, ValueError, TypeError, KeyError, IndexError, UnicodeError, NotImplementedError,
                ArithmeticError, zipfile.BadZipFile, pickle.UnpicklingError, csv.Error, struct.error)
 
+#: libraries whose own exception classes (scipy's MatReadError, PIL's, safetensors') mean "this file is malformed"
+READER_MODULES = ("scipy.io", "PIL", "safetensors", "rosbags")
+
 
 def unreadable(what: object, kind: str, error: BaseException) -> SeqvprError:
     """The one-line error for a ``what`` (a file, usually) that could not be read as a ``kind``."""
@@ -37,6 +40,8 @@ class reading:
         return None
 
     def __exit__(self, kind, error, traceback) -> bool:
-        if error is None or isinstance(error, SeqvprError) or not isinstance(error, READ_ERRORS):
+        if error is None or isinstance(error, SeqvprError):
+            return False
+        if not (isinstance(error, READ_ERRORS) or type(error).__module__.startswith(READER_MODULES)):
             return False
         raise unreadable(self.what, self.kind, error) from error

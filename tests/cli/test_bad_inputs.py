@@ -48,6 +48,18 @@ def world(tmp_path_factory):
     (w / "seqb.txt").write_text("0 5\n")
     (w / "not_a_model").mkdir()
     (w / "junk.pth").write_bytes(b"junk")
+    np.save(w / "complex.npy", rng.random((80, 16)) + 1j)
+    (w / "zero.npy").write_bytes(b"")
+    (w / "zero.mat").write_bytes(b"")
+    np.savez(w / "pos_text.npz", descriptors=rng.random((80, 16)).astype(np.float32), positions=np.array(["a"] * 80))
+    (w / "self.toml").write_text('[reference]\ndescriptors = "self.toml"\n')
+    (w / "int.toml").write_text('[reference]\ndescriptors = 5\n')
+    (w / "preds_utf16.csv").write_text("query,references,distances\n3,1,0.1\n", encoding="utf-16")
+    (w / "preds_huge.csv").write_text("query,references,distances\n3,99999999999999999999999,0.1\n")
+    (w / "preds_neg.csv").write_text("query,references,distances\n3,-4,0.1\n")
+    (w / "state.npz").write_bytes(b"PK\x03\x04 not really")
+    (w / "bench.toml").write_text('[[dataset]]\nname = "a"\nreference = "ref.npz"\nquery = "qry.npz"\nradius = "10m"\n'
+                                  'train = "0:40"\nselect = "40:60"\ntest = "60:80"\n[benchmark]\nks = ["one"]\n')
     assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     return w
 
@@ -133,6 +145,26 @@ CASES = {
     "demo: too few frames": (("demo", "--frames", "10", "--out", "{out}"), "--frames"),
     "import: not a checkpoint": (("import", "{w}/junk.pth", "--out", "{out}"), "junk.pth"),
     "import: missing checkpoint": (("import", "{w}/nope.pth", "--out", "{out}"), "nope.pth"),
+    # --- found by probing: the general boundary (reading) and range-checked options, not case by case
+    "match: complex descriptors (imaginary part was dropped)": (("match", "-r", "{w}/complex.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "real numbers"),
+    "match: zero-byte .npy (was exit 130)": (("match", "-r", "{w}/zero.npy", "-q", "{w}/qry.npz", "--radius", "2f"), "zero.npy"),
+    "match: zero-byte .mat (was a traceback)": (("match", "-r", "{w}/zero.mat", "-q", "{w}/qry.npz", "--radius", "2f"), "zero.mat"),
+    "match: positions that are text (was a traceback)": (("match", "-r", "{w}/pos_text.npz", "-q", "{w}/qry.npz", "--radius", "2f"), "pos_text.npz"),
+    "match: a description naming itself (was a RecursionError)": (("match", "-r", "{w}/self.toml", "-q", "{w}/qry.npz", "--radius", "2f"), "names a description"),
+    "match: a description value that is not text (was a traceback)": (("match", "-r", "{w}/int.toml", "-q", "{w}/qry.npz", "--radius", "2f"), "in quotes"),
+    "match: --nprobe 0 (was a faiss traceback)": (("match", "--map", "{w}/map", "-q", "{w}/qry.npz", "--radius", "10m", "--nprobe", "0"), "'--nprobe'"),
+    "match: --patch 0 (was a traceback)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--patch", "0"), "'--patch'"),
+    "eval: UTF-16 predictions (was a traceback)": (("eval", "{w}/preds_utf16.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "preds_utf16.csv"),
+    "eval: an index beyond int64 (was an OverflowError)": (("eval", "{w}/preds_huge.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "preds_huge.csv"),
+    "eval: a negative reference row": (("eval", "{w}/preds_neg.csv", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), ">= 0"),
+    "eval: a predictions path that is a folder (was a traceback)": (("eval", "{w}/imgs", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m"), "imgs"),
+    "match: a zero-byte GT .mat (was a traceback)": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--ground-truth", "{w}/zero.mat"), "zero.mat"),
+    "localize: a damaged state file (was a traceback)": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--resume-state", "{w}/state.npz", "--out", "{out}"), "state.npz"),
+    "localize: --floor nan": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--method", "hmm", "--floor", "nan", "--out", "{out}"), "not a finite number"),
+    "map build: negative --seed (was a traceback after the map was written)": (("map", "build", "{w}/ref.npz", "--index", "ivf:4", "--seed", "-1", "--out", "{out}"), "'--seed'"),
+    "train: negative --momentum (was a traceback)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--momentum", "-1", "--out", "{out}"), "'--momentum'"),
+    "train: NaN --margin (was accepted)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--margin", "nan", "--out", "{out}"), "'--margin'"),
+    "benchmark: ks that are not numbers (was a traceback)": (("benchmark", "{w}/bench.toml", "--out", "{out}"), "ks must be"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

@@ -50,7 +50,7 @@ def test_the_filter_and_a_saved_state_from_the_command_line(route, tmp_path, mon
     (("--shortlist", "5"), "--shortlist needs an index over"),
     (("--shortlist-history", "3"), "--shortlist-history H needs a --shortlist"),
     (("--method", "hmm", "--shortlist", "4"), "takes no --shortlist"),
-    (("--resume-state", "QRY"), "not a localiser state"),
+    (("--resume-state", "QRY"), "as a localiser state"),
     (("--radius", "10m", "--calibrate", "--target-precision", "2"), "'--target-precision': 2 is not in (0, 1]"),
 ])
 def test_bad_localize_options_are_one_line(route, tmp_path, monkeypatch, capsys, args, message):

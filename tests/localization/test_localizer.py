@@ -104,7 +104,7 @@ def test_a_saved_state_resumes_exactly(route, tmp_path):
             assert (a.index, a.status, a.frame) == (b.index, b.status, b.frame) and abs(a.score - b.score) < 1e-12
     raises_one_line("saved with other settings", Localizer.open(saved, seq_len=3).restore, tmp_path / "state.npz")
     (tmp_path / "junk.npz").write_bytes(b"junk")
-    raises_one_line("not a localiser state", Localizer.open(saved).restore, tmp_path / "junk.npz")
+    raises_one_line("not readable as a localiser state", Localizer.open(saved).restore, tmp_path / "junk.npz")
 
 
 def test_lost_is_a_state_and_the_route_is_found_again(route):

@@ -78,7 +78,10 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _terminated)
     try:
         cli.main(standalone_mode=False)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as abort:
+        if isinstance(abort.__cause__, EOFError):  # click turns an EOFError into Abort: a truncated input, not Ctrl-C
+            click.echo(f"seqvpr: error: an input file ended early (empty or truncated): {abort.__cause__}", err=True)
+            sys.exit(2)
         click.echo(f"seqvpr: interrupted (SIGINT); {INTERRUPTED}", err=True)
         sys.exit(130)
     except Terminated:

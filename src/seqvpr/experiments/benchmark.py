@@ -46,7 +46,7 @@ from typing import Any
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, parse_frame_range
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, reading
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_write
 from seqvpr.methods import METHODS
@@ -105,6 +105,20 @@ class Row:
 
 def read_config(path: str | Path) -> BenchmarkConfig:
     """Parse and check a benchmark TOML file; paths inside are relative to the file's folder."""
+    with reading(path, "a benchmark config"):
+        return _read_config(Path(path))
+
+
+def _whole_numbers(path: Path, key: str, values: Any, single: bool = False) -> tuple[int, ...]:
+    """``[benchmark] key``: positive integers (one when ``single``), else one line naming the key."""
+    items = (values,) if single else values
+    if not isinstance(items, (list, tuple)) or not items or \
+            not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in items):
+        raise SeqvprError(f"{path}: [benchmark] {key} must be {'a positive integer' if single else 'a list of positive integers'}, got {values!r}")
+    return tuple(items)
+
+
+def _read_config(path: Path) -> BenchmarkConfig:
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
@@ -133,7 +147,10 @@ def read_config(path: str | Path) -> BenchmarkConfig:
             values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
         specs.append(DatasetSpec(**values))
     settings = raw.get("benchmark", {})
-    methods = tuple(settings.get("methods", DEFAULT_METHODS))
+    methods = settings.get("methods", DEFAULT_METHODS)
+    if isinstance(methods, str) or not methods:
+        raise SeqvprError(f"{path}: [benchmark] methods must be a non-empty list of methods, got {methods!r}")
+    methods = tuple(methods)
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise SeqvprError(f"{path}: unknown methods {', '.join(bad)} (choose from: {', '.join(METHODS)})")
@@ -141,8 +158,9 @@ def read_config(path: str | Path) -> BenchmarkConfig:
     if shortlist not in SHORTLISTS:
         raise SeqvprError(f"{path}: hvpr_shortlist {shortlist!r} is not one of {', '.join(SHORTLISTS)}")
     return BenchmarkConfig(
-        tuple(specs), methods, int(settings.get("seq_len", 5)), tuple(int(v) for v in settings.get("lengths", (5, 10, 20))),
-        tuple(int(v) for v in settings.get("ks", (1, 5, 20))), _training_table(raw, "training", path),
+        tuple(specs), methods, _whole_numbers(path, "seq_len", settings.get("seq_len", 5), single=True)[0],
+        _whole_numbers(path, "lengths", settings.get("lengths", (5, 10, 20))),
+        _whole_numbers(path, "ks", settings.get("ks", (1, 5, 20))), _training_table(raw, "training", path),
         _training_table(raw, "seqnet", path), _jist_table(raw, path), shortlist,
     )
 

@@ -23,7 +23,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.encoder import FrameEncoder, describes_images
 from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
@@ -220,19 +220,21 @@ class Localizer:
 
     def restore(self, path: str | Path) -> None:
         """Go on from a state ``save_state`` wrote, for this map and these settings; anything else is one line."""
-        try:
+        with reading(path, "a localiser state"):
             with np.load(path, allow_pickle=False) as data:
                 header = json.loads(str(data["header"]))
                 arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError, KeyError) as error:
-            raise SeqvprError(f"{path}: not a localiser state ({type(error).__name__})") from None
-        if header.get("format") != STATE_FORMAT or header.get("map") != _map_identity(self.saved):
-            raise SeqvprError(f"{path}: a localiser state for another map (or not one)")
-        if header.get("settings") != self.settings.key():
-            raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
-        self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items() if k.startswith("matcher_")})
-        self.frame, self.misses, self.since_reset = header["frame"], header["misses"], header["since_reset"]
-        self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
+            if not isinstance(header, dict) or header.get("format") != STATE_FORMAT \
+                    or header.get("map") != _map_identity(self.saved):
+                raise SeqvprError(f"{path}: a localiser state for another map (or not one)")
+            if header.get("settings") != self.settings.key():
+                raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
+            if any(a.dtype.kind == "f" and np.isnan(a).any() for a in arrays.values()):
+                raise SeqvprError(f"{path}: a localiser state holding NaN (damaged)")
+            self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
+                                     if k.startswith("matcher_")})
+            self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))
+            self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
 
 
 def next_status(scored: Scored | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:

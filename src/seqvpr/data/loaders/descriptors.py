@@ -99,8 +99,8 @@ def _validated(array, label: str) -> np.ndarray:
     if sp.issparse(array):
         array = array.toarray()
     array = np.asarray(array)
-    if not np.issubdtype(array.dtype, np.number):
-        raise SeqvprError(f"{label}: descriptors must be numeric, got {array.dtype}")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        raise SeqvprError(f"{label}: descriptors must be real numbers, got {array.dtype}")
     if array.ndim != 2:
         raise SeqvprError(f"{label}: descriptors must be 2-D [frames, dim], got shape {array.shape}")
     if array.shape[0] == 0:
