@@ -39,12 +39,13 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
 
 
 @contextlib.contextmanager
-def atomic_folder(path: str | Path) -> Iterator[Path]:
+def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]:
     """Yield an empty temporary folder beside ``path``; on success it replaces ``path`` (an old folder is removed),
-    on error it is deleted, so an interrupted run never leaves half a folder under the final name."""
+    on error it is deleted, so an interrupted run never leaves half a folder under the final name. An existing
+    folder is replaced only when it is empty or holds ``marker`` (the file that says it is this kind of output):
+    a user's other files are never deleted."""
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise SeqvprError(f"{path} exists and is not a folder; not replacing it")
+    check_replaceable(path, marker)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # what mkdir would have given, not mkdtemp's private 0700
@@ -54,6 +55,21 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_replaceable(path: Path, marker: str | None) -> None:
+    """``path`` may be replaced by a new output folder: absent, or an empty folder, or one holding ``marker``; and not
+    the current folder or one above it (a folder in use cannot be swapped)."""
+    if path.exists() and not path.is_dir():
+        raise SeqvprError(f"{path} exists and is not a folder; not replacing it")
+    if not path.is_dir():
+        return
+    if Path.cwd().resolve().is_relative_to(path.resolve()):
+        raise SeqvprError(f"{path} is the current folder (or holds it); give a new folder to write")
+    if any(path.iterdir()) and (marker is None or not (path / marker).is_file()):
+        mark = f" and no {marker}" if marker else ""
+        raise SeqvprError(f"{path} holds other files{mark}, so it is not this command's output: give a new or empty "
+                          "folder (the output folder is replaced whole)")
 
 
 def _replace_folder(new: Path, target: Path) -> None:

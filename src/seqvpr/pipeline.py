@@ -34,6 +34,7 @@ from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_extraction
 from seqvpr.features.whitening import fit_pca_whitening
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, filter_topk, map_distance_scale
 from seqvpr.sequences.matching import (
+    unit_rows,
     TopK,
     frame_distances,
     reference_squared_norms,
@@ -231,7 +232,7 @@ def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
     except (RuntimeError, AssertionError) as error:
         raise SeqvprError(f"device {settings.device!r} is not usable here ({str(error).splitlines()[0]})") from None
     if settings.normalize:
-        tensor = torch.nn.functional.normalize(tensor, dim=1)
+        tensor = unit_rows(tensor)
     return tensor
 
 

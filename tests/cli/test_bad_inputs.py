@@ -49,6 +49,20 @@ def world(tmp_path_factory):
     (w / "not_a_model").mkdir()
     (w / "junk.pth").write_bytes(b"junk")
     np.save(w / "complex.npy", rng.random((80, 16)) + 1j)
+    (w / "mine").mkdir()
+    (w / "mine" / "notes.txt").write_text("a user's own file")
+    (w / "dangling").symlink_to(w / "nowhere")
+    base = np.load(w / "ref.npz")
+    np.savez(w / "ts_nan.npz", descriptors=base["descriptors"], timestamps=np.r_[np.nan, np.arange(79.0)])
+    np.savez(w / "dup_index.npz", descriptors=base["descriptors"], frame_index=np.zeros(80, np.int64))
+    import scipy.io
+
+    scipy.io.savemat(w / "gt_nan.mat", {"GT": {"GThard": np.full((80, 80), np.nan)}})
+    np.savez(w / "gt_multi.npz", aaa=np.zeros((80, 80), bool), zzz=np.eye(80, dtype=bool))
+    (w / "onlydb" / "database").mkdir(parents=True)
+    for i in range(3):
+        Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(
+            w / "onlydb" / "database" / f"@{100 + i}@{200 + i}@.jpg")
     (w / "zero.npy").write_bytes(b"")
     (w / "zero.mat").write_bytes(b"")
     np.savez(w / "pos_text.npz", descriptors=rng.random((80, 16)).astype(np.float32), positions=np.array(["a"] * 80))
@@ -60,6 +74,8 @@ def world(tmp_path_factory):
     (w / "state.npz").write_bytes(b"PK\x03\x04 not really")
     (w / "bench.toml").write_text('[[dataset]]\nname = "a"\nreference = "ref.npz"\nquery = "qry.npz"\nradius = "10m"\n'
                                   'train = "0:40"\nselect = "40:60"\ntest = "60:80"\n[benchmark]\nks = ["one"]\n')
+    (w / "escape.toml").write_text((w / "bench.toml").read_text().replace('name = "a"', 'name = "../../escape"')
+                                   .replace('ks = ["one"]', "ks = [1]"))
     assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     return w
 
@@ -165,6 +181,18 @@ CASES = {
     "train: negative --momentum (was a traceback)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--momentum", "-1", "--out", "{out}"), "'--momentum'"),
     "train: NaN --margin (was accepted)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--margin", "nan", "--out", "{out}"), "'--margin'"),
     "benchmark: ks that are not numbers (was a traceback)": (("benchmark", "{w}/bench.toml", "--out", "{out}"), "ks must be"),
+    "map build: onto a folder of the user's files (they were deleted)": (("map", "build", "{w}/ref.npz", "--out", "{w}/mine"), "holds other files"),
+    "match: --out an empty text (wrote into the current folder)": ((*M, "--out", ""), "an empty path"),
+    "match: --out a dangling symbolic link (a traceback after the work)": ((*M, "--out", "{w}/dangling"), "symbolic link to nothing"),
+    "benchmark: a dataset name that climbs out of --out": (("benchmark", "{w}/escape.toml", "--out", "{out}"), "plain name"),
+    "match: a GT .mat of NaN (every pair was a positive)": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--ground-truth", "{w}/gt_nan.mat"), "GT.GThard must hold 0/1"),
+    "match: a dense GT .npz of several arrays (the first was taken)": (("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--ground-truth", "{w}/gt_multi.npz", "--gt-layout", "ref-query"), "name the ground-truth array 'gt'"),
+    "match: an @UTM root without queries/ (read the database twice)": (("match", "-r", "{w}/onlydb", "-q", "{w}/onlydb", "--radius", "3m"), "no queries/"),
+    "match: NaN timestamps (were accepted)": (("match", "-r", "{w}/ts_nan.npz", "-q", "{w}/qry.npz", "--radius", "2f"), "timestamps"),
+    "match: a frame_index naming one frame 80 times (were accepted)": (("match", "-r", "{w}/dup_index.npz", "-q", "{w}/qry.npz", "--radius", "2f"), "frame_index"),
+    "train: --device tpu (was a traceback)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--device", "tpu", "--out", "{out}"), "'--device'"),
+    "match: --device meta (was a traceback)": ((*M, "--device", "meta"), "'--device'"),
+    "match: a huge --thumbnail (was a MemoryError)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--thumbnail", "100000x100000"), "--thumbnail"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }
@@ -229,3 +257,29 @@ def test_a_ground_truth_file_naming_missing_frames_is_flagged(world, tmp_path, m
                            "--ground-truth", tmp_path / "gt.npy", "--gt-layout", "ref-query", "--out", tmp_path / "o")
     assert code == 0, err
     assert "seqvpr: warning:" in err and "names 1 reference frames the reference traversal lacks (81" in err
+
+
+def test_a_map_build_onto_the_users_folder_keeps_their_files(world, tmp_path, monkeypatch, capsys):
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", world / "ref.npz", "--out", world / "mine")
+    assert code == 2 and (world / "mine" / "notes.txt").read_text() == "a user's own file", err
+
+
+def test_descriptors_at_any_scale_match_alike(world, tmp_path, monkeypatch, capsys):
+    """Float32 squares of 1e19 overflow and of 1e-25 underflow: normalisation must not care (R@1 was 0.013)."""
+    descriptors = np.load(world / "ref.npz")["descriptors"].astype(np.float32)
+    recalls = []
+    for scale in (1.0, 1e19, 1e-25):
+        np.save(tmp_path / "d.npy", descriptors * np.float32(scale))
+        code, out, err = run_cli(monkeypatch, capsys, "match", "-r", tmp_path / "d.npy", "-q", tmp_path / "d.npy",
+                                 "--radius", "0f", "--json", "--out", tmp_path / "o")
+        assert code == 0, err
+        recalls.append(json.loads(out)["recall"])
+    assert recalls[0] == recalls[1] == recalls[2] and recalls[0]["1"] == 1.0, recalls
+
+
+def test_json_with_no_scored_query_is_strict_json(world, tmp_path, monkeypatch, capsys):
+    code, out, err = run_cli(monkeypatch, capsys, *[a.format(w=world) for a in M[:-1]], "0m", "--json",
+                             "--out", tmp_path / "o")
+    assert code == 0, err
+    parsed = json.loads(out, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+    assert parsed["recall"]["1"] is None

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.helpers import raises_one_line
 from PIL import Image
 
 from seqvpr.evaluation import report
@@ -180,11 +182,20 @@ def test_caller_text_is_escaped(tmp_path, images):
 def test_existing_report_is_replaced_without_leftovers(tmp_path, images):
     out = tmp_path / "report"
     out.mkdir()
+    (out / "index.html").write_text("an old report")
     (out / "stale.txt").write_text("old")
     full_report(out, images)
     assert not (out / "stale.txt").exists()
-    assert (out / "index.html").is_file()
+    assert (out / "index.html").read_text() != "an old report"
     assert leftovers(tmp_path) == []
+
+
+def test_a_folder_of_other_files_is_never_replaced(tmp_path, images):
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    raises_one_line("holds other files and no index.html", full_report, out, images)
+    assert (out / "notes.txt").read_text() == "mine" and leftovers(tmp_path) == []
 
 
 def test_failed_plot_keeps_the_old_report(tmp_path, images, monkeypatch):

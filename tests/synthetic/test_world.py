@@ -193,6 +193,7 @@ def test_night_is_much_darker_than_day_and_frames_are_noisy(world, test_route):
 def test_rendering_replaces_an_existing_folder_atomically(tmp_path, world, test_route):
     out = tmp_path / "traversal"
     out.mkdir()
+    (out / "positions.csv").write_text("an old rendering")
     (out / "stale.txt").write_text("old")
     render_traversal(world, test_route, Drive(), 3, out, *SMALL)
     assert sorted(p.name for p in out.iterdir()) == ["000000.jpg", "000001.jpg", "000002.jpg", "positions.csv"]

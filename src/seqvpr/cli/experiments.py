@@ -9,6 +9,7 @@ import click
 
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.cli.options import (
+    DEVICE,
     COUNT, NONNEGATIVE, SEED, OUT_FOLDER, locks_output
 )
 from seqvpr.errors import SeqvprError
@@ -52,7 +53,7 @@ Examples:
               help="The query drive's condition (the reference is driven by day).")
 @click.option("--epochs", type=NONNEGATIVE, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
 @click.option("--no-train", is_flag=True, help="Skip SeqMatchNet training (matching baselines only).")
-@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @locks_output("out_dir")
 def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) -> None:
     """Render a synthetic route world, describe it with EfficientNet-Lite0, match single images and sequences,

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    DEVICE,
     COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
     bag_topic_options, locks_output
 )
@@ -57,7 +58,7 @@ Examples:
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--resume-state", type=click.Path(), help="Start from a saved localiser state.")
 @click.option("--save-state", type=OUT_FILE, help="Save the localiser's state after the last frame.")
-@click.option("--device", default="cpu", show_default=True)
+@click.option("--device", type=DEVICE, default="cpu", show_default=True)
 @click.option("--out", "out_dir", default="seqvpr-localize", show_default=True, type=OUT_FOLDER,
               help="Folder for stream.csv, run.json and report/.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import click
 
 from seqvpr.cli.options import (
+    DEVICE,
     NONNEGATIVE, SEED, extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options,
     locks_output
 )
@@ -57,19 +59,22 @@ def map_group() -> None:
               show_default=True, help=METHOD_HELP)
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the index's training sample and k-means.")
-@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @bag_topic_options("sources")
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,
           seed: int, device: str, **o: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
+    from seqvpr.io import check_replaceable
     from seqvpr.maps import build_map
+    from seqvpr.maps.files import INFO_FILE
     from seqvpr.maps.codes import parse_storage
     from seqvpr.maps.index import add_index, parse_index_spec
 
     spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec or storage fails before any work
     parse_storage(dtype)
+    check_replaceable(Path(out_dir), INFO_FILE)
     description, extraction = _description(o, device)
     models = _models(model_dirs, device)
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=not no_normalize,
@@ -78,7 +83,14 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
     if spec is not None:
-        _echo_index(add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model))
+        try:
+            record = add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)
+        except BaseException:  # a map without the index asked for is not what was asked: none is left
+            import shutil
+
+            shutil.rmtree(out_dir, ignore_errors=True)
+            raise
+        _echo_index(record)
 
 
 @map_group.command(name="index")

@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    DEVICE,
     COUNT,
     NONNEGATIVE,
     bag_topic_options,
@@ -82,7 +83,7 @@ Examples:
               help="Queries with no positive: excluded from the denominator, or counted as misses.")
 @click.option("--no-normalize", is_flag=True, help="Do not L2-normalise descriptors before matching.")
 @click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
-@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--memory-budget", default="2G", show_default=True,
               help="Most bytes of distance matrix held at once (e.g. 512M); 'none' for the whole matrix.")
 @click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
@@ -333,7 +334,7 @@ Examples:
               "extract the query with the reference's images here so both share one NetVLAD head.")
 @click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
               help="Which side of a dbStruct or description file to read.")
-@click.option("--device", default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--out", "out_file", required=True, type=OUT_FILE,
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
 @bag_topic_options("images", "cluster_images")

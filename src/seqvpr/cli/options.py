@@ -28,6 +28,8 @@ class WritablePath(click.ParamType):
         self.kind = kind
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        if not str(value).strip():
+            self.fail("an empty path; name the output", param, ctx)
         problem = output_problem(Path(value), self.kind)
         if problem:
             self.fail(problem, param, ctx)
@@ -38,6 +40,8 @@ def output_problem(path: Path, kind: str) -> str | None:
     """Why ``path`` cannot be written as a ``kind`` (``folder`` or ``file``), or None."""
     import tempfile
 
+    if path.is_symlink() and not path.exists():
+        return f"{path} is a symbolic link to nothing (dangling, or a loop)"
     if path.exists() and (path.is_dir() != (kind == "folder")):
         return f"{path} is {'a folder' if path.is_dir() else 'not a folder'}, and a {kind} goes there"
     target = path if path.is_dir() else path.parent
@@ -104,6 +108,28 @@ class Number(click.ParamType):
         return f"{'(' if self.open_low else '['}{low}, {high}]"
 
 
+class Device(click.ParamType):
+    """A torch device this machine can use (``cpu``, ``cuda``, ``cuda:1``, ``mps``), checked when options are parsed,
+    before any work: torch is imported only for a device other than ``cpu``."""
+
+    name = "device"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        if value == "cpu":
+            return value
+        import torch
+
+        try:
+            if torch.device(value).type not in ("cpu", "cuda", "mps", "xpu"):
+                raise ValueError("seqvpr runs on cpu, cuda, mps or xpu")
+            torch.empty(1, device=value)
+        except (RuntimeError, AssertionError, ValueError, TypeError, NotImplementedError) as error:
+            self.fail(f"{value!r} is not usable here ({str(error).splitlines()[0] if str(error) else type(error).__name__})",
+                      param, ctx)
+        return str(value)
+
+
+DEVICE = Device()
 COUNT, NONNEGATIVE, SEED = Number(int, 1), Number(int, 0), Number(int, 0, 2**32 - 1)
 POSITIVE, NONNEGATIVE_FLOAT, FINITE = Number(float, 0, open_low=True), Number(float, 0), Number(float)
 FRACTION = Number(float, 0, 1, open_low=True)  # (0, 1]
@@ -221,14 +247,14 @@ def parse_size(text: str | None) -> int | None:
 
 
 def parse_thumbnail(text: str, option: str = "--thumbnail") -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` -> (width, height), both positive."""
+    """``WIDTHxHEIGHT`` -> (width, height), both positive and at most 8192."""
     try:
         width, height = (int(x) for x in text.lower().split("x"))
-        if width < 1 or height < 1:
+        if not (1 <= width <= 8192 and 1 <= height <= 8192):
             raise ValueError
         return width, height
     except ValueError:
-        raise SeqvprError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 64x32") from None
+        raise SeqvprError(f"{option} {text!r}: expected WIDTHxHEIGHT, each 1 to 8192, e.g. 64x32") from None
 
 
 def parse_descriptor(text: str) -> str:

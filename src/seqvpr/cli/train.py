@@ -11,6 +11,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    DEVICE,
     COUNT, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, Number, POSITIVE, SEED, parse_ks, parse_stages,
     parse_thumbnail, with_options, OUT_FOLDER, bag_topic_options, locks_output
 )
@@ -82,7 +83,7 @@ def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetS
         SELECT_UNTRAINED,
         *model_options,
         click.option("--seed", default=defaults.seed, show_default=True, type=SEED),
-        click.option("--device", default="cpu", show_default=True),
+        click.option("--device", type=DEVICE, default="cpu", show_default=True),
         click.option("--thumbnail", default="64x32", show_default=True, help="Image folders: patch-normalised thumbnail size."),
         click.option("--patch", default=8, show_default=True, type=COUNT, help="Image folders: patch side."),
     ])
@@ -262,7 +263,7 @@ jist_options = with_options([
     click.option("--crop-scale", default=JIST_RUN.crop_scale, show_default=True, type=FRACTION,
                  help="Classification images: random crops keep this share of the area or more (1: no crop)."),
     click.option("--seed", default=JIST_RUN.seed, show_default=True, type=SEED),
-    click.option("--device", default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
+    click.option("--device", type=DEVICE, default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
 ])
 
 

@@ -156,16 +156,24 @@ def load_traversal_npz(path: Path) -> Traversal:
         descriptors,
         name=path.stem,
         positions=arrays.get("positions"),
-        segment_ids=arrays.get("segments"),
+        segment_ids=_whole(arrays.get("segments")),
         timestamps=arrays.get("timestamps"),
         source=str(path),
     )
     if "frame_index" in arrays:  # source frame numbers survive extraction with skipped images
         frame_index = np.asarray(arrays["frame_index"], dtype=np.int64)
-        if frame_index.shape != (len(descriptors),):
-            raise SeqvprError(f"{path}: frame_index must have one entry per descriptor row")
+        if frame_index.shape != (len(descriptors),) or len(np.unique(frame_index)) != len(frame_index) \
+                or (np.asarray(arrays["frame_index"]) != frame_index).any():
+            raise SeqvprError(f"{path}: frame_index must be one different whole number per descriptor row")
         traversal = replace(traversal, frame_index=frame_index)
     return traversal
+
+
+def _whole(values: np.ndarray | None) -> np.ndarray | None:
+    """Segment ids stored as whole floats (some tools write every array as float) as integers; else as they are."""
+    if values is None or values.dtype.kind != "f" or not np.isfinite(values).all() or (values != np.round(values)).any():
+        return values
+    return values.astype(np.int64)
 
 
 def save_traversal_npz(path: Path, traversal: Traversal) -> None:

@@ -49,6 +49,11 @@ class Traversal:
                 raise SeqvprError(f"{self._label()}: position of frame {int(self.frame_index[bad])} is not finite")
         if self.descriptors is None and self.image_paths is None:
             raise SeqvprError(f"{self._label()}: a traversal needs descriptors or image paths")
+        _check_indices(self, "frame_index", self.frame_index)
+        _check_indices(self, "segment_ids", self.segment_ids)
+        if self.timestamps is not None and (np.asarray(self.timestamps).ndim != 1
+                                            or not np.isfinite(np.asarray(self.timestamps, dtype=float)).all()):
+            raise SeqvprError(f"{self._label()}: timestamps must be one finite number per frame")
 
     @classmethod
     def from_descriptors(
@@ -127,6 +132,14 @@ class Traversal:
 
     def _label(self) -> str:
         return self.source or self.name
+
+
+def _check_indices(traversal: Traversal, field_name: str, values: np.ndarray) -> None:
+    """Frame numbers or segment ids: one integer per frame."""
+    values = np.asarray(values)
+    if values.ndim != 1 or values.dtype.kind not in "iu":
+        raise SeqvprError(f"{traversal._label()}: {field_name} must be one integer per frame, got {values.dtype} "
+                          f"{values.shape}")
 
 
 def _check_length(traversal: Traversal, field_name: str, values, n: int) -> None:

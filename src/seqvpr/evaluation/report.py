@@ -386,7 +386,7 @@ def write_report(
         check_distance_view(view)
     for example in examples:
         check_example(example)
-    with atomic_folder(out_dir) as tmp:
+    with atomic_folder(out_dir, "index.html") as tmp:
         build_report(
             tmp, title=title, summary=summary, methods=methods, table_ks=table_ks,
             distance_views=distance_views, examples=examples, example_title=example_title,
@@ -399,7 +399,7 @@ def write_localisation_report(out_dir: Path, *, title: str, summary: str, rows: 
     """A localisation page: the summary, a table of (measure, value) rows and the figure ``draw`` writes (estimate
     against ground truth over time, the score), written atomically as ``out_dir/index.html``."""
     table = "\n".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
-    with atomic_folder(Path(out_dir)) as tmp:
+    with atomic_folder(Path(out_dir), "index.html") as tmp:
         draw(tmp / "localisation.png")
         sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary),
                     f'<table class="recall">\n{table}\n</table>',

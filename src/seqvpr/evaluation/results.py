@@ -37,12 +37,20 @@ def query_counts(evaluation: Evaluation) -> str:
     )
 
 
+def json_number(value: float) -> float | None:
+    """A float as strict JSON takes it: NaN and infinities become null."""
+    import math
+
+    return float(value) if value is not None and math.isfinite(value) else None
+
+
 def evaluation_json(evaluation: Evaluation, settings: dict) -> dict:
-    """Recall@K, PR-AUC, R@100P, the query counts and the run's ``settings``, as JSON-ready values."""
+    """Recall@K, PR-AUC, R@100P, the query counts and the run's ``settings``, as JSON-ready values (a figure that
+    cannot be computed, with no query scored, is null: strict JSON has no NaN)."""
     return {
-        "recall": {str(k): v for k, v in evaluation.recall.items()},
-        "pr_auc": evaluation.pr.auc,
-        "recall_at_100_precision": evaluation.pr.recall_at_100_precision,
+        "recall": {str(k): json_number(v) for k, v in evaluation.recall.items()},
+        "pr_auc": json_number(evaluation.pr.auc),
+        "recall_at_100_precision": json_number(evaluation.pr.recall_at_100_precision),
         "queries_evaluated": evaluation.queries_evaluated,
         "queries_excluded": evaluation.queries_excluded,
         "excluded_no_window": evaluation.excluded_no_window,

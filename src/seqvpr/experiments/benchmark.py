@@ -142,6 +142,10 @@ def _read_config(path: Path) -> BenchmarkConfig:
         unknown = sorted(set(table) - known)
         if unknown:
             raise SeqvprError(f"{path}: dataset {number} has unknown keys {', '.join(unknown)}")
+        name = str(table["name"])
+        if not name.replace("-", "").replace("_", "").replace(".", "").isalnum() or set(name) <= {"."}:
+            raise SeqvprError(f"{path}: dataset {number} name {name!r} must be a plain name (letters, digits, - _ .): "
+                              "it names a folder under --out")
         values = {k: str(v) for k, v in table.items()}
         for key in ("reference", "query"):
             values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]

@@ -32,6 +32,7 @@ from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.maps.match import check_map_models
 from seqvpr.models.registry import TrainedModel, load_trained_model
 from seqvpr.sequences.filter import FilterSettings
+from seqvpr.sequences.matching import unit_rows
 
 Status = Literal["warming up", "localised", "uncertain", "lost"]
 LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
@@ -184,7 +185,7 @@ class Localizer:
         if self.transform is not None and is_descriptor:
             with torch.no_grad():
                 vector = self.transform.module(vector[None])[0].float()
-        return torch.nn.functional.normalize(vector, dim=0) if self.saved.info.normalized else vector
+        return unit_rows(vector, dim=0) if self.saved.info.normalized else vector
 
     def _estimate(self, scored: Scored | None, timestamp: float | None, describe_ms: float, started: float) -> Estimate:
         status, self.misses = next_status(scored, self.threshold, self.misses, self.settings.lost_after)

@@ -30,6 +30,7 @@ from seqvpr.maps.index import model_record
 from seqvpr.methods import image_model, transformed_frames
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import ProgressFactory, describe
+from seqvpr.sequences.matching import unit_rows
 
 #: model kinds whose output a map stores: image encoders (the frames) and SeqMatchNet (the transformed frames)
 STORED_KINDS = ("jist", "cosplace", "seqmatchnet")
@@ -125,7 +126,7 @@ def build_map(
         import torch
 
         rows = torch.from_numpy(vectors)
-        torch.nn.functional.normalize(rows, dim=1, out=rows)
+        unit_rows(rows, out=rows)
     recorded = description.descriptor if image_model(models) is None else image_model(models).kind
     info = MapInfo(len(whole), int(vectors.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},

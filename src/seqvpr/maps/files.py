@@ -112,7 +112,7 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
     columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns})
-    with atomic_folder(folder) as tmp:
+    with atomic_folder(folder, INFO_FILE) as tmp:
         np.save(tmp / DESCRIPTORS_FILE, stored)
         if side is not None:
             np.save(tmp / SIDE_FILES[parse_storage(info.dtype)[0]], side)

@@ -117,9 +117,9 @@ def indexed_retrieval(saved: SavedMap, frames: Traversal, settings: MatchSetting
     import torch
 
     from seqvpr.maps.index import open_frame_index, window_search
-    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.matching import TopK, unit_rows
 
-    query = torch.nn.functional.normalize(torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32)), dim=1)
+    query = unit_rows(torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32)))
     index = open_frame_index(saved, nprobe)
     rows, distances = window_search(saved, index, query, frames.segment_ids, min(settings.k, index.ntotal))
     return MatchResult(saved.frames, frames, TopK(rows, distances, rows[:, 0] >= 0), settings)
@@ -146,7 +146,7 @@ def shortlist_match(
     import torch
 
     from seqvpr.maps.index import open_frame_index, search_frames, window_search
-    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.matching import TopK, unit_rows
     from seqvpr.sequences.hierarchical import frame_shortlist, rerank
     from seqvpr.sequences.windows import SequenceSpec, window_starts
 
@@ -154,7 +154,7 @@ def shortlist_match(
     settings = replace(settings, sequence=spec)
     query = torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32))
     if settings.normalize:
-        query = torch.nn.functional.normalize(query, dim=1)
+        query = unit_rows(query)
     starts = window_starts(frames.segment_ids, spec.length, spec.offset, spec.boundary)
     index, over = open_frame_index(saved, nprobe), saved.info.index["over"]
     if history and over != "frames":

@@ -23,6 +23,14 @@ from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_ste
 ProgressFn = Callable[[int], None]
 
 
+def unit_rows(rows: torch.Tensor, dim: int = 1, out: torch.Tensor | None = None) -> torch.Tensor:
+    """Rows scaled to unit L2 norm along ``dim``, first divided by their largest magnitude so that float32 squares
+    neither overflow (values near 1e19) nor underflow (near 1e-25): valid descriptors at any scale stay usable."""
+    peak = rows.abs().amax(dim=dim, keepdim=True).clamp_min(torch.finfo(rows.dtype).tiny)
+    scaled = torch.div(rows, peak, out=out)
+    return torch.nn.functional.normalize(scaled, dim=dim, out=scaled if out is not None else None)
+
+
 def frame_distances(query: torch.Tensor, reference: torch.Tensor, workspace: Workspace | None = None) -> torch.Tensor:
     """Euclidean distances [n_query, n_reference] via one GEMM; clamped so rounding never gives NaN. On CPU the
     result may live in ``workspace``'s buffer (reused block after block)."""

@@ -1298,7 +1298,7 @@ def render_traversal(world: World, route_xy: np.ndarray, drive: Drive, n_frames:
     """
     out = Path(out_dir)
     poses = drive_poses(route_xy, drive, n_frames)
-    with atomic_folder(out) as tmp:
+    with atomic_folder(out, "positions.csv") as tmp:
         names = []
         for i in range(n_frames):
             rng = np.random.default_rng([drive.seed, 12, i])

@@ -50,9 +50,13 @@ def _dense_matrix(path: Path) -> np.ndarray | None:
                 names = archive.files
                 if not names:
                     raise SeqvprError(f"{path}: an empty .npz")
+                if "gt" not in names and len(names) > 1:
+                    raise SeqvprError(f"{path}: holds {', '.join(names)}; name the ground-truth array 'gt'")
                 value = archive["gt" if "gt" in names else names[0]]
         else:
             value = np.load(path, allow_pickle=True)
+    except SeqvprError:
+        raise
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: not a readable NumPy file ({type(error).__name__})") from None
     if value.dtype == object or value.ndim != 2:
@@ -101,7 +105,10 @@ def _load_gt_mat(path: Path) -> GroundTruth:
 
 def _as_matrix(value, path: Path, field: str) -> sp.csr_array:
     """A [n_reference, n_query] 0/1 matrix transposed to our [n_query, n_reference] layout."""
-    matrix = sp.csr_array(value) if sp.issparse(value) else sp.csr_array(np.asarray(value) != 0)
+    values = value.data if sp.issparse(value) else np.asarray(value)
+    if values.dtype.kind not in "biuf" or (values.dtype.kind == "f" and not np.isfinite(values).all()):
+        raise SeqvprError(f"{path}: {field} must hold 0/1 (or booleans), found {values.dtype} with NaN, inf or text")
+    matrix = sp.csr_array(value) if sp.issparse(value) else sp.csr_array(values != 0)
     if matrix.ndim != 2:
         raise SeqvprError(f"{path}: {field} must be a 2-D matrix")
     return sp.csr_array(matrix.T.astype(bool))

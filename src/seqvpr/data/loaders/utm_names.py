@@ -86,6 +86,9 @@ def _select_folder(folder: Path, role: str | None) -> tuple[Path, str]:
     sub = ROLE_FOLDERS[role]
     if (folder / sub).is_dir():
         return folder / sub, f"{base}-{sub}"
+    halves = [name for name in ROLE_FOLDERS.values() if (folder / name).is_dir()]
+    if halves:  # a root with only the other half: reading it whole would give that half's images again
+        raise SeqvprError(f"{folder}: a dataset root with {halves[0]}/ but no {sub}/ for the {role} side")
     return folder, base
 
 
