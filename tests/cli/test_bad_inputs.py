@@ -74,6 +74,7 @@ def world(tmp_path_factory):
     (w / "state.npz").write_bytes(b"PK\x03\x04 not really")
     (w / "bench.toml").write_text('[[dataset]]\nname = "a"\nreference = "ref.npz"\nquery = "qry.npz"\nradius = "10m"\n'
                                   'train = "0:40"\nselect = "40:60"\ntest = "60:80"\n[benchmark]\nks = ["one"]\n')
+    (w / "bench_typo.toml").write_text((w / "bench.toml").read_text().replace('ks = ["one"]', "kz = [1]"))
     (w / "escape.toml").write_text((w / "bench.toml").read_text().replace('name = "a"', 'name = "../../escape"')
                                    .replace('ks = ["one"]', "ks = [1]"))
     assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
@@ -193,6 +194,8 @@ CASES = {
     "train: --device tpu (was a traceback)": (("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames", "0:50", "--val-frames", "50:80", "--device", "tpu", "--out", "{out}"), "'--device'"),
     "match: --device meta (was a traceback)": ((*M, "--device", "meta"), "'--device'"),
     "match: a huge --thumbnail (was a MemoryError)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--thumbnail", "100000x100000"), "--thumbnail"),
+    "localize: -L longer than every map segment (warmed up forever)": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "-L", "100000", "--out", "{out}"), "longer than every segment"),
+    "benchmark: an unknown [benchmark] key (was ignored)": (("benchmark", "{w}/bench_typo.toml", "--out", "{out}"), "unknown keys"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

@@ -150,7 +150,12 @@ def _read_config(path: Path) -> BenchmarkConfig:
         for key in ("reference", "query"):
             values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
         specs.append(DatasetSpec(**values))
+    tables = {"dataset", "benchmark", "training", "seqnet", "jist"}
+    if set(raw) - tables:
+        raise SeqvprError(f"{path}: unknown table(s) {', '.join(sorted(set(raw) - tables))} (known: "
+                          f"{', '.join(sorted(tables))})")
     settings = raw.get("benchmark", {})
+    _check_keys(settings, {"methods", "hvpr_shortlist", "seq_len", "lengths", "ks"}, "benchmark", path)
     methods = settings.get("methods", DEFAULT_METHODS)
     if isinstance(methods, str) or not methods:
         raise SeqvprError(f"{path}: [benchmark] methods must be a non-empty list of methods, got {methods!r}")

@@ -230,7 +230,8 @@ def _frames_folder(path: Path, topic: str | None) -> Path:
 
 def _frames_root() -> Path:
     """The folder of decoded bag frames: ``$SEQVPR_BAG_FRAMES``, else ``seqvpr-bag-frames`` in the temp folder."""
-    return Path(os.environ.get("SEQVPR_BAG_FRAMES", Path(tempfile.gettempdir()) / "seqvpr-bag-frames"))
+    chosen = os.environ.get("SEQVPR_BAG_FRAMES", "").strip()  # set but empty: as unset, never the current folder
+    return Path(chosen) if chosen else Path(tempfile.gettempdir()) / "seqvpr-bag-frames"
 
 
 def _write_frames(folder: Path, keep: list[int], images: list[np.ndarray]) -> tuple[Path, ...]:
