@@ -130,26 +130,7 @@ def _read_config(path: Path) -> BenchmarkConfig:
         raise SeqvprError(f"{path}: no such benchmark config") from None
     except tomllib.TOMLDecodeError as error:
         raise SeqvprError(f"{path}: not valid TOML ({error})") from None
-    datasets = raw.get("dataset")
-    if not datasets:
-        raise SeqvprError(f"{path}: no [[dataset]] tables")
-    known = {f.name for f in fields(DatasetSpec)}
-    specs = []
-    for number, table in enumerate(datasets, start=1):
-        missing = [name for name in ("name", "reference", "query", "radius", "train", "select", "test") if name not in table]
-        if missing:
-            raise SeqvprError(f"{path}: dataset {number} lacks {', '.join(missing)}")
-        unknown = sorted(set(table) - known)
-        if unknown:
-            raise SeqvprError(f"{path}: dataset {number} has unknown keys {', '.join(unknown)}")
-        name = str(table["name"])
-        if not name.replace("-", "").replace("_", "").replace(".", "").isalnum() or set(name) <= {"."}:
-            raise SeqvprError(f"{path}: dataset {number} name {name!r} must be a plain name (letters, digits, - _ .): "
-                              "it names a folder under --out")
-        values = {k: str(v) for k, v in table.items()}
-        for key in ("reference", "query"):
-            values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
-        specs.append(DatasetSpec(**values))
+    specs = _dataset_specs(raw, path)
     tables = {"dataset", "benchmark", "training", "seqnet", "jist"}
     if set(raw) - tables:
         raise SeqvprError(f"{path}: unknown table(s) {', '.join(sorted(set(raw) - tables))} (known: "
@@ -172,6 +153,31 @@ def _read_config(path: Path) -> BenchmarkConfig:
         _whole_numbers(path, "ks", settings.get("ks", (1, 5, 20))), _training_table(raw, "training", path),
         _training_table(raw, "seqnet", path), _jist_table(raw, path), shortlist,
     )
+
+
+def _dataset_specs(raw: dict, path: Path) -> list[DatasetSpec]:
+    """The ``[[dataset]]`` tables, checked: every key present and known, the name a plain folder name."""
+    datasets = raw.get("dataset")
+    if not datasets:
+        raise SeqvprError(f"{path}: no [[dataset]] tables")
+    known = {f.name for f in fields(DatasetSpec)}
+    specs = []
+    for number, table in enumerate(datasets, start=1):
+        missing = [name for name in ("name", "reference", "query", "radius", "train", "select", "test") if name not in table]
+        if missing:
+            raise SeqvprError(f"{path}: dataset {number} lacks {', '.join(missing)}")
+        unknown = sorted(set(table) - known)
+        if unknown:
+            raise SeqvprError(f"{path}: dataset {number} has unknown keys {', '.join(unknown)}")
+        name = str(table["name"])
+        if not name.replace("-", "").replace("_", "").replace(".", "").isalnum() or set(name) <= {"."}:
+            raise SeqvprError(f"{path}: dataset {number} name {name!r} must be a plain name (letters, digits, - _ .): "
+                              "it names a folder under --out")
+        values = {k: str(v) for k, v in table.items()}
+        for key in ("reference", "query"):
+            values[key] = str((path.parent / values[key]).resolve()) if not Path(values[key]).is_absolute() else values[key]
+        specs.append(DatasetSpec(**values))
+    return specs
 
 
 def _training_table(raw: dict, name: str, path: Path) -> dict[str, Any]:
