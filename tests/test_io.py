@@ -102,7 +102,9 @@ def test_a_signalled_command_leaves_the_previous_output_or_none(interrupt_inputs
     if before:
         assert run_cli(pytest.MonkeyPatch(), _NoCapture(), *before)[0] == 0
     previous = _snapshot(out) if out.exists() else None
-    process = subprocess.Popen([sys.executable, "-c", "from seqvpr.cli import main; main()", *work],
+    # a shell that starts jobs in the background (CI's, nohup's) hands them SIGINT ignored: restore Ctrl-C's handler
+    child = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); from seqvpr.cli import main; main()"
+    process = subprocess.Popen([sys.executable, "-c", child, *work],
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lock = tmp_path / f".{out.name}.seqvpr-lock"
     started = out / "history.csv" if command == "train" else lock  # training: once checkpoints are being written
