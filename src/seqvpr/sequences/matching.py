@@ -11,7 +11,7 @@ within a memory budget and keeps only the K best references per query.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,6 +223,16 @@ def _sequence_rows(
     return best
 
 
+class WindowScorer(Protocol):
+    """Turns a block's frame distances into window distances: the kernel's constant velocity by default, or another
+    matcher beside it (``adaptive.AdaptiveScorer``); ``span`` is the reference frames one window may cover."""
+
+    def span(self, spec: SequenceSpec) -> int: ...
+
+    def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
+                 spec: SequenceSpec, inplace: bool = False) -> torch.Tensor: ...
+
+
 def max_span(spec: SequenceSpec) -> int:
     """Reference frames covered by the fastest velocity's window."""
     return max(int(velocity_steps(spec.length, v)[-1]) + 1 for v in spec.velocities)
@@ -248,6 +258,7 @@ def sequence_topk(
     memory_budget: int | None = None,
     progress: ProgressFn | None = None,
     chunk: int | None = None,
+    scorer: WindowScorer | None = None,
 ) -> TopK:
     """Top-K references per query by sequence distance, computed in query blocks (with a halo of L - 1 rows) and,
     when the budget asks for it, reference chunks (with a halo of the longest window on both sides).
@@ -272,7 +283,7 @@ def sequence_topk(
         end = min(begin + rows, n_q)
         starts = q_starts[begin:end]
         if (starts >= 0).any():
-            values, picked = _chunked_topk(query, reference, spec, starts, r_seg, k, columns)
+            values, picked = _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer)
             picked[~np.isfinite(values)] = -1
             indices[begin:end], distances[begin:end] = picked, values
         if progress is not None:
@@ -323,13 +334,13 @@ def block_shape(
     return int(rows), int(columns)
 
 
-def _chunked_topk(query, reference, spec, starts, r_seg, k, columns) -> tuple[np.ndarray, np.ndarray]:
+def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None) -> tuple[np.ndarray, np.ndarray]:
     """The K best (distances, reference rows) of a query block over reference chunks of ``columns`` frames; rows of
     queries without a window stay +inf / -1. Ties go to the lower reference row, whatever the chunking.
 
     A chunk is described with ``max_span`` frames of halo on each side, so every window of its own columns, and
     its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference."""
-    n_r, halo = len(reference), max_span(spec)
+    n_r, halo = len(reference), (scorer.span(spec) if scorer is not None else max_span(spec))
     valid = np.flatnonzero(starts >= 0)
     values = np.full((len(valid), k), np.inf, dtype=np.float64)
     picked = np.full((len(valid), k), -1, dtype=np.int64)
@@ -338,7 +349,7 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns) -> tuple[np
         last = min(first + columns, n_r)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
         block = _reference_block(reference, lo, hi, query)
-        rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace)
+        rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer)
         rows = rows[:, first - lo : last - lo]
         merge_topk(rows, first, values, picked)
     all_values = np.full((len(starts), k), np.inf)
@@ -385,6 +396,7 @@ def sequence_distance_rows(
     query_starts: np.ndarray,
     reference_segments: np.ndarray | None = None,
     workspace: Workspace | None = None,
+    scorer: WindowScorer | None = None,
 ) -> torch.Tensor:
     """Sequence distances [len(query_starts), n_reference] of the query windows starting at ``query_starts``
     (computed in ``workspace``'s buffer when one is given).
@@ -404,7 +416,8 @@ def sequence_distance_rows(
     # runs of consecutive covered frames are contiguous in d, and each window lies inside one run
     local_starts = position[starts]
     r_seg = _segments(reference_segments, len(reference))
-    return _sequence_rows(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)
+    score = scorer if scorer is not None else _sequence_rows
+    return score(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)
 
 
 def reference_squared_norms(reference: ReferenceRows, columns: int = 65536) -> np.ndarray:
