@@ -48,6 +48,7 @@ class Method:
     needs: str | None = None
     pooling: str | None = None
     length: int | None = None
+    scorer: str | None = None  # a matching method's window distance other than the kernel's constant velocity
 
     def accepts(self, kind: str) -> bool:
         """Whether a model of ``kind`` can be given to this method: its own, a CosPlace encoder describing the
@@ -64,6 +65,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("single", "matching", "single-image retrieval (sequence matching at L = 1)", length=1),
     Method("matching", "matching", "sequence matching: mean of order-aligned frame distances over L frames"),
     Method("seqmatchnet", "matching", "sequence matching over SeqMatchNet-transformed frames", needs="seqmatchnet"),
+    Method("adaptive", "matching", "adaptive sequence matching: each query frame moves the reference by --steps "
+           "MIN:MAX frames (stops, speed changes; DTW-like)", scorer="adaptive"),
     Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
     Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
     Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
@@ -177,7 +180,8 @@ def run_method(
     if method.family == "matching":
         if method.length is not None:
             settings = replace(settings, sequence=SequenceSpec(method.length))
-        return match_traversals(*transformed_frames(reference, query, models, settings.device), settings, progress)
+        return match_traversals(*transformed_frames(reference, query, models, settings.device), settings, progress,
+                                scorer=window_scorer(method, settings))
     shortlist_settings = replace(settings, k=max(rerank, settings.k))
     result = retrieve_traversals(reference, query, method.pooling, shortlist_settings, index=index,
                                  model=_pooling_module(method, models))
@@ -185,6 +189,15 @@ def run_method(
         return result
     ref, qry = transformed_frames(reference, query, models, settings.device)
     return rerank_match(replace(result, reference=ref, query=qry), settings)
+
+
+def window_scorer(method: Method, settings: MatchSettings):
+    """The window distance a matching method uses: None for the kernel's constant velocity, else its scorer."""
+    if method.scorer == "adaptive":
+        from seqvpr.sequences.adaptive import AdaptiveScorer
+
+        return AdaptiveScorer(*settings.steps)
+    return None
 
 
 def _pooling_module(method: Method, models: Mapping[str, TrainedModel]):

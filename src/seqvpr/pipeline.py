@@ -34,6 +34,7 @@ from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_extraction
 from seqvpr.features.whitening import fit_pca_whitening
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, filter_topk, map_distance_scale
 from seqvpr.sequences.matching import (
+    WindowScorer,
     unit_rows,
     TopK,
     frame_distances,
@@ -61,6 +62,7 @@ class MatchSettings:
     dtype: str = "float32"
     device: str = "cpu"
     memory_budget: int | None = 2 * 1024**3
+    steps: tuple[int, int] = (1, 2)  # adaptive matching: the fewest and most reference frames per query frame
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -254,10 +256,11 @@ def match_traversals(
     query: Traversal,
     settings: MatchSettings = MatchSettings(),
     progress: ProgressFactory | None = None,
+    scorer: WindowScorer | None = None,
 ) -> MatchResult:
     """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments).
     A memory-mapped reference (a saved map's) is read chunk by chunk, as stored: ``seqvpr.maps`` checks that it
-    was normalised as ``settings`` ask."""
+    was normalised as ``settings`` ask. ``scorer``: another window distance on the same blocks (adaptive)."""
     ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
     qry = _as_tensor(query, settings)
     if ref.shape[1] != qry.shape[1]:
@@ -275,6 +278,7 @@ def match_traversals(
         reference.segment_ids,
         memory_budget=settings.memory_budget,
         progress=tick,
+        scorer=scorer,
     )
     return MatchResult(reference, query, topk, settings)
 

@@ -196,6 +196,7 @@ CASES = {
     "match: a huge --thumbnail (was a MemoryError)": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--thumbnail", "100000x100000"), "--thumbnail"),
     "localize: -L longer than every map segment (warmed up forever)": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "-L", "100000", "--out", "{out}"), "longer than every segment"),
     "benchmark: an unknown [benchmark] key (was ignored)": (("benchmark", "{w}/bench_typo.toml", "--out", "{out}"), "unknown keys"),
+    "match: --steps MIN above MAX": ((*M, "--method", "adaptive", "-L", "3", "--steps", "3:1"), "--steps"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

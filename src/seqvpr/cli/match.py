@@ -13,6 +13,7 @@ from seqvpr.cli.options import (
     COUNT,
     NONNEGATIVE,
     bag_topic_options,
+    parse_steps,
     locks_output,
     OUT_FILE,
     OUT_FOLDER,
@@ -54,6 +55,8 @@ Examples:
               help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
 @click.option("--velocities", default="1", show_default=True,
               help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
+@click.option("--steps", default="1:2", show_default=True,
+              help="--method adaptive: the fewest and most reference frames a query frame may move (MIN:MAX).")
 @click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft), VPR-Bench .npy or a dense boolean matrix .npy/.npz.")
 @click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
@@ -124,7 +127,8 @@ def match(**o: Any) -> None:
     gt = ground_truth_of_kept(gt, pair, (reference, query))
     _say_skipped(pair, (reference, query))
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
+    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget,
+                             parse_steps(o["steps"]))
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
                         progress=tqdm_progress)
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
@@ -180,7 +184,8 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
     gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget)
+    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget,
+                             parse_steps(o["steps"]))
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
                        shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
                        cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])

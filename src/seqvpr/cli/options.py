@@ -234,6 +234,17 @@ def parse_velocities(text: str) -> tuple[float, ...]:
         raise SeqvprError(f"--velocities {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
 
 
+def parse_steps(text: str) -> tuple[int, int]:
+    """``MIN:MAX`` reference frames per query frame (adaptive matching): 0 <= MIN <= MAX."""
+    try:
+        low, high = (int(x) for x in text.split(":"))
+        if not 0 <= low <= high <= 16:
+            raise ValueError
+    except ValueError:
+        raise SeqvprError(f"--steps {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
+    return low, high
+
+
 def parse_size(text: str | None) -> int | None:
     """``512M``, ``2G`` or plain bytes -> bytes; ``none`` -> no budget."""
     if text is None or text.lower() == "none":

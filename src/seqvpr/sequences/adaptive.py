@@ -8,7 +8,9 @@ AdaptSeq / CaseVPR's adaptive back-ends:
     S[i, j] = (1/L) min over paths r_0 <= ... <= r_{L-1}, r_a = j, r_k - r_{k-1} in steps, one reference segment,
               of sum_k d[q_k, r_k]
 
-with ``a`` the window's anchor (its current frame, as the kernel reports). It is computed for all columns at once
+with ``a`` the window's anchor (its current frame, as the kernel reports). The default steps are 1..2: allowing 0
+(a stop) lets a path dwell on one confusable reference frame, and measured worse on Nordland and on the demo world
+(BENCHMARKS.md); give 0 where the query stops while the reference did not. It is computed for all columns at once
 by a forward pass to the anchor and a backward pass from the window's end (``S = F_a + B_a - d_a``), so a block
 costs about (L - 1) x steps passes over the block's frame distances. It plugs into the kernel's blocked top-K as a
 ``WindowScorer`` (same blocks, halos, segments and memory budget); steps ``(1, 1)`` give the kernel's distances.
@@ -30,7 +32,7 @@ class AdaptiveScorer:
     """Window distances under non-constant velocity: each query frame moves the reference by a step in
     ``[min_step, max_step]``. Reference windows follow the ``drop`` rule (a path never leaves its segment)."""
 
-    min_step: int = 0
+    min_step: int = 1
     max_step: int = 2
 
     def __post_init__(self) -> None:
