@@ -77,6 +77,9 @@ class MatchResult:
     topk: TopK
     settings: MatchSettings
     shortlist: TopK | None = None  # the candidates a shortlisted match re-ranked (None: exhaustive)
+    #: per-frame correspondences of the top-1 matches, (query rows, reference rows) [n_query, L], when the matcher
+    #: is not the constant-velocity window alignment (adaptive); None: the windows' own alignment
+    correspondences: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def describe(
@@ -280,7 +283,13 @@ def match_traversals(
         progress=tick,
         scorer=scorer,
     )
-    return MatchResult(reference, query, topk, settings)
+    pairs = None
+    if scorer is not None:
+        from seqvpr.sequences.correspondences import adaptive_correspondences
+
+        pairs = adaptive_correspondences(qry, ref, topk.indices[:, 0], settings.sequence, scorer, query.segment_ids,
+                                         reference.segment_ids)
+    return MatchResult(reference, query, topk, settings, correspondences=pairs)
 
 
 def filter_traversals(
@@ -417,6 +426,21 @@ def check_ground_truth_covers(gt: GroundTruth, reference: Traversal, query: Trav
 def evaluate_match(
     result: MatchResult, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS, no_positive: NoPositivePolicy = "exclude"
 ) -> Evaluation:
-    """Recall@K and PR of a match result."""
+    """Recall@K and PR of a match result, and the precision of its top-1 matches' per-frame correspondences."""
+    from seqvpr.evaluation.metrics import frame_precision
+
     top = result.topk
-    return evaluate(top.indices, top.distances, top.has_window, gt, ks, no_positive)
+    evaluation = evaluate(top.indices, top.distances, top.has_window, gt, ks, no_positive)
+    pairs = result.correspondences or match_correspondences(result)
+    return evaluation if pairs is None else replace(evaluation, frame_precision=frame_precision(*pairs, gt))
+
+
+def match_correspondences(result: MatchResult) -> tuple[np.ndarray, np.ndarray] | None:
+    """The per-frame correspondences of a result's top-1 windows aligned at slope 1 (None with other velocities)."""
+    from seqvpr.sequences.correspondences import window_correspondences
+
+    spec = result.settings.sequence
+    if tuple(spec.velocities) != (1.0,) or result.topk.indices.shape[1] == 0:
+        return None
+    return window_correspondences(result.topk.indices[:, 0], spec, result.query.segment_ids,
+                                  result.reference.segment_ids)

@@ -294,6 +294,8 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
         return
     click.echo(f"reference: {pair[0]!r}\nquery:     {pair[1]!r}\nground truth: {gt.description}")
     click.echo(recall_table(evaluation, label))
+    if evaluation.frame_precision == evaluation.frame_precision:  # not NaN
+        click.echo(f"frame-level precision of the top-1 matches' correspondences: {evaluation.frame_precision:.3f}")
     click.echo(f"predictions: {out / 'predictions.csv'}")
 
 

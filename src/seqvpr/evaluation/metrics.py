@@ -46,6 +46,7 @@ class Evaluation:
     excluded_no_positive: int
     no_positive: NoPositivePolicy
     correct: np.ndarray = field(repr=False)
+    frame_precision: float = float("nan")  # per-frame correspondences of the top-1 matches that are right
 
     @property
     def queries_excluded(self) -> int:
@@ -111,3 +112,15 @@ def evaluate(
         no_positive=no_positive,
         correct=hits[:, 0],
     )
+
+
+def frame_precision(query_rows: np.ndarray, reference_rows: np.ndarray, gt: GroundTruth) -> float:
+    """The share of per-frame correspondences (query row, reference row; -1 = none) whose reference frame is a
+    positive of its query frame, over the query frames that have a positive (NaN when none is counted)."""
+    q, r = np.asarray(query_rows).ravel(), np.asarray(reference_rows).ravel()
+    keep = (q >= 0) & (r >= 0)
+    q, r = q[keep], r[keep]
+    counted = gt.has_positive()[q]
+    if not counted.any():
+        return float("nan")
+    return float(gt.contains(q[counted], r[counted]).mean())

@@ -51,6 +51,7 @@ def evaluation_json(evaluation: Evaluation, settings: dict) -> dict:
         "recall": {str(k): json_number(v) for k, v in evaluation.recall.items()},
         "pr_auc": json_number(evaluation.pr.auc),
         "recall_at_100_precision": json_number(evaluation.pr.recall_at_100_precision),
+        "frame_precision": json_number(evaluation.frame_precision),
         "queries_evaluated": evaluation.queries_evaluated,
         "queries_excluded": evaluation.queries_excluded,
         "excluded_no_window": evaluation.excluded_no_window,

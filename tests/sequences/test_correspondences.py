@@ -1,0 +1,57 @@
+"""Per-frame correspondences of top-1 matches and their precision, against plain loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from hypothesis import given, settings, strategies as st
+
+from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.evaluation.metrics import frame_precision
+from seqvpr.sequences.adaptive import AdaptiveScorer
+from seqvpr.sequences.correspondences import adaptive_correspondences, window_correspondences
+from seqvpr.sequences.windows import SequenceSpec, window_starts
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 9999), length=st.integers(1, 5), align=st.sampled_from(["centered", "causal"]),
+       boundary=st.sampled_from(["drop", "shift"]))
+def test_window_correspondences_pair_frame_k_with_frame_k(seed, length, align, boundary):
+    rng = np.random.default_rng(seed)
+    q_seg, r_seg = np.sort(rng.integers(0, 2, 15)), np.sort(rng.integers(0, 3, 20))
+    best = rng.integers(-1, 20, 15)
+    spec = SequenceSpec(length, align, boundary)
+    q_rows, r_rows = window_correspondences(best, spec, q_seg, r_seg)
+    qs = window_starts(q_seg, length, spec.offset, boundary)
+    rs = window_starts(r_seg, length, spec.offset, boundary)
+    for i in range(15):
+        if qs[i] < 0 or best[i] < 0 or rs[best[i]] < 0:
+            assert (q_rows[i] == -1).all() and (r_rows[i] == -1).all()
+        else:
+            assert list(q_rows[i]) == [qs[i] + k for k in range(length)]
+            assert list(r_rows[i]) == [rs[best[i]] + k for k in range(length)]
+
+
+def test_frame_precision_counts_right_pairs_over_queries_with_a_positive():
+    positives = np.zeros((4, 6), bool)
+    positives[0, [0, 1]] = positives[1, 2] = positives[2, 3] = True  # query 3 has none
+    gt = GroundTruth(sp.csr_array(positives))
+    q = np.array([[0, 1], [2, 3], [-1, -1]])
+    r = np.array([[1, 5], [3, 3], [-1, -1]])
+    expected = [positives[a, b] for a, b in zip(q.ravel(), r.ravel()) if a >= 0 and positives[a].any()]
+    assert frame_precision(q, r, gt) == np.mean(expected) == 2 / 3
+
+
+def test_adaptive_correspondences_at_unit_steps_are_the_windows():
+    rng = np.random.default_rng(1)
+    q, r = torch.from_numpy(rng.standard_normal((30, 8))), torch.from_numpy(rng.standard_normal((50, 8)))
+    q_seg, r_seg = np.r_[np.zeros(15, int), np.ones(15, int)], np.r_[np.zeros(30, int), np.ones(20, int)]
+    spec = SequenceSpec(5)
+    best = rng.integers(0, 50, 30)
+    r_starts = window_starts(r_seg, 5, spec.offset, "drop")
+    best[r_starts[best] < 0] = -1
+    got = adaptive_correspondences(q, r, best, spec, AdaptiveScorer(1, 1), q_seg, r_seg)
+    expected = window_correspondences(best, spec, q_seg, r_seg)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
