@@ -67,6 +67,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("seqmatchnet", "matching", "sequence matching over SeqMatchNet-transformed frames", needs="seqmatchnet"),
     Method("adaptive", "matching", "adaptive sequence matching: each query frame moves the reference by --steps "
            "MIN:MAX frames (stops, speed changes; DTW-like)", scorer="adaptive"),
+    Method("seqslam", "matching", "SeqSLAM: local contrast enhancement of the distance matrix (10 reference frames), "
+           "then sequence matching (OpenSeqSLAM2's trajectory search: --velocities 0.8:1.2:0.1)", scorer="seqslam"),
     Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
     Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
     Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
@@ -197,6 +199,10 @@ def window_scorer(method: Method, settings: MatchSettings):
         from seqvpr.sequences.adaptive import AdaptiveScorer
 
         return AdaptiveScorer(*settings.steps)
+    if method.scorer == "seqslam":
+        from seqvpr.sequences.seqslam import ContrastScorer
+
+        return ContrastScorer()
     return None
 
 

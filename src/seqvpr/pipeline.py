@@ -284,7 +284,9 @@ def match_traversals(
         scorer=scorer,
     )
     pairs = None
-    if scorer is not None:
+    from seqvpr.sequences.adaptive import AdaptiveScorer
+
+    if isinstance(scorer, AdaptiveScorer):  # else the windows' own alignment (match_correspondences)
         from seqvpr.sequences.correspondences import adaptive_correspondences
 
         pairs = adaptive_correspondences(qry, ref, topk.indices[:, 0], settings.sequence, scorer, query.segment_ids,

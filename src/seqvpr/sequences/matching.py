@@ -200,14 +200,14 @@ def sequence_distance_matrix(
     """
     n_q, n_r = frame_dist.shape
     q_starts = window_starts(_segments(query_segments, n_q), spec.length, spec.offset, spec.boundary)
-    return _sequence_rows(frame_dist, np.arange(n_q), q_starts, _segments(reference_segments, n_r), spec, inplace)
+    return sequence_rows(frame_dist, np.arange(n_q), q_starts, _segments(reference_segments, n_r), spec, inplace)
 
 
 def _segments(segment_ids: np.ndarray | None, n: int) -> np.ndarray:
     return np.zeros(n, np.int64) if segment_ids is None else np.asarray(segment_ids)
 
 
-def _sequence_rows(
+def sequence_rows(
     d: torch.Tensor, rows: np.ndarray, q_starts: np.ndarray, r_seg: np.ndarray, spec: SequenceSpec, inplace: bool
 ) -> torch.Tensor:
     """Sequence distances of the queries at ``rows`` of d (starts index rows of d), minimum over velocities."""
@@ -416,7 +416,7 @@ def sequence_distance_rows(
     # runs of consecutive covered frames are contiguous in d, and each window lies inside one run
     local_starts = position[starts]
     r_seg = _segments(reference_segments, len(reference))
-    score = scorer if scorer is not None else _sequence_rows
+    score = scorer if scorer is not None else sequence_rows
     return score(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)
 
 
