@@ -1,0 +1,65 @@
+"""Speed of the matchers beside the kernel, as ratios against the core kernel in the same run.
+
+Run from the repository root (about a minute on 2 cores):
+
+    .venv/bin/python bench/bench_matchers.py [--queries 2000] [--references 8000] [--dim 256] [--lengths 5,10,20]
+
+Each matcher goes through ``sequence_topk`` on the same seeded random unit descriptors (K = 20, the default 2 GB
+budget): the constant-velocity kernel (the yardstick), ``AdaptiveScorer(1, 2)`` (``--method adaptive``) and
+``ContrastScorer()`` (``--method seqslam``), and the kernel with SeqSLAM's five-velocity sweep. The median of
+``--repeats`` runs is reported per length, with the ratio to the kernel at the same length.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from _common import cpu_model
+from seqvpr.sequences.adaptive import AdaptiveScorer
+from seqvpr.sequences.matching import sequence_topk
+from seqvpr.sequences.seqslam import ContrastScorer
+from seqvpr.sequences.windows import SequenceSpec
+
+
+def timed(query, reference, spec, scorer, repeats: int) -> float:
+    """Median seconds of ``sequence_topk`` over ``repeats`` runs."""
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        sequence_topk(query, reference, spec, 20, memory_budget=2 * 1024**3, scorer=scorer)
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--queries", type=int, default=2000)
+    parser.add_argument("--references", type=int, default=8000)
+    parser.add_argument("--dim", type=int, default=256)
+    parser.add_argument("--lengths", default="5,10,20")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    rng = np.random.default_rng(0)
+    unit = lambda n: torch.nn.functional.normalize(torch.from_numpy(rng.standard_normal((n, args.dim), np.float32)), dim=1)  # noqa: E731
+    query, reference = unit(args.queries), unit(args.references)
+    print(f"CPU: {cpu_model()}; torch {torch.__version__} threads={torch.get_num_threads()}")
+    print(f"{args.queries} queries x {args.references} references, {args.dim}-D, K=20, median of {args.repeats}")
+    print(f"{'L':>3} {'matcher':<28} {'seconds':>8} {'x kernel':>9}")
+    for length in (int(x) for x in args.lengths.split(",")):
+        spec = SequenceSpec(length)
+        base = timed(query, reference, spec, None, args.repeats)
+        rows = [("kernel (constant velocity)", base),
+                ("kernel, 5 velocities 0.8-1.2", timed(query, reference, SequenceSpec(length, velocities=(0.8, 0.9, 1.0, 1.1, 1.2)), None, args.repeats)),
+                ("adaptive, steps 1..2", timed(query, reference, spec, AdaptiveScorer(1, 2), args.repeats)),
+                ("seqslam contrast (window 10)", timed(query, reference, spec, ContrastScorer(), args.repeats))]
+        for name, seconds in rows:
+            print(f"{length:>3} {name:<28} {seconds:8.3f} {seconds / base:8.2f}x")
+
+
+if __name__ == "__main__":
+    main()
