@@ -80,6 +80,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("jist", "retrieval", "a trained JIST: its encoder's frames pooled by its SeqGeM, faiss search",
            needs="jist", pooling="seqgem"),
     Method("hvpr", "hierarchical", "hierarchical: a SeqNet (or SeqGeM) shortlist re-ranked by sequence matching"),
+    Method("casevpr", "hierarchical", "CaseVPR's hierarchy: a SeqNet (or SeqGeM) shortlist of start points re-ranked "
+           "by adaptive matching inside each candidate stretch (--steps)", scorer="adaptive"),
     Method("hmm", "filter", "topological filter (HMM forward pass) over reference frames: stops and speed changes",
            length=1),
 )}
@@ -159,6 +161,7 @@ def run_method(
     rerank: int = 0,
     shortlist: str | None = None,
     progress: ProgressFactory | None = None,
+    rerank_scorer=None,
 ) -> MatchResult:
     """Top-K reference frames per query frame by method ``name`` over described traversals.
 
@@ -174,7 +177,8 @@ def run_method(
         if get_method(first).family != "retrieval":
             raise SeqvprError(f"hvpr: the shortlist must be a retrieval method, got {first!r}")
         used = {kind: models[kind] for kind in models if get_method(first).accepts(kind)}
-        return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST)
+        return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST,
+                          rerank_scorer=window_scorer(method, settings))
     if method.family == "filter":
         from seqvpr.pipeline import filter_traversals
 
@@ -190,7 +194,7 @@ def run_method(
     if not rerank:
         return result
     ref, qry = transformed_frames(reference, query, models, settings.device)
-    return rerank_match(replace(result, reference=ref, query=qry), settings)
+    return rerank_match(replace(result, reference=ref, query=qry), settings, scorer=rerank_scorer)
 
 
 def window_scorer(method: Method, settings: MatchSettings):

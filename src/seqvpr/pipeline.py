@@ -345,17 +345,25 @@ def retrieve_traversals(
     return MatchResult(reference, query, retrieve(qry_vectors, ref_vectors, settings.k, kind=index), settings)
 
 
-def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None) -> MatchResult:
+def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None, scorer=None) -> MatchResult:
     """Hierarchical matching (HVPR): the shortlist's reference frames re-ordered by exact sequence distance over
-    the traversals' frame descriptors (e.g. SeqMatchNet-transformed), best ``settings.k`` kept."""
+    the traversals' frame descriptors (e.g. SeqMatchNet-transformed), best ``settings.k`` kept; with an adaptive
+    ``scorer``, by adaptive distance inside each candidate's stretch (CaseVPR), with its per-frame paths."""
+    from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_rerank
     from seqvpr.sequences.hierarchical import rerank
 
     settings = settings or shortlist.settings
     ref, qry = _frame_rows(shortlist.reference, settings), _as_tensor(shortlist.query, settings)
     if isinstance(ref, np.ndarray):
         ref = torch.from_numpy(ref)  # a view of the map: the re-ranking reads only the candidates' rows
-    top = rerank(qry, ref, shortlist.topk, settings.sequence, shortlist.query.segment_ids,
-                 shortlist.reference.segment_ids, k=settings.k)
+    q_seg, r_seg = shortlist.query.segment_ids, shortlist.reference.segment_ids
+    if isinstance(scorer, AdaptiveScorer):
+        from seqvpr.sequences.correspondences import adaptive_correspondences
+
+        top = adaptive_rerank(qry, ref, shortlist.topk, settings.sequence, scorer, q_seg, r_seg, settings.k)
+        pairs = adaptive_correspondences(qry, ref, top.indices[:, 0], settings.sequence, scorer, q_seg, r_seg)
+        return MatchResult(shortlist.reference, shortlist.query, top, settings, correspondences=pairs)
+    top = rerank(qry, ref, shortlist.topk, settings.sequence, q_seg, r_seg, k=settings.k)
     return MatchResult(shortlist.reference, shortlist.query, top, settings)
 
 

@@ -92,3 +92,16 @@ def test_the_path_of_a_match_costs_its_distance_and_keeps_its_steps():
         assert path[spec.offset] == j and set(np.diff(path)) <= {0, 1, 2} and len(set(r_seg[path])) == 1
         cost = np.mean(d[starts[i] + np.arange(7), path])
         assert abs(cost - top.distances[i, 0]) < 1e-9
+
+
+def test_re_ranking_every_reference_frame_is_the_exhaustive_adaptive_match():
+    from seqvpr.sequences.adaptive import adaptive_rerank
+    from seqvpr.sequences.matching import TopK
+
+    q, r, q_seg, r_seg = random_case(7, 25, 60, True)
+    spec, scorer = SequenceSpec(5), AdaptiveScorer(1, 2)
+    whole = sequence_topk(q, r, spec, 6, q_seg, r_seg, scorer=scorer)
+    everything = TopK(np.tile(np.arange(60), (25, 1)), np.zeros((25, 60)), np.ones(25, bool))
+    reranked = adaptive_rerank(q, r, everything, spec, scorer, q_seg, r_seg, k=6)
+    np.testing.assert_array_equal(reranked.indices, whole.indices)
+    np.testing.assert_allclose(reranked.distances, whole.distances, rtol=1e-9)

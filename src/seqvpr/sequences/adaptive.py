@@ -133,3 +133,36 @@ def _side_costs(d: np.ndarray, reference: int, anchor: int, scorer: AdaptiveScor
         current = d[k] + nxt
         costs[k] = current
     return costs
+
+
+def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpec, scorer: AdaptiveScorer,
+                    query_segments: np.ndarray, reference_segments: np.ndarray, k: int):
+    """A shortlist's candidates re-ordered by adaptive distance (CaseVPR's hierarchy: sequence-descriptor start
+    points, then adaptive frame matching inside each candidate stretch). Each candidate's reachable stretch is cut
+    from the reference and the stretches are scored together as separate segments, so no path crosses two."""
+    from seqvpr.sequences.matching import TopK, frame_distances
+    from seqvpr.sequences.windows import window_frames, window_starts
+
+    q_starts = window_starts(np.asarray(query_segments), spec.length, spec.offset, "drop")
+    r_seg = np.asarray(reference_segments, dtype=np.int64)
+    keep = min(k, shortlist.indices.shape[1])
+    indices = np.full((len(q_starts), keep), -1, dtype=np.int64)
+    distances = np.full((len(q_starts), keep), np.inf)
+    before, after = spec.offset * scorer.max_step, (spec.length - 1 - spec.offset) * scorer.max_step
+    for i in np.flatnonzero((q_starts >= 0) & shortlist.has_window):
+        candidates = shortlist.indices[i][shortlist.indices[i] >= 0]
+        if len(candidates) == 0:
+            continue
+        spans = [(max(0, c - before), min(len(r_seg), c + after + 1)) for c in candidates]
+        rows = np.concatenate([np.arange(lo, hi) for lo, hi in spans])
+        labels = np.concatenate([np.full(hi - lo, n) for n, (lo, hi) in enumerate(spans)]) * (r_seg.max() + 1) + r_seg[rows]
+        stretch = torch.as_tensor(np.asarray(reference[rows]), dtype=query.dtype)
+        frames = torch.as_tensor(window_frames(q_starts[i : i + 1], spec.length)[0])
+        scored = scorer(frame_distances(query[frames], stretch), np.zeros(1, np.int64), np.zeros(1, np.int64),
+                        labels, spec)[0].double().numpy()
+        anchors = np.cumsum([0] + [hi - lo for lo, hi in spans[:-1]]) + (candidates - [lo for lo, _ in spans])
+        values = scored[anchors]
+        order = np.lexsort((candidates, values))[:keep]
+        order = order[np.isfinite(values[order])]
+        indices[i, : len(order)], distances[i, : len(order)] = candidates[order], values[order]
+    return TopK(indices, distances, (q_starts >= 0) & shortlist.has_window)
