@@ -84,6 +84,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "by adaptive matching inside each candidate stretch (--steps)", scorer="adaptive"),
     Method("hmm", "filter", "topological filter (HMM forward pass) over reference frames: stops and speed changes",
            length=1),
+    Method("graph", "filter", "GISM-style graph matching: the cheapest whole path through the distance matrix, "
+           "moving 0..--steps MAX reference frames a query frame, with a hidden node for jumps (offline)", length=1,
+           scorer="graph"),
 )}
 
 
@@ -179,6 +182,10 @@ def run_method(
         used = {kind: models[kind] for kind in models if get_method(first).accepts(kind)}
         return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST,
                           rerank_scorer=window_scorer(method, settings))
+    if method.family == "filter" and method.scorer == "graph":
+        from seqvpr.pipeline import graph_traversals
+
+        return graph_traversals(*transformed_frames(reference, query, models, settings.device), settings)
     if method.family == "filter":
         from seqvpr.pipeline import filter_traversals
 

@@ -45,6 +45,7 @@ from seqvpr.sequences.matching import (
 from seqvpr.sequences.windows import SequenceSpec
 
 if TYPE_CHECKING:
+    from seqvpr.sequences.graph import GraphSettings
     from seqvpr.models.seqmatchnet import FrameTransform
 
 ProgressFactory = Callable[[int, str], Callable[[int], None]]
@@ -313,6 +314,21 @@ def filter_traversals(
     topological = TopologicalFilter(reference.segment_ids, scale, filter_settings)
     return MatchResult(reference, query, filter_topk(qry, ref, norms, topological, settings.k, query.segment_ids),
                        settings)
+
+
+def graph_traversals(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings(),
+                     graph: GraphSettings | None = None) -> MatchResult:
+    """Top-K reference frames per query frame by the cheapest whole path through them (``graph``: GISM-style
+    best path with bounded jumps over the whole query, offline), fanout from ``settings.steps``' maximum."""
+    from seqvpr.sequences.graph import GraphSettings, graph_topk
+
+    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    if ref.shape[1] != qry.shape[1]:
+        raise SeqvprError(f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
+                          f"{query.source or query.name} has {qry.shape[1]}")
+    chosen = graph or GraphSettings(fanout=settings.steps[1], min_step=settings.steps[0])
+    top = graph_topk(qry, ref, settings.k, query.segment_ids, reference.segment_ids, chosen, settings.memory_budget)
+    return MatchResult(reference, query, top, settings)
 
 
 def retrieve_traversals(
