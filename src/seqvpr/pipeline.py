@@ -450,13 +450,18 @@ def check_ground_truth_covers(gt: GroundTruth, reference: Traversal, query: Trav
 
 
 def evaluate_match(
-    result: MatchResult, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS, no_positive: NoPositivePolicy = "exclude"
+    result: MatchResult, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS, no_positive: NoPositivePolicy = "exclude",
+    uniqueness: int | None = None,
 ) -> Evaluation:
-    """Recall@K and PR of a match result, and the precision of its top-1 matches' per-frame correspondences."""
-    from seqvpr.evaluation.metrics import frame_precision
+    """Recall@K and PR of a match result, and the precision of its top-1 matches' per-frame correspondences. With
+    ``uniqueness`` E, PR ranks the queries by SeqSLAM's windowed uniqueness (exclusion E frames), not by distance."""
+    from seqvpr.evaluation.metrics import frame_precision, uniqueness_margins
 
     top = result.topk
-    evaluation = evaluate(top.indices, top.distances, top.has_window, gt, ks, no_positive)
+    scores = top.distances
+    if uniqueness is not None:
+        scores = uniqueness_margins(top.indices, top.distances, uniqueness)[:, None]
+    evaluation = evaluate(top.indices, scores, top.has_window, gt, ks, no_positive)
     pairs = result.correspondences or match_correspondences(result)
     return evaluation if pairs is None else replace(evaluation, frame_precision=frame_precision(*pairs, gt))
 

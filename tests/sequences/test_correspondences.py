@@ -55,3 +55,21 @@ def test_adaptive_correspondences_at_unit_steps_are_the_windows():
     expected = window_correspondences(best, spec, q_seg, r_seg)
     np.testing.assert_array_equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 9999), k=st.integers(1, 8), exclusion=st.integers(0, 4))
+def test_uniqueness_margins_equal_a_plain_loop(seed, k, exclusion):
+    from seqvpr.evaluation.metrics import uniqueness_margins
+
+    rng = np.random.default_rng(seed)
+    indices = np.stack([rng.permutation(30)[:k] for _ in range(6)])
+    distances = np.sort(rng.random((6, k)), axis=1) - 0.5  # contrast-enhanced distances may be negative
+    indices[5] = -1
+    distances[5] = np.inf
+    got = uniqueness_margins(indices, distances, exclusion)
+    for i in range(5):
+        others = [distances[i, j] for j in range(1, k) if abs(indices[i, j] - indices[i, 0]) > exclusion]
+        second = others[0] if others else distances[i, -1]
+        assert got[i] == distances[i, 0] - second
+    assert got[5] == np.inf

@@ -81,6 +81,9 @@ Examples:
               help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
 @click.option("--pca-dim", default=0, show_default=True, type=NONNEGATIVE,
               help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
+@click.option("--uniqueness", type=NONNEGATIVE, default=None,
+              help="Rank queries for PR by SeqSLAM's windowed uniqueness (best minus the best outside this many "
+                   "frames of it; OpenSeqSLAM2's r_window is 10), not by distance.")
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
               help="Queries with no positive: excluded from the denominator, or counted as misses.")
@@ -127,11 +130,11 @@ def match(**o: Any) -> None:
     gt = ground_truth_of_kept(gt, pair, (reference, query))
     _say_skipped(pair, (reference, query))
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget,
-                             parse_steps(o["steps"]))
+    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
+                             budget, parse_steps(o["steps"]))
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
                         progress=tqdm_progress)
-    evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
+    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     image = image_model(models)
     descriptor = image.kind if image else o["descriptor"] if has_images else "file"
     run = _run_settings(o, method, models, descriptor, gt.description, settings.as_dict())
@@ -148,6 +151,12 @@ def _msls_subtask(query: str, subtask: str, frames: str | None):
     if not is_msls_side(Path(query)):
         raise SeqvprError(f"--msls-subtask needs an MSLS query folder (seq_info.csv, images/): {query} is not one")
     return slice_frame_range(load_msls_side(query, subtask), frames)
+
+
+def _top_k(k_values: tuple[int, ...], uniqueness: int | None) -> int:
+    """Matches kept per query: the largest K asked, and with --uniqueness E at least 2E + 2, so that a match outside
+    the exclusion window is in the list (the ones inside are the best match's neighbours)."""
+    return max(max(k_values), 2 * uniqueness + 2 if uniqueness is not None else 0)
 
 
 def run_label(method: str, length: int, o: dict[str, Any]) -> str:
@@ -184,12 +193,12 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
     gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, max(k_values), not o["no_normalize"], o["dtype"], o["device"], budget,
-                             parse_steps(o["steps"]))
+    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
+                             budget, parse_steps(o["steps"]))
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
                        shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
                        cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
-    evaluation = evaluate_match(result, gt, k_values, o["no_positive"])
+    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
                         gt.description, settings.as_dict())
     run["map"] = o["map_dir"]
