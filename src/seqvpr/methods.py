@@ -69,6 +69,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "MIN:MAX frames (stops, speed changes; DTW-like)", scorer="adaptive"),
     Method("seqslam", "matching", "SeqSLAM: local contrast enhancement of the distance matrix (10 reference frames), "
            "then sequence matching (OpenSeqSLAM2's trajectory search: --velocities 0.8:1.2:0.1)", scorer="seqslam"),
+    Method("seqslam-cone", "matching", "SeqSLAM with OpenSeqSLAM2's cone search: each query frame takes the best "
+           "reference frame between the slowest and fastest --velocities lines", scorer="seqslam-cone"),
     Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
     Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
     Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
@@ -210,10 +212,10 @@ def window_scorer(method: Method, settings: MatchSettings):
         from seqvpr.sequences.adaptive import AdaptiveScorer
 
         return AdaptiveScorer(*settings.steps)
-    if method.scorer == "seqslam":
-        from seqvpr.sequences.seqslam import ContrastScorer
+    if method.scorer in ("seqslam", "seqslam-cone"):
+        from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer
 
-        return ContrastScorer()
+        return ContrastScorer(inner=ConeScorer() if method.scorer == "seqslam-cone" else None)
     return None
 
 

@@ -61,3 +61,29 @@ class ContrastScorer:
         enhanced = enhance_contrast(d, reference_segments, self.window)
         score = self.inner if self.inner is not None else sequence_rows
         return score(enhanced, rows, query_starts, reference_segments, spec, inplace=True)
+
+
+@dataclass(frozen=True)
+class ConeScorer:
+    """OpenSeqSLAM2's cone search: from the anchor frame's reference j, query frame k of the window may match any
+    reference frame between the slowest and the fastest velocity's line (``spec.velocities``' min and max), inside
+    j's segment; the window's distance is the mean over k of the best frame in that range. With one velocity it is
+    the kernel's straight line."""
+
+    def span(self, spec: SequenceSpec) -> int:
+        return int(np.ceil(max(spec.velocities) * (spec.length - 1))) + 1
+
+    def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
+                 spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
+        from seqvpr.sequences.adaptive import shifted_min
+
+        low, high = min(spec.velocities), max(spec.velocities)
+        starts = torch.as_tensor(np.asarray(query_starts, dtype=np.int64), device=d.device)
+        reach = int(np.ceil(high * max(spec.offset, spec.length - 1 - spec.offset))) + 1
+        total = torch.zeros((len(starts), d.shape[1]), dtype=d.dtype, device=d.device)
+        for k in range(spec.length):
+            offset = k - spec.offset
+            ends = sorted((int(np.floor(low * offset + 0.5)), int(np.floor(high * offset + 0.5))))
+            row = d.index_select(0, starts + k)
+            total += shifted_min(row, ends[0], ends[1], reference_segments, reach)
+        return total.div_(spec.length)
