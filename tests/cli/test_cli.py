@@ -96,9 +96,9 @@ def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypa
     code, stdout, stderr = run(monkeypatch, capsys, "demo", "--quick", "--out", out)
     assert code == 0, stderr
     cells = [re.split(r"\s{2,}", line.strip()) for line in stdout.splitlines()
-             if line.startswith(("single image", "sequence matching", "SeqMatchNet"))]
+             if line.startswith(("single image", "sequence matching", "adaptive matching", "SeqMatchNet"))]
     rows = {name: [float(v) for v in values] for name, *values in cells}
-    assert set(rows) == {"single image", "sequence matching L=5", "SeqMatchNet L=5"}
+    assert set(rows) == {"single image", "sequence matching L=5", "adaptive matching L=5", "SeqMatchNet L=5"}
     assert rows["sequence matching L=5"][0] > rows["single image"][0]  # sequences beat single frames here
     page = out / "report" / "index.html"
     html = page.read_text()

@@ -211,6 +211,10 @@ def run_demo(
                         "single" if length == 1 else "matching", reference, query, gt, length, settings.device)
         for length in settings.lengths
     ]
+    longest = max(settings.lengths)
+    if longest > 1:  # the route has stops and speed changes: the matcher made for them, beside constant slope
+        runs.append(match_and_score(f"adaptive matching L={longest}", "adaptive", reference, query, gt, longest,
+                                    settings.device))
     lap("match")
     if settings.train:
         echo(f"training SeqMatchNet on the training route ({settings.epochs} epochs)...")
