@@ -206,15 +206,7 @@ def run_demo(
     lap("describe")
     reference, query = world["test_reference"], world["test_query"]
     gt = ground_truth(reference, query, Radius(settings.radius_m, "m"))
-    runs = [
-        match_and_score("single image" if length == 1 else f"sequence matching L={length}",
-                        "single" if length == 1 else "matching", reference, query, gt, length, settings.device)
-        for length in settings.lengths
-    ]
-    longest = max(settings.lengths)
-    if longest > 1:  # the route has stops and speed changes: the matcher made for them, beside constant slope
-        runs.append(match_and_score(f"adaptive matching L={longest}", "adaptive", reference, query, gt, longest,
-                                    settings.device))
+    runs = untrained_runs(reference, query, gt, settings)
     lap("match")
     if settings.train:
         echo(f"training SeqMatchNet on the training route ({settings.epochs} epochs)...")
@@ -236,11 +228,28 @@ def run_demo(
     return DemoResult(runs, page, seconds)
 
 
+def untrained_runs(reference: Traversal, query: Traversal, gt: GroundTruth, settings: DemoSettings) -> list[MethodRun]:
+    """Single-image retrieval and sequence matching at every L, then adaptive matching at the longest L (the route
+    has stops and speed changes: the matcher made for them, beside constant slope)."""
+    runs = [
+        match_and_score("single image" if length == 1 else f"sequence matching L={length}",
+                        "single" if length == 1 else "matching", reference, query, gt, length, settings.device)
+        for length in settings.lengths
+    ]
+    longest = max(settings.lengths)
+    if longest > 1:
+        runs.append(match_and_score(f"adaptive matching L={longest}", "adaptive", reference, query, gt, longest,
+                                    settings.device))
+    return runs
+
+
 def demo_recall_table(runs: Sequence[MethodRun], ks: Sequence[int] = (1, 5, 20)) -> str:
-    """The recall table as text: one row per method, R@K columns, PR-AUC."""
+    """The recall table as text: one row per method, R@K columns, PR-AUC and the frame-level precision of the top-1
+    matches' correspondences (``frames``)."""
     width = max(len(run.name) for run in runs) + 2
-    lines = [f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}"]
+    lines = [f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'frames':>8}"]
     for run in runs:
         recall = run.evaluation.recall
-        lines.append(f"{run.name:<{width}}" + "".join(f"{recall[k]:>8.3f}" for k in ks) + f"{run.evaluation.pr.auc:>8.3f}")
+        lines.append(f"{run.name:<{width}}" + "".join(f"{recall[k]:>8.3f}" for k in ks)
+                     + f"{run.evaluation.pr.auc:>8.3f}{run.evaluation.frame_precision:>8.3f}")
     return "\n".join(lines)
