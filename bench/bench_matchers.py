@@ -6,7 +6,8 @@ Run from the repository root (about a minute on 2 cores):
 
 Each matcher goes through ``sequence_topk`` on the same seeded random unit descriptors (K = 20, the default 2 GB
 budget): the constant-velocity kernel (the yardstick), ``AdaptiveScorer(1, 2)`` (``--method adaptive``) and
-``ContrastScorer()`` (``--method seqslam``), and the kernel with SeqSLAM's five-velocity sweep. The median of
+``ContrastScorer()`` (``--method seqslam``), the kernel with SeqSLAM's five-velocity sweep, and once the graph
+matcher (``--method graph``, whole query) against the kernel at L = 1. The median of
 ``--repeats`` runs is reported per length, with the ratio to the kernel at the same length.
 """
 
@@ -21,6 +22,7 @@ import torch
 
 from _common import cpu_model
 from seqvpr.sequences.adaptive import AdaptiveScorer
+from seqvpr.sequences.graph import GraphSettings, graph_topk
 from seqvpr.sequences.matching import sequence_topk
 from seqvpr.sequences.seqslam import ContrastScorer
 from seqvpr.sequences.windows import SequenceSpec
@@ -59,6 +61,12 @@ def main() -> None:
                 ("seqslam contrast (window 10)", timed(query, reference, spec, ContrastScorer(), args.repeats))]
         for name, seconds in rows:
             print(f"{length:>3} {name:<28} {seconds:8.3f} {seconds / base:8.2f}x")
+    base = timed(query, reference, SequenceSpec(1), None, args.repeats)
+    segments = (np.zeros(args.queries, np.int64), np.zeros(args.references, np.int64))
+    started = time.perf_counter()
+    graph_topk(query, reference, 20, *segments, GraphSettings())
+    seconds = time.perf_counter() - started
+    print(f"{'-':>3} {'graph (whole path, steps 1..2)':<28} {seconds:8.3f} {seconds / base:8.2f}x  (against the kernel at L=1)")
 
 
 if __name__ == "__main__":
