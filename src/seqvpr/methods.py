@@ -215,7 +215,7 @@ def window_scorer(method: Method, settings: MatchSettings):
     if method.scorer in ("seqslam", "seqslam-cone"):
         from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer
 
-        return ContrastScorer(inner=ConeScorer() if method.scorer == "seqslam-cone" else None)
+        return ContrastScorer(settings.contrast_window, ConeScorer() if method.scorer == "seqslam-cone" else None)
     return None
 
 

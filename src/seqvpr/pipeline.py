@@ -64,6 +64,7 @@ class MatchSettings:
     device: str = "cpu"
     memory_budget: int | None = 2 * 1024**3
     steps: tuple[int, int] = (1, 2)  # adaptive matching: the fewest and most reference frames per query frame
+    contrast_window: int = 10  # seqslam: reference frames each distance is standardised against (r_window)
 
     def as_dict(self) -> dict:
         return asdict(self)

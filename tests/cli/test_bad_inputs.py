@@ -197,6 +197,7 @@ CASES = {
     "localize: -L longer than every map segment (warmed up forever)": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "-L", "100000", "--out", "{out}"), "longer than every segment"),
     "benchmark: an unknown [benchmark] key (was ignored)": (("benchmark", "{w}/bench_typo.toml", "--out", "{out}"), "unknown keys"),
     "match: --steps MIN above MAX": ((*M, "--method", "adaptive", "-L", "3", "--steps", "3:1"), "--steps"),
+    "match: --contrast-window 1": ((*M, "--method", "seqslam", "-L", "3", "--contrast-window", "1"), "--contrast-window"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

@@ -12,6 +12,7 @@ from seqvpr.cli.options import (
     DEVICE,
     COUNT,
     NONNEGATIVE,
+    Number,
     bag_topic_options,
     parse_steps,
     locks_output,
@@ -57,6 +58,9 @@ Examples:
               help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
 @click.option("--steps", default="1:2", show_default=True,
               help="--method adaptive: the fewest and most reference frames a query frame may move (MIN:MAX).")
+@click.option("--contrast-window", type=Number(int, 2), default=10, show_default=True,
+              help="--method seqslam: reference frames each distance is standardised against (OpenSeqSLAM2's "
+                   "r_window); widen it where frames are dense relative to the tolerance.")
 @click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft), VPR-Bench .npy or a dense boolean matrix .npy/.npz.")
 @click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
@@ -131,7 +135,7 @@ def match(**o: Any) -> None:
     _say_skipped(pair, (reference, query))
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget, parse_steps(o["steps"]))
+                             budget, parse_steps(o["steps"]), o["contrast_window"])
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
                         progress=tqdm_progress)
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
@@ -194,7 +198,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget, parse_steps(o["steps"]))
+                             budget, parse_steps(o["steps"]), o["contrast_window"])
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
                        shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
                        cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
