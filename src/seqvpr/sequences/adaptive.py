@@ -49,19 +49,19 @@ class AdaptiveScorer:
         ``d``; ``rows`` is unused: the anchor is the window's ``spec.offset``-th frame, as the kernel's)."""
         starts = torch.as_tensor(np.asarray(query_starts, dtype=np.int64), device=d.device)
         frames = [d.index_select(0, starts + k) for k in range(spec.length)]
-        same = _same_segment(reference_segments, self.max_step, d.device)
+        same = same_segment_masks(reference_segments, self.max_step, d.device)
         a = spec.offset
         forward = frames[0]
         for k in range(1, a + 1):
-            forward = frames[k] + _shifted_min(forward, self.min_step, self.max_step, same, +1)
+            forward = frames[k] + steps_min(forward, self.min_step, self.max_step, same, +1)
         backward = frames[-1]
         for k in range(spec.length - 2, a - 1, -1):
-            backward = frames[k] + _shifted_min(backward, self.min_step, self.max_step, same, -1)
+            backward = frames[k] + steps_min(backward, self.min_step, self.max_step, same, -1)
         total = forward + backward - frames[a]
         return total.div_(spec.length)
 
 
-def _same_segment(segments: np.ndarray, max_step: int, device: torch.device) -> list[torch.Tensor]:
+def same_segment_masks(segments: np.ndarray, max_step: int, device: torch.device) -> list[torch.Tensor]:
     """For each step t, whether reference frame r and r - t lie in one segment (False where r - t < 0)."""
     seg = torch.as_tensor(np.asarray(segments, dtype=np.int64), device=device)
     out = []
@@ -72,7 +72,7 @@ def _same_segment(segments: np.ndarray, max_step: int, device: torch.device) -> 
     return out
 
 
-def _shifted_min(values: torch.Tensor, low: int, high: int, same: list[torch.Tensor], direction: int) -> torch.Tensor:
+def steps_min(values: torch.Tensor, low: int, high: int, same: list[torch.Tensor], direction: int) -> torch.Tensor:
     """``min_t values[:, r - t]`` (direction +1, paths arriving at r) or ``min_t values[:, r + t]`` (-1, paths
     leaving r) over steps t in [low, high] that stay inside a segment; +inf where none does."""
     n = values.shape[1]
@@ -171,10 +171,10 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
 def shifted_min(values: torch.Tensor, low: int, high: int, reference_segments: np.ndarray, reach: int) -> torch.Tensor:
     """``min over t in [low, high] of values[:, r + t]`` where r + t lies in r's segment (t may be negative; +inf
     where no such t): the best frame of a reference range placed relative to each column."""
-    same = _same_segment(reference_segments, max(reach, abs(low), abs(high)), values.device)
+    same = same_segment_masks(reference_segments, max(reach, abs(low), abs(high)), values.device)
     best = torch.full_like(values, float("inf"))
     if low <= 0:
-        best = torch.minimum(best, _shifted_min(values, max(0, -high), -low, same, +1))
+        best = torch.minimum(best, steps_min(values, max(0, -high), -low, same, +1))
     if high >= 0:
-        best = torch.minimum(best, _shifted_min(values, max(0, low), high, same, -1))
+        best = torch.minimum(best, steps_min(values, max(0, low), high, same, -1))
     return best

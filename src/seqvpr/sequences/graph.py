@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
+from seqvpr.sequences.adaptive import same_segment_masks, steps_min
 from seqvpr.sequences.matching import TopK, frame_distances
 from seqvpr.sequences.windows import segment_bounds
 
@@ -60,50 +61,29 @@ def path_costs(d: np.ndarray, query_segments: np.ndarray, reference_segments: np
                hidden: float, min_step: int = 0) -> np.ndarray:
     """Min-marginals [n_q, n_r]: the mean cost per query frame of the best path (within the query frame's segment)
     that passes through reference frame r at query frame i."""
-    moves = _moves(reference_segments, fanout)[min_step:]
-    forward, _ = _pass(d, query_segments, moves, hidden, +1)
-    backward, _ = _pass(d, query_segments, moves, hidden, -1)
+    same = same_segment_masks(np.asarray(reference_segments), fanout, torch.device("cpu"))
+    forward = _pass(d, query_segments, same, min_step, fanout, hidden, +1)
+    backward = _pass(d, query_segments, same, min_step, fanout, hidden, -1)
     seg_start, seg_end = segment_bounds(query_segments)
     return (forward + backward - d) / (seg_end - seg_start)[:, None]
 
 
-def _moves(segments: np.ndarray, fanout: int) -> list[tuple[int, np.ndarray]]:
-    """For each step t in [0, fanout]: whether reference frame r may be reached from r - t (one segment)."""
-    n = len(segments)
-    out = []
-    for t in range(fanout + 1):
-        ok = np.zeros(n, bool)
-        ok[t:] = segments[t:] == segments[: n - t]
-        out.append((t, ok))
-    return out
-
-
-def _pass(d: np.ndarray, q_seg: np.ndarray, moves, hidden: float, direction: int) -> tuple[np.ndarray, np.ndarray]:
-    """Min-sum costs of the best partial paths ending (forward) or starting (backward) at each node: [n_q, n_r]
-    for the reference nodes and [n_q] for the hidden node; a query segment break starts afresh."""
-    n_q, n_r = d.shape
+def _pass(d: np.ndarray, q_seg: np.ndarray, same: list[torch.Tensor], low: int, high: int, hidden: float,
+          direction: int) -> np.ndarray:
+    """Min-sum costs [n_q, n_r] of the best partial paths ending (forward) or starting (backward) at each reference
+    node, steps as the adaptive matcher's (``steps_min``) or through the hidden node; a query segment break starts
+    afresh."""
     out = np.empty_like(d)
-    out_hidden = np.empty(n_q)
-    rows = range(n_q) if direction > 0 else range(n_q - 1, -1, -1)
-    previous, previous_hidden, previous_row = None, 0.0, -1
+    rows = range(len(d)) if direction > 0 else range(len(d) - 1, -1, -1)
+    previous_row, previous_hidden = -1, 0.0
     for i in rows:
-        if previous is None or q_seg[i] != q_seg[previous_row]:
-            carry, carry_hidden = np.zeros(n_r), 0.0
+        if previous_row < 0 or q_seg[i] != q_seg[previous_row]:
+            carry, carry_hidden = 0.0, 0.0
         else:
-            carry = np.full(n_r, np.inf)
-            for t, ok in moves:
-                if direction > 0:
-                    shifted = np.full(n_r, np.inf)
-                    shifted[t:] = previous[: n_r - t]
-                    shifted[~ok] = np.inf
-                else:
-                    shifted = np.full(n_r, np.inf)
-                    shifted[: n_r - t] = previous[t:]
-                    shifted[: n_r - t][~ok[t:]] = np.inf
-                np.minimum(carry, shifted, out=carry)
+            previous = torch.from_numpy(out[previous_row][None])
+            carry = steps_min(previous, low, high, same, direction)[0].numpy()
             np.minimum(carry, previous_hidden, out=carry)  # back from the hidden node: a jump
-            carry_hidden = min(previous_hidden, float(previous.min()))
+            carry_hidden = min(previous_hidden, float(out[previous_row].min()))
         out[i] = d[i] + carry
-        out_hidden[i] = hidden + carry_hidden
-        previous, previous_hidden, previous_row = out[i], out_hidden[i], i
-    return out, out_hidden
+        previous_row, previous_hidden = i, hidden + carry_hidden
+    return out
