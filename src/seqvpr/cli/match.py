@@ -106,6 +106,7 @@ def match(**o: Any) -> None:
     from seqvpr.sequences.windows import SequenceSpec
 
     k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
+    parse_steps(o["steps"])  # a bad --steps fails before any data is read
     if o["pca_dim"] < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
     if o["seq_len"] is not None:
