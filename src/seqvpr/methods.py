@@ -69,8 +69,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "MIN:MAX frames (stops, speed changes; DTW-like)", scorer="adaptive"),
     Method("seqslam", "matching", "SeqSLAM: local contrast enhancement of the distance matrix (10 reference frames), "
            "then sequence matching (OpenSeqSLAM2's trajectory search: --velocities 0.8:1.2:0.1)", scorer="seqslam"),
-    Method("seqslam-cone", "matching", "SeqSLAM with OpenSeqSLAM2's cone search: each query frame takes the best "
-           "reference frame between the slowest and fastest --velocities lines", scorer="seqslam-cone"),
+    Method("seqslam-cone", "matching", "OpenSeqSLAM2's cone search: the share of the window's frames whose single-image "
+           "best match lies between the slowest and fastest --velocities trajectories (votes, no distances)",
+           scorer="seqslam-cone"),
+    Method("seqslam-hybrid", "matching", "OpenSeqSLAM2's hybrid search: contrast enhancement, then the best of the "
+           "--velocities trajectories that pass through some frame's single-image best match", scorer="seqslam-hybrid"),
     Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
     Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
     Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
@@ -212,10 +215,12 @@ def window_scorer(method: Method, settings: MatchSettings):
         from seqvpr.sequences.adaptive import AdaptiveScorer
 
         return AdaptiveScorer(*settings.steps)
-    if method.scorer in ("seqslam", "seqslam-cone"):
-        from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer
+    if method.scorer in ("seqslam", "seqslam-cone", "seqslam-hybrid"):
+        from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer, HybridScorer
 
-        return ContrastScorer(settings.contrast_window, ConeScorer() if method.scorer == "seqslam-cone" else None)
+        if method.scorer == "seqslam-cone":  # it counts votes: the enhanced distances would go unread
+            return ConeScorer()
+        return ContrastScorer(settings.contrast_window, HybridScorer() if method.scorer == "seqslam-hybrid" else None)
     return None
 
 

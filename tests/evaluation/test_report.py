@@ -1,6 +1,7 @@
 """The HTML report: self-contained folder, escaped text, atomic replacement, thumbnails and framing, big matrices."""
 
 from __future__ import annotations
+import csv
 
 import dataclasses
 import time
@@ -62,11 +63,11 @@ def parse(index: Path) -> PageParser:
     return parser
 
 
-def make_method(name: str, r1: float, k_max: int = 20) -> MethodResult:
+def make_method(name: str, r1: float, k_max: int = 20, frames: float = float("nan")) -> MethodResult:
     recall = {k: min(1.0, r1 + 0.02 * (k - 1)) for k in range(1, k_max + 1)}
     rec = np.linspace(0.05, r1, 30)
     prec = np.linspace(1.0, 0.7, 30)
-    return MethodResult(name, recall, prec, rec, pr_auc=0.61234, recall_at_100_precision=0.2)
+    return MethodResult(name, recall, prec, rec, pr_auc=0.61234, recall_at_100_precision=0.2, frame_precision=frames)
 
 
 def make_view(n_q: int = 60, n_r: int = 50, seed: int = 0) -> DistanceView:
@@ -122,7 +123,7 @@ def full_report(out: Path, images: list[Path], **overrides) -> Path:
     kwargs = dict(
         title="Demo",
         summary="Nordland, winter vs summer.",
-        methods=[make_method("SeqMatchNet", 0.81234), make_method("SeqSLAM", 0.6)],
+        methods=[make_method("SeqMatchNet", 0.81234, frames=0.79876), make_method("SeqSLAM", 0.6)],
         table_ks=(1, 5, 20),
         distance_views=[],
         examples=make_examples(images),
@@ -163,6 +164,17 @@ def test_table_holds_names_and_recall_at_1(built):
     assert by_name["SeqMatchNet"][1] == "0.812"
     assert by_name["SeqSLAM"][1] == "0.600"
     assert by_name["SeqMatchNet"][4] == "0.612"  # PR-AUC
+
+
+def test_frame_precision_is_a_column_and_n_a_where_a_method_pairs_no_frames(built):
+    rows = parse(built[0] / "index.html").rows
+    assert rows[0][-1] == "frames"
+    by_name = {row[0]: row for row in rows[1:]}
+    assert by_name["SeqMatchNet"][-1] == "0.799" and by_name["SeqSLAM"][-1] == "n/a"
+    with open(built[0] / "results.csv", newline="") as handle:
+        csv_rows = {row["method"]: row for row in csv.DictReader(handle)}
+    assert float(csv_rows["SeqMatchNet"]["frame_precision"]) == pytest.approx(0.79876)
+    assert csv_rows["SeqSLAM"]["frame_precision"] == ""
 
 
 def test_caller_text_is_escaped(tmp_path, images):

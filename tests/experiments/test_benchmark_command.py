@@ -60,6 +60,35 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
     assert code == 0 and again == stdout  # a re-run into the same folder reuses the trained model
 
 
+def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table(monkeypatch, capsys, route, tmp_path):
+    from seqvpr.data.groundtruth import ground_truth_within_radius
+    from seqvpr.experiments.benchmark import load_splits
+    from seqvpr.methods import run_method
+    from seqvpr.pipeline import MatchSettings, evaluate_match
+    from seqvpr.sequences.windows import SequenceSpec
+
+    config = route / "bench_matchers.toml"
+    config.write_text(config_text('["single", "adaptive", "graph"]', lengths="[5, 7]"))
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
+    assert code == 0, stderr
+    with open(tmp_path / "b" / "results.csv", newline="") as handle:
+        rows = {(r["method"], r["L"]): r for r in csv.DictReader(handle)}
+    splits = load_splits(read_config(config).datasets[0])
+    gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
+    result = run_method("adaptive", *splits.test, MatchSettings(SequenceSpec(7), k=20))
+    expected = evaluate_match(result, gt, (1, 5))  # oracle: the library's own evaluation of the same run
+    row = rows[("adaptive", "7")]
+    assert float(row["frame_precision"]) == pytest.approx(expected.frame_precision, abs=1e-4)
+    assert float(row["recall_at_100_precision"]) == pytest.approx(expected.pr.recall_at_100_precision, abs=1e-4)
+    assert 0 < float(row["frame_precision"]) <= 1
+    single = next(r for (method, _), r in rows.items() if method == "single")
+    assert single["frame_precision"] != ""  # one frame a query: its own correspondence
+    markdown = (tmp_path / "b" / "results.md").read_text()
+    assert "demo: R@1 / R@5 / R@100P / frames" in markdown
+    detail = next(line for line in markdown.splitlines() if line.startswith("| adaptive | 7 |"))
+    assert detail.split("|")[3].strip().endswith(f"{expected.frame_precision:.3f}")
+
+
 def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
     from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
     from seqvpr.sequences.windows import SequenceSpec

@@ -53,6 +53,7 @@ class MethodResult:
     recall: np.ndarray
     pr_auc: float
     recall_at_100_precision: float
+    frame_precision: float = float("nan")  # share of the top-1 matches' per-frame correspondences that are right
 
 
 @dataclass(frozen=True)
@@ -188,10 +189,11 @@ def format_value(value: float | None) -> str:
 
 
 def recall_table_html(methods: Sequence[MethodResult], table_ks: Sequence[int], colours: dict[str, str]) -> str:
-    """The methods × (R@K…, PR-AUC, R@100%P) table, best value of each column in bold."""
+    """The methods × (R@K…, PR-AUC, R@100%P, frame precision) table, best value of each column in bold."""
     columns = [(f"R@{k}", [m.recall_at_k.get(k) for m in methods]) for k in table_ks]
     columns.append(("PR-AUC", [m.pr_auc for m in methods]))
     columns.append(("R@100%P", [m.recall_at_100_precision for m in methods]))
+    columns.append(("frames", [m.frame_precision for m in methods]))
     head = "".join(f"<th>{html.escape(name)}</th>" for name, _ in columns)
     best = [_best_index(values) for _, values in columns]
     rows = []
@@ -274,14 +276,16 @@ def page_html(title: str, sections: Sequence[str]) -> str:
 
 
 def write_results_csv(methods: Sequence[MethodResult], path: Path) -> None:
-    """The table's numbers for machines: every K that any method has, PR-AUC and recall at 100 % precision."""
+    """The table's numbers for machines: every K that any method has, PR-AUC, recall at 100 % precision and
+    frame-level precision (empty where a method has no per-frame correspondences)."""
     ks = sorted({k for m in methods for k in m.recall_at_k})
     with open(path, "w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["method", *(f"R@{k}" for k in ks), "PR-AUC", "R@100%P"])
+        writer.writerow(["method", *(f"R@{k}" for k in ks), "PR-AUC", "R@100%P", "frame_precision"])
         for m in methods:
-            values = [m.recall_at_k.get(k, float("nan")) for k in ks]
-            writer.writerow([m.name, *(f"{v:.6f}" for v in values), f"{m.pr_auc:.6f}", f"{m.recall_at_100_precision:.6f}"])
+            values = [*(m.recall_at_k.get(k, float("nan")) for k in ks), m.pr_auc, m.recall_at_100_precision]
+            frames = f"{m.frame_precision:.6f}" if math.isfinite(m.frame_precision) else ""
+            writer.writerow([m.name, *(f"{v:.6f}" for v in values), frames])
 
 
 # ----------------------------------------------------------------------------------------------- the report
@@ -320,7 +324,8 @@ def _recall_sections(methods: Sequence[MethodResult], table_ks: Sequence[int], c
         recall_table_html(methods, table_ks, colours),
         '<p class="legend">R@K: share of queries with a correct place among the K nearest references. '
         "PR-AUC and R@100%P: precision–recall of accepting the top-1 match below a distance threshold. "
-        "Best value per column in bold.</p>",
+        "frames: share of the top-1 matches' per-frame correspondences that fall on a correct place "
+        "(n/a where a method pairs no frames). Best value per column in bold.</p>",
     ]
 
 

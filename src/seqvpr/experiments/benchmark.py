@@ -376,21 +376,55 @@ def length_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
 
 
 def rows_csv(rows: Sequence[Row], ks: Sequence[int]) -> str:
-    """All rows as CSV: dataset, method, L, R@K..., PR-AUC, queries evaluated, error."""
+    """All rows as CSV: dataset, method, L, R@K..., PR-AUC, R@100%P, frame precision, queries evaluated, error.
+    Frame precision is empty for methods without per-frame correspondences."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["dataset", "method", "L", *[f"R@{k}" for k in ks], "pr_auc", "queries_evaluated", "error"])
+    writer.writerow(["dataset", "method", "L", *[f"R@{k}" for k in ks], "pr_auc", "recall_at_100_precision",
+                     "frame_precision", "queries_evaluated", "error"])
     for row in rows:
         e = row.evaluation
-        values = [f"{e.recall[k]:.4f}" for k in ks] + [f"{e.pr.auc:.4f}", e.queries_evaluated] if e else [""] * (len(ks) + 2)
+        values = [""] * (len(ks) + 4)
+        if e is not None:
+            figures = [*(e.recall[k] for k in ks), e.pr.auc, e.pr.recall_at_100_precision, e.frame_precision]
+            values = [_figure(v, 4) for v in figures] + [e.queries_evaluated]
         writer.writerow([row.dataset, row.method, row.length, *values, row.error])
     return buffer.getvalue()
 
 
+def detail_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
+    """Markdown: every method at every length it ran, per dataset R@K... / R@100%P / frame precision in one cell
+    (the robotics figures beside the retrieval ones; frame precision '–' where a method pairs no frames)."""
+    names = [spec.name for spec in config.datasets]
+    what = " / ".join([*(f"R@{k}" for k in config.ks), "R@100P", "frames"])
+    lines = ["| method | L | " + " | ".join(f"{name}: {what}" for name in names) + " |",
+             "|---|---:|" + "---|" * len(names)]
+    for method in config.methods:
+        lengths = sorted({r.length for r in rows if r.method == method})
+        for length in lengths:
+            cells = [_detail_cell(_find(rows, name, method, length), config.ks) for name in names]
+            lines.append(f"| {method} | {length} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _detail_cell(row: Row | None, ks: Sequence[int]) -> str:
+    if row is None or row.evaluation is None:
+        return _cells(row, ks[:1])[0]
+    e = row.evaluation
+    figures = [*(e.recall[k] for k in ks), e.pr.recall_at_100_precision, e.frame_precision]
+    return " / ".join(_figure(v, 3, missing="–") for v in figures)
+
+
+def _figure(value: float, digits: int, missing: str = "") -> str:
+    """A figure at ``digits`` decimals; NaN (a figure the method does not have) as ``missing``."""
+    return f"{value:.{digits}f}" if value == value else missing
+
+
 def write_results(rows: Sequence[Row], config: BenchmarkConfig, out: Path) -> tuple[Path, Path]:
-    """results.csv and results.md (both tables) in ``out``, each written atomically."""
+    """results.csv and results.md (the three tables) in ``out``, each written atomically."""
     markdown = f"## Methods at L={config.seq_len}\n\n{main_table(rows, config)}\n\n## Sequence length (R@{config.ks[0]})\n\n"
-    markdown += length_table(rows, config) + "\n"
+    markdown += length_table(rows, config) + "\n\n## Every length: R@K, R@100%P and frame-level precision\n\n"
+    markdown += detail_table(rows, config) + "\n"
     with atomic_write(out / "results.csv") as handle:
         handle.write(rows_csv(rows, config.ks))
     with atomic_write(out / "results.md") as handle:

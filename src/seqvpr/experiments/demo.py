@@ -136,7 +136,7 @@ def method_result(run: MethodRun) -> MethodResult:
     """The report's row of one method."""
     pr = run.evaluation.pr
     return MethodResult(run.name, dict(run.evaluation.recall), pr.precision, pr.recall, pr.auc,
-                        pr.recall_at_100_precision)
+                        pr.recall_at_100_precision, run.evaluation.frame_precision)
 
 
 def distance_view(run: MethodRun, gt: GroundTruth) -> DistanceView:

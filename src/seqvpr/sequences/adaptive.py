@@ -167,14 +167,3 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
         indices[i, : len(order)], distances[i, : len(order)] = candidates[order], values[order]
     return TopK(indices, distances, (q_starts >= 0) & shortlist.has_window)
 
-
-def shifted_min(values: torch.Tensor, low: int, high: int, reference_segments: np.ndarray, reach: int) -> torch.Tensor:
-    """``min over t in [low, high] of values[:, r + t]`` where r + t lies in r's segment (t may be negative; +inf
-    where no such t): the best frame of a reference range placed relative to each column."""
-    same = same_segment_masks(reference_segments, max(reach, abs(low), abs(high)), values.device)
-    best = torch.full_like(values, float("inf"))
-    if low <= 0:
-        best = torch.minimum(best, steps_min(values, max(0, -high), -low, same, +1))
-    if high >= 0:
-        best = torch.minimum(best, steps_min(values, max(0, low), high, same, -1))
-    return best

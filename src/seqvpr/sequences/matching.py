@@ -225,7 +225,10 @@ def sequence_rows(
 
 class WindowScorer(Protocol):
     """Turns a block's frame distances into window distances: the kernel's constant velocity by default, or another
-    matcher beside it (``adaptive.AdaptiveScorer``); ``span`` is the reference frames one window may cover."""
+    matcher beside it (``adaptive.AdaptiveScorer``); ``span`` is the reference frames one window may cover. A scorer
+    that needs more than its block may also define ``prepare(query, reference, query_segments, reference_segments,
+    memory_budget)`` (called once with the whole traversals) and ``locate(query_frames, reference_first)`` (called
+    per block with its query frames and first reference row), each returning the bound scorer (SeqSLAM's hybrid)."""
 
     def span(self, spec: SequenceSpec) -> int: ...
 
@@ -273,6 +276,8 @@ def sequence_topk(
     q_starts = window_starts(q_seg, spec.length, spec.offset, spec.boundary)
     require_windows(q_starts, spec.length, "query", q_seg)
     require_windows(window_starts(r_seg, max_span(spec), 0, spec.boundary), max_span(spec), "reference", r_seg)
+    if hasattr(scorer, "prepare"):
+        scorer = scorer.prepare(query, reference, q_seg, r_seg, memory_budget)
     k = min(k, n_r)
     indices = np.full((n_q, k), -1, dtype=np.int64)
     distances = np.full((n_q, k), np.inf, dtype=np.float64)
@@ -349,7 +354,7 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None
         last = min(first + columns, n_r)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
         block = _reference_block(reference, lo, hi, query)
-        rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer)
+        rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer, lo)
         rows = rows[:, first - lo : last - lo]
         merge_topk(rows, first, values, picked)
     all_values = np.full((len(starts), k), np.inf)
@@ -397,9 +402,11 @@ def sequence_distance_rows(
     reference_segments: np.ndarray | None = None,
     workspace: Workspace | None = None,
     scorer: WindowScorer | None = None,
+    reference_first: int = 0,
 ) -> torch.Tensor:
     """Sequence distances [len(query_starts), n_reference] of the query windows starting at ``query_starts``
-    (computed in ``workspace``'s buffer when one is given).
+    (computed in ``workspace``'s buffer when one is given); ``reference`` starts at row ``reference_first`` of the
+    whole reference.
 
     Only the frames those windows cover are compared with the reference (one GEMM over their union, laid out as
     contiguous runs), so a scattered set of windows costs about its own frames, and a contiguous block its rows
@@ -417,6 +424,8 @@ def sequence_distance_rows(
     local_starts = position[starts]
     r_seg = _segments(reference_segments, len(reference))
     score = scorer if scorer is not None else sequence_rows
+    if hasattr(score, "locate"):
+        score = score.locate(covered, reference_first)
     return score(d, local_starts + spec.offset, local_starts, r_seg, spec, inplace=not d.requires_grad)
 
 

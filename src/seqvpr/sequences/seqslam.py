@@ -12,14 +12,14 @@ more frames of halo.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import WindowScorer, max_span, sequence_rows
-from seqvpr.sequences.windows import SequenceSpec, segment_bounds
+from seqvpr.sequences.windows import SequenceSpec, segment_bounds, velocity_steps, window_starts
 
 CONTRAST_WINDOW = 10  # OpenSeqSLAM2's default r_window
 MIN_STD = 1e-6  # a flat neighbourhood (identical frames) is not divided by zero
@@ -56,6 +56,16 @@ class ContrastScorer:
         inner = self.inner.span(spec) if self.inner is not None else max_span(spec)
         return inner + self.window // 2 + 1
 
+    def prepare(self, *traversals) -> ContrastScorer:
+        """The inner scorer bound to the whole traversals, where it needs them (hybrid search)."""
+        return replace(self, inner=self.inner.prepare(*traversals)) if hasattr(self.inner, "prepare") else self
+
+    def locate(self, query_frames: np.ndarray, reference_first: int) -> ContrastScorer:
+        """The inner scorer bound to one block's frames, where it needs them (hybrid search)."""
+        if not hasattr(self.inner, "locate"):
+            return self
+        return replace(self, inner=self.inner.locate(query_frames, reference_first))
+
     def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
                  spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
         enhanced = enhance_contrast(d, reference_segments, self.window)
@@ -63,27 +73,110 @@ class ContrastScorer:
         return score(enhanced, rows, query_starts, reference_segments, spec, inplace=True)
 
 
+def velocity_grid(spec: SequenceSpec) -> tuple[float, ...]:
+    """OpenSeqSLAM2's cone and hybrid velocities: every distinct straight trajectory between the slowest and the
+    fastest of ``spec.velocities``, ``k / h`` for whole k from round(h * v_min) to round(h * v_max), with h the
+    window's frames on its longer side of the anchor (``d_s // 2`` for a centred window); its ``v_step`` is unused."""
+    h = max(spec.offset, spec.length - 1 - spec.offset)
+    if h == 0:
+        return (1.0,)
+    low, high = (int(np.floor(h * v + 0.5)) for v in (min(spec.velocities), max(spec.velocities)))
+    return tuple(k / h for k in range(max(low, 1), high + 1)) or (1.0,)
+
+
 @dataclass(frozen=True)
-class ConeScorer:
-    """OpenSeqSLAM2's cone search: from the anchor frame's reference j, query frame k of the window may match any
-    reference frame between the slowest and the fastest velocity's line (``spec.velocities``' min and max), inside
-    j's segment; the window's distance is the mean over k of the best frame in that range. With one velocity it is
-    the kernel's straight line."""
+class Trajectories:
+    """The grid's straight trajectories in a block: per velocity, the reference frame each query frame of the window
+    meets from anchor column r, [n_reference, L] (-1 where the trajectory leaves r's segment)."""
+
+    frames: list[torch.Tensor]
+
+    @classmethod
+    def of(cls, spec: SequenceSpec, reference_segments: np.ndarray, device) -> Trajectories:
+        frames = []
+        for velocity in velocity_grid(spec):
+            steps = velocity_steps(spec.length, velocity)
+            starts = window_starts(reference_segments, int(steps[-1]) + 1, int(steps[spec.offset]), spec.boundary)
+            rows = np.where(starts[:, None] >= 0, starts[:, None] + steps[None, :], -1)
+            frames.append(torch.as_tensor(rows, device=device))
+        return cls(frames)
+
+
+@dataclass(frozen=True, eq=False)
+class BestFrames:
+    """Each query frame's single-image best reference row over the whole reference (SeqSLAM's ``bestRs``, from the
+    raw frame distances), the votes of the cone and hybrid searches; bound by ``prepare``, placed by ``locate``."""
+
+    best: np.ndarray | None = None  # [n_query] global reference rows
+    local: np.ndarray | None = None  # [rows of a block's d] the same rows, relative to the block's first column
+
+    def prepare(self, query: torch.Tensor, reference, query_segments: np.ndarray, reference_segments: np.ndarray,
+                memory_budget: int | None):
+        from seqvpr.sequences.matching import sequence_topk
+
+        top = sequence_topk(query, reference, SequenceSpec(1), 1, query_segments, reference_segments,
+                            memory_budget=memory_budget)
+        return replace(self, best=top.indices[:, 0])
+
+    def locate(self, query_frames: np.ndarray, reference_first: int):
+        if self.best is None:
+            raise SeqvprError("the cone and hybrid searches need each query frame's best match: run them through "
+                              "sequence_topk (which prepares them), not on a bare block")
+        return replace(self, local=self.best[np.asarray(query_frames)] - reference_first)
+
+    def window_best(self, query_starts: np.ndarray, spec: SequenceSpec, device) -> torch.Tensor:
+        """[n_windows, L]: the best reference (block column) of each query frame of each window."""
+        if self.local is None:
+            raise SeqvprError("the cone and hybrid searches are scored block by block after locate()")
+        frames = np.asarray(query_starts, dtype=np.int64)[:, None] + np.arange(spec.length)[None, :]
+        return torch.as_tensor(self.local[frames], device=device)
 
     def span(self, spec: SequenceSpec) -> int:
-        return int(np.ceil(max(spec.velocities) * (spec.length - 1))) + 1
+        return max_span(replace(spec, velocities=velocity_grid(spec)))
+
+
+@dataclass(frozen=True, eq=False)
+class ConeScorer(BestFrames):
+    """OpenSeqSLAM2's cone search: from anchor reference r, query frame k of the window may take any reference
+    frame the grid's trajectories meet at k (a cone between the slowest and the fastest); the window's distance is
+    ``1 - (frames whose single-image best match lies in the cone) / L``. It counts votes and reads no distance, as
+    OpenSeqSLAM2's does; +inf where no trajectory stays in r's segment."""
 
     def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
                  spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
-        from seqvpr.sequences.adaptive import shifted_min
-
-        low, high = min(spec.velocities), max(spec.velocities)
-        starts = torch.as_tensor(np.asarray(query_starts, dtype=np.int64), device=d.device)
-        reach = int(np.ceil(high * max(spec.offset, spec.length - 1 - spec.offset))) + 1
-        total = torch.zeros((len(starts), d.shape[1]), dtype=d.dtype, device=d.device)
+        best = self.window_best(query_starts, spec, d.device)
+        paths = Trajectories.of(spec, reference_segments, d.device).frames
+        votes = torch.zeros((len(best), d.shape[1]), dtype=d.dtype, device=d.device)
         for k in range(spec.length):
-            offset = k - spec.offset
-            ends = sorted((int(np.floor(low * offset + 0.5)), int(np.floor(high * offset + 0.5))))
-            row = d.index_select(0, starts + k)
-            total += shifted_min(row, ends[0], ends[1], reference_segments, reach)
-        return total.div_(spec.length)
+            hit = torch.zeros(votes.shape, dtype=torch.bool, device=d.device)
+            for frames in paths:
+                hit |= (frames[:, k][None, :] == best[:, k][:, None]) & (frames[:, k] >= 0)[None, :]
+            votes += hit.to(d.dtype)
+        score = 1 - votes / spec.length
+        usable = torch.stack([frames[:, 0] >= 0 for frames in paths]).any(0)
+        return score.masked_fill_(~usable[None, :], float("inf"))
+
+
+@dataclass(frozen=True, eq=False)
+class HybridScorer(BestFrames):
+    """OpenSeqSLAM2's hybrid search: the grid's straight trajectories (as the cone's), each kept only if it passes
+    through the single-image best match of some frame of the window (any frame, at any position); the window's
+    distance is the best kept trajectory's mean distance, +inf where none is kept. Wrapped in ``ContrastScorer``
+    it reads the contrast-enhanced distances, as OpenSeqSLAM2's does."""
+
+    def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
+                 spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
+        best = self.window_best(query_starts, spec, d.device)
+        n_w, n_r = len(best), d.shape[1]
+        member = torch.zeros((n_w, n_r + 1), dtype=torch.bool, device=d.device)  # column n_r: "outside"
+        member.scatter_(1, torch.where((best >= 0) & (best < n_r), best, n_r), True)
+        member[:, n_r] = False
+        result = torch.full((n_w, n_r), float("inf"), dtype=d.dtype, device=d.device)
+        for velocity, frames in zip(velocity_grid(spec), Trajectories.of(spec, reference_segments, d.device).frames):
+            kept = torch.zeros((n_w, n_r), dtype=torch.bool, device=d.device)
+            for k in range(spec.length):
+                kept |= member[:, torch.where(frames[:, k] >= 0, frames[:, k], n_r)]
+            line = sequence_rows(d, rows, query_starts, reference_segments, replace(spec, velocities=(velocity,)),
+                                 inplace=False)
+            result = torch.minimum(result, line.masked_fill(~kept, float("inf")))
+        return result
