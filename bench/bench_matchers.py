@@ -6,7 +6,9 @@ Run from the repository root (about a minute on 2 cores):
 
 Each matcher goes through ``sequence_topk`` on the same seeded random unit descriptors (K = 20, the default 2 GB
 budget): the constant-velocity kernel (the yardstick), ``AdaptiveScorer(1, 2)`` (``--method adaptive``) and
-``ContrastScorer()`` (``--method seqslam``), the kernel with SeqSLAM's five-velocity sweep, and once the graph
+``ContrastScorer()`` (``--method seqslam``), the kernel with SeqSLAM's five-velocity sweep, OpenSeqSLAM2's cone
+(``ConeScorer``, ``--method seqslam-cone``) and hybrid search (``ContrastScorer(10, HybridScorer())``,
+``--method seqslam-hybrid``) over velocities 0.8..1.2 (each includes its single-image pass), and once the graph
 matcher (``--method graph``, whole query) against the kernel at L = 1. The median of
 ``--repeats`` runs is reported per length, with the ratio to the kernel at the same length.
 """
@@ -24,7 +26,7 @@ from _common import cpu_model
 from seqvpr.sequences.adaptive import AdaptiveScorer
 from seqvpr.sequences.graph import GraphSettings, graph_topk
 from seqvpr.sequences.matching import sequence_topk
-from seqvpr.sequences.seqslam import ContrastScorer
+from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer, HybridScorer
 from seqvpr.sequences.windows import SequenceSpec
 
 
@@ -53,10 +55,13 @@ def main() -> None:
     print(f"{args.queries} queries x {args.references} references, {args.dim}-D, K=20, median of {args.repeats}")
     print(f"{'L':>3} {'matcher':<28} {'seconds':>8} {'x kernel':>9}")
     for length in (int(x) for x in args.lengths.split(",")):
-        spec = SequenceSpec(length)
+        spec, sweep = SequenceSpec(length), SequenceSpec(length, velocities=(0.8, 0.9, 1.0, 1.1, 1.2))
         base = timed(query, reference, spec, None, args.repeats)
         rows = [("kernel (constant velocity)", base),
-                ("kernel, 5 velocities 0.8-1.2", timed(query, reference, SequenceSpec(length, velocities=(0.8, 0.9, 1.0, 1.1, 1.2)), None, args.repeats)),
+                ("kernel, 5 velocities 0.8-1.2", timed(query, reference, sweep, None, args.repeats)),
+                ("seqslam-cone, 0.8-1.2", timed(query, reference, sweep, ConeScorer(), args.repeats)),
+                ("seqslam-hybrid, 0.8-1.2", timed(query, reference, sweep, ContrastScorer(10, HybridScorer()),
+                                                  args.repeats)),
                 ("adaptive, steps 1..2", timed(query, reference, spec, AdaptiveScorer(1, 2), args.repeats)),
                 ("seqslam contrast (window 10)", timed(query, reference, spec, ContrastScorer(), args.repeats))]
         for name, seconds in rows:

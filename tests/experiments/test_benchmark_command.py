@@ -85,6 +85,7 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
     assert single["frame_precision"] != ""  # one frame a query: its own correspondence
     markdown = (tmp_path / "b" / "results.md").read_text()
     assert "demo: R@1 / R@5 / R@100P / frames" in markdown
+    assert "| graph | " in stdout and "| graph | 1 | " in markdown  # a whole-path method has no window length
     detail = next(line for line in markdown.splitlines() if line.startswith("| adaptive | 7 |"))
     assert detail.split("|")[3].strip().endswith(f"{expected.frame_precision:.3f}")
 
@@ -186,6 +187,26 @@ def test_config_errors_are_one_line(tmp_path):
     raises_one_line("[seqnet] has unknown keys epoch", read_config, bad)
     bad.write_text(config_text('["single"]').replace("ks = [1, 5]", "ks = [1, 5]\nhvpr_shortlist = 'netvlad'"))
     raises_one_line("hvpr_shortlist 'netvlad' is not one of seqnet, seqgem", read_config, bad)
+    for table, message in [("[match]\nvelocity = '1'", "[match] has unknown keys velocity"),
+                           ("[match]\nvelocities = '1:0.5:0.1'", "[match] velocities '1:0.5:0.1': expected"),
+                           ("[match]\nvelocities = '-1'", "[match] velocities must be positive"),
+                           ("[match.adaptive]\nsteps = '2:1'", "[match.adaptive] steps '2:1': expected"),
+                           ("[match]\ncontrast_window = 1", "contrast_window must be a whole number of at least 2"),
+                           ("[match.graph]\nsteps = '0:2'", "[match] has tables for graph, which [benchmark] methods")]:
+        bad.write_text(config_text('["single", "adaptive"]', extra=table + "\n"))
+        raises_one_line(message, read_config, bad)
+
+
+def test_match_tables_set_each_methods_settings(tmp_path):
+    config = tmp_path / "match.toml"
+    extra = "[match]\nsteps = '0:2'\n[match.seqslam-hybrid]\nvelocities = '0.8:1.2:0.1'\ncontrast_window = 40\n"
+    config.write_text(config_text('["adaptive", "seqslam-hybrid"]', extra=extra))
+    parsed = read_config(config)
+    hybrid = parsed.match_settings("seqslam-hybrid", 10, 20)
+    assert hybrid.sequence.velocities == (0.8, 0.9, 1.0, 1.1, 1.2) and hybrid.sequence.length == 10
+    assert hybrid.contrast_window == 40 and hybrid.steps == (0, 2) and hybrid.k == 20
+    adaptive = parsed.match_settings("adaptive", 5, 20)
+    assert adaptive.sequence.velocities == (1.0,) and adaptive.steps == (0, 2) and adaptive.contrast_window == 10
 
 
 class Captured(Exception):

@@ -26,7 +26,8 @@ Example:
 @locks_output("out_dir")
 def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
-    from seqvpr.experiments.benchmark import length_table, main_table, read_config, run_benchmark, write_results
+    from seqvpr.experiments.benchmark import read_config, run_benchmark
+    from seqvpr.experiments.tables import length_table, main_table, write_results
 
     config = read_config(config_file)
     out = Path(out_dir)

@@ -14,11 +14,10 @@ from seqvpr.cli.options import (
     NONNEGATIVE,
     Number,
     bag_topic_options,
-    parse_steps,
     locks_output,
     OUT_FILE,
     OUT_FOLDER,
-    extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail, parse_velocities,
+    extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail,
 )
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
@@ -103,7 +102,7 @@ Examples:
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    from seqvpr.sequences.windows import SequenceSpec
+    from seqvpr.sequences.windows import SequenceSpec, parse_steps, parse_velocities
 
     k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
     parse_steps(o["steps"])  # a bad --steps fails before any data is read
@@ -191,7 +190,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     from seqvpr.maps import match_map, open_map
     from seqvpr.methods import run_length
     from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
-    from seqvpr.sequences.windows import SequenceSpec
+    from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
     saved = open_map(o["map_dir"])
     _check_map_options(o, saved.info.description["descriptor"])

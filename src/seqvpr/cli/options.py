@@ -219,32 +219,6 @@ def parse_ks(text: str) -> tuple[int, ...]:
     return ks
 
 
-def parse_velocities(text: str) -> tuple[float, ...]:
-    """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities."""
-    try:
-        if ":" in text:
-            lo, hi, step = (float(x) for x in text.split(":"))
-            if step <= 0 or hi < lo:
-                raise ValueError
-            import numpy as np
-
-            return tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
-        return tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise SeqvprError(f"--velocities {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
-
-
-def parse_steps(text: str) -> tuple[int, int]:
-    """``MIN:MAX`` reference frames per query frame (adaptive matching): 0 <= MIN <= MAX."""
-    try:
-        low, high = (int(x) for x in text.split(":"))
-        if not 0 <= low <= high <= 16:
-            raise ValueError
-    except ValueError:
-        raise SeqvprError(f"--steps {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
-    return low, high
-
-
 def parse_size(text: str | None) -> int | None:
     """``512M``, ``2G`` or plain bytes -> bytes; ``none`` -> no budget."""
     if text is None or text.lower() == "none":

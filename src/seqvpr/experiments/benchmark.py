@@ -19,6 +19,11 @@ A method that fails is reported in its row and the others go on.
     [seqnet]              # SeqNet settings (SeqNetSettings fields), optional
     epochs = 50
 
+    [match]               # match settings for every method, optional: velocities ("1", "0.8,1,1.2" or
+    velocities = "1"      # "MIN:MAX:STEP"), steps (adaptive, casevpr, graph: "MIN:MAX"), contrast_window (seqslam)
+    [match.seqslam-hybrid]  # the same keys for one method only
+    velocities = "0.8:1.2:0.1"
+
     [jist]                # JIST model and run (``training.jist.jist_setup`` keys: JistConfig and
                           # JistTrainSettings fields, cell_m, min_images)
     backbone = "efficientnet-lite0"
@@ -36,8 +41,6 @@ A method that fails is reported in its row and the others go on.
 
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -48,7 +51,6 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.io import atomic_write
 from seqvpr.methods import METHODS
 from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
@@ -89,6 +91,14 @@ class BenchmarkConfig:
     seqnet: dict[str, Any] = field(default_factory=dict)
     jist: dict[str, Any] = field(default_factory=dict)
     hvpr_shortlist: str = "seqnet"
+    match: dict[str, Any] = field(default_factory=dict)  # MatchSettings fields (and velocities) for every method
+    method_match: dict[str, dict[str, Any]] = field(default_factory=dict)  # the same, per method
+
+    def match_settings(self, method: str, length: int, k: int) -> MatchSettings:
+        """The settings ``method`` runs with at ``length``: the ``[match]`` table, then the method's own."""
+        chosen = {**self.match, **self.method_match.get(method, {})}
+        velocities = chosen.pop("velocities", (1.0,))
+        return MatchSettings(SequenceSpec(length, velocities=velocities), k=k, **chosen)
 
 
 @dataclass(frozen=True)
@@ -131,7 +141,7 @@ def _read_config(path: Path) -> BenchmarkConfig:
     except tomllib.TOMLDecodeError as error:
         raise SeqvprError(f"{path}: not valid TOML ({error})") from None
     specs = _dataset_specs(raw, path)
-    tables = {"dataset", "benchmark", "training", "seqnet", "jist"}
+    tables = {"dataset", "benchmark", "training", "seqnet", "jist", "match"}
     if set(raw) - tables:
         raise SeqvprError(f"{path}: unknown table(s) {', '.join(sorted(set(raw) - tables))} (known: "
                           f"{', '.join(sorted(tables))})")
@@ -151,7 +161,7 @@ def _read_config(path: Path) -> BenchmarkConfig:
         tuple(specs), methods, _whole_numbers(path, "seq_len", settings.get("seq_len", 5), single=True)[0],
         _whole_numbers(path, "lengths", settings.get("lengths", (5, 10, 20))),
         _whole_numbers(path, "ks", settings.get("ks", (1, 5, 20))), _training_table(raw, "training", path),
-        _training_table(raw, "seqnet", path), _jist_table(raw, path), shortlist,
+        _training_table(raw, "seqnet", path), _jist_table(raw, path), shortlist, *_match_tables(raw, methods, path),
     )
 
 
@@ -201,6 +211,42 @@ def _jist_table(raw: dict, path: Path) -> dict[str, Any]:
     table = dict(raw.get("jist", {}))
     _check_keys(table, set(JIST_KEYS) - {"seq_length"}, "jist", path)
     return table
+
+
+MATCH_KEYS = {"velocities", "steps", "contrast_window"}
+
+
+def _match_tables(raw: dict, methods: Sequence[str], path: Path) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """``[match]`` (every method) and its ``[match.METHOD]`` sub-tables (one method), checked and parsed."""
+    table = dict(raw.get("match", {}))
+    per_method = {name: value for name, value in table.items() if isinstance(value, dict)}
+    unknown = sorted(set(per_method) - set(methods))
+    if unknown:
+        raise SeqvprError(f"{path}: [match] has tables for {', '.join(unknown)}, which [benchmark] methods does not "
+                          f"list")
+    shared = {key: value for key, value in table.items() if key not in per_method}
+    return (_match_values(shared, "match", path),
+            {name: _match_values(values, f"match.{name}", path) for name, values in per_method.items()})
+
+
+def _match_values(table: dict[str, Any], name: str, path: Path) -> dict[str, Any]:
+    """One match table's values as MatchSettings takes them (velocities a tuple, steps a pair)."""
+    from seqvpr.sequences.windows import parse_steps, parse_velocities
+
+    _check_keys(table, MATCH_KEYS, name, path)
+    parsed: dict[str, Any] = {}
+    if "velocities" in table:
+        parsed["velocities"] = parse_velocities(str(table["velocities"]), f"{path}: [{name}] velocities")
+        if not all(0 < v < float("inf") for v in parsed["velocities"]):
+            raise SeqvprError(f"{path}: [{name}] velocities must be positive numbers, got {table['velocities']!r}")
+    if "steps" in table:
+        parsed["steps"] = parse_steps(str(table["steps"]), f"{path}: [{name}] steps")
+    if "contrast_window" in table:
+        window = table["contrast_window"]
+        if not isinstance(window, int) or isinstance(window, bool) or window < 2:
+            raise SeqvprError(f"{path}: [{name}] contrast_window must be a whole number of at least 2, got {window!r}")
+        parsed["contrast_window"] = window
+    return parsed
 
 
 def _check_keys(table: dict, allowed: set[str], name: str, path: Path) -> None:
@@ -272,7 +318,7 @@ class MethodRunner:
 
         shortlist = self.config.hvpr_shortlist
         models = {kind: self.model(kind) for kind in models_used(method, shortlist)}
-        settings = MatchSettings(SequenceSpec(length), k=max(max(self.config.ks), HVPR_SHORTLIST))
+        settings = self.config.match_settings(method, length, max(max(self.config.ks), HVPR_SHORTLIST))
         return run_method(method, *self.test_frames(models), settings, models,
                           shortlist=shortlist if method == "hvpr" else None)
 
@@ -342,115 +388,3 @@ def run_benchmark(
 def one_line(error: BaseException) -> str:
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0] if text else ''}"
-
-
-def main_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
-    """Markdown: one row per method, R@K columns per dataset, at the main sequence length."""
-    names = [spec.name for spec in config.datasets]
-    header = "| method | " + " | ".join(f"{name} R@{k}" for name in names for k in config.ks) + " |"
-    lines = [header, "|---|" + "---:|" * (len(names) * len(config.ks))]
-    for method in config.methods:
-        cells = []
-        for name in names:
-            row = _find(rows, name, method, config.seq_len)
-            cells += _cells(row, config.ks)
-        label = method if method == "single" else f"{method} (L={config.seq_len})"
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return "\n".join(lines + _failures(rows))
-
-
-def length_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
-    """Markdown: R@1 per method at each length of the length table, per dataset (like SeqMatchNet's Table 4)."""
-    names = [spec.name for spec in config.datasets]
-    methods = [m for m in config.methods if METHODS[m].length is None]
-    header = "| method | " + " | ".join(f"{name} L={n}" for name in names for n in config.lengths) + " |"
-    lines = [header, "|---|" + "---:|" * (len(names) * len(config.lengths))]
-    for method in methods:
-        cells = []
-        for name in names:
-            for length in config.lengths:
-                row = _find(rows, name, method, length)
-                cells.append(_cells(row, config.ks[:1])[0])
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def rows_csv(rows: Sequence[Row], ks: Sequence[int]) -> str:
-    """All rows as CSV: dataset, method, L, R@K..., PR-AUC, R@100%P, frame precision, queries evaluated, error.
-    Frame precision is empty for methods without per-frame correspondences."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(["dataset", "method", "L", *[f"R@{k}" for k in ks], "pr_auc", "recall_at_100_precision",
-                     "frame_precision", "queries_evaluated", "error"])
-    for row in rows:
-        e = row.evaluation
-        values = [""] * (len(ks) + 4)
-        if e is not None:
-            figures = [*(e.recall[k] for k in ks), e.pr.auc, e.pr.recall_at_100_precision, e.frame_precision]
-            values = [_figure(v, 4) for v in figures] + [e.queries_evaluated]
-        writer.writerow([row.dataset, row.method, row.length, *values, row.error])
-    return buffer.getvalue()
-
-
-def detail_table(rows: Sequence[Row], config: BenchmarkConfig) -> str:
-    """Markdown: every method at every length it ran, per dataset R@K... / R@100%P / frame precision in one cell
-    (the robotics figures beside the retrieval ones; frame precision '–' where a method pairs no frames)."""
-    names = [spec.name for spec in config.datasets]
-    what = " / ".join([*(f"R@{k}" for k in config.ks), "R@100P", "frames"])
-    lines = ["| method | L | " + " | ".join(f"{name}: {what}" for name in names) + " |",
-             "|---|---:|" + "---|" * len(names)]
-    for method in config.methods:
-        lengths = sorted({r.length for r in rows if r.method == method})
-        for length in lengths:
-            cells = [_detail_cell(_find(rows, name, method, length), config.ks) for name in names]
-            lines.append(f"| {method} | {length} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def _detail_cell(row: Row | None, ks: Sequence[int]) -> str:
-    if row is None or row.evaluation is None:
-        return _cells(row, ks[:1])[0]
-    e = row.evaluation
-    figures = [*(e.recall[k] for k in ks), e.pr.recall_at_100_precision, e.frame_precision]
-    return " / ".join(_figure(v, 3, missing="–") for v in figures)
-
-
-def _figure(value: float, digits: int, missing: str = "") -> str:
-    """A figure at ``digits`` decimals; NaN (a figure the method does not have) as ``missing``."""
-    return f"{value:.{digits}f}" if value == value else missing
-
-
-def write_results(rows: Sequence[Row], config: BenchmarkConfig, out: Path) -> tuple[Path, Path]:
-    """results.csv and results.md (the three tables) in ``out``, each written atomically."""
-    markdown = f"## Methods at L={config.seq_len}\n\n{main_table(rows, config)}\n\n## Sequence length (R@{config.ks[0]})\n\n"
-    markdown += length_table(rows, config) + "\n\n## Every length: R@K, R@100%P and frame-level precision\n\n"
-    markdown += detail_table(rows, config) + "\n"
-    with atomic_write(out / "results.csv") as handle:
-        handle.write(rows_csv(rows, config.ks))
-    with atomic_write(out / "results.md") as handle:
-        handle.write(markdown)
-    return out / "results.csv", out / "results.md"
-
-
-def _find(rows: Sequence[Row], dataset: str, method: str, length: int) -> Row | None:
-    if method == "single":
-        length = next((r.length for r in rows if r.dataset == dataset and r.method == "single"), length)
-    return next((r for r in rows if r.dataset == dataset and r.method == method and r.length == length), None)
-
-
-def _cells(row: Row | None, ks: Sequence[int]) -> list[str]:
-    if row is None:
-        return ["–"] * len(ks)
-    if row.evaluation is None:
-        return ["failed" if row.applicable else "n/a"] * len(ks)
-    return [f"{row.evaluation.recall[k]:.3f}" for k in ks]
-
-
-def _failures(rows: Sequence[Row]) -> list[str]:
-    failed = [r for r in rows if r.error and (r.applicable or r.length == _main_length(rows, r))]
-    return [""] + [f"- {r.dataset} / {r.method} L={r.length}: {r.error}" for r in failed] if failed else []
-
-
-def _main_length(rows: Sequence[Row], row: Row) -> int:
-    """The first length a method was run at on a dataset (the main one): n/a is said once, not per length."""
-    return next(r.length for r in rows if r.dataset == row.dataset and r.method == row.method)

@@ -1,5 +1,5 @@
-"""SeqSLAM's local contrast enhancement of the distance matrix (OpenSeqSLAM / OpenSeqSLAM2), as a ``WindowScorer``
-wrapper beside the kernel.
+"""SeqSLAM beside the kernel (OpenSeqSLAM / OpenSeqSLAM2): local contrast enhancement of the distance matrix as a
+``WindowScorer`` wrapper, and OpenSeqSLAM2's cone and hybrid searches as scorers.
 
 Each frame distance is standardised against the reference frames around it, for the same query frame:
 ``e[i, r] = (d[i, r] - mean_w d[i, .]) / max(std_w d[i, .], eps)`` over the ``window`` reference frames centred on
@@ -8,6 +8,11 @@ long wall, a tunnel) no longer wins by being uniformly close; what stands out lo
 then goes to the inner scorer (the kernel's constant-velocity windows, with SeqSLAM's velocity sweep from the
 spec's velocities, or the adaptive matcher), on the same blocks: a reference chunk only needs ``window // 2``
 more frames of halo.
+
+The cone and hybrid searches vote with each query frame's single-image best match over the whole reference, so
+they are bound to the traversals once (``prepare``, one single-image pass) and to each block's frames (``locate``)
+before scoring; their straight trajectories are OpenSeqSLAM2's velocity grid (``velocity_grid``), drawn as the
+kernel draws a velocity's window.
 """
 
 from __future__ import annotations

@@ -100,3 +100,27 @@ def require_windows(starts: np.ndarray, span: int, what: str, segment_ids: np.nd
     raise SeqvprError(
         f"{what}: sequence length {span} is longer than every segment (longest segment: {longest} frames)"
     )
+
+
+def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]:
+    """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities; ``what`` names the option or key."""
+    try:
+        if ":" in text:
+            lo, hi, step = (float(x) for x in text.split(":"))
+            if step <= 0 or hi < lo:
+                raise ValueError
+            return tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise SeqvprError(f"{what} {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
+
+
+def parse_steps(text: str, what: str = "--steps") -> tuple[int, int]:
+    """``MIN:MAX`` reference frames per query frame (adaptive matching): 0 <= MIN <= MAX <= 16."""
+    try:
+        low, high = (int(x) for x in text.split(":"))
+        if not 0 <= low <= high <= 16:
+            raise ValueError
+    except ValueError:
+        raise SeqvprError(f"{what} {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
+    return low, high
