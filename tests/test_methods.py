@@ -70,6 +70,19 @@ def test_matching_family(pair):
     same(run_method("matching", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
 
 
+@pytest.mark.parametrize("name", ["single", "hmm", "graph"])
+def test_one_frame_methods_score_one_frame_a_query_whatever_length_is_asked(pair, name):
+    from seqvpr.pipeline import evaluate_match
+
+    reference, query = pair
+    result = run_method(name, reference, query, replace(SETTINGS, sequence=SequenceSpec(9)))
+    assert result.settings.sequence.length == 1  # the benchmark asks every method for its table's L
+    gt = ground_truth_within_radius(query, reference, Radius(4, "m"))
+    evaluation = evaluate_match(result, gt, (1,))
+    top = result.topk.indices[:, 0]
+    assert evaluation.frame_precision == pytest.approx(gt.contains(np.arange(len(query)), top).mean())
+
+
 def test_retrieval_and_hierarchical_families(pair):
     reference, query = pair
     same(run_method("delta", reference, query, SETTINGS), retrieve_traversals(reference, query, "delta", SETTINGS))

@@ -180,6 +180,8 @@ def run_method(
 
     models = dict(models or {})
     method = check_run(name, models, rerank)
+    if method.length is not None:  # single, hmm, graph: one frame a query, whatever length was asked
+        settings = replace(settings, sequence=SequenceSpec(method.length))
     if method.family == "hierarchical":
         first = shortlist or ("seqnet" if "seqnet" in models else "seqgem")
         if get_method(first).family != "retrieval":
@@ -196,8 +198,6 @@ def run_method(
 
         return filter_traversals(*transformed_frames(reference, query, models, settings.device), settings)
     if method.family == "matching":
-        if method.length is not None:
-            settings = replace(settings, sequence=SequenceSpec(method.length))
         return match_traversals(*transformed_frames(reference, query, models, settings.device), settings, progress,
                                 scorer=window_scorer(method, settings))
     shortlist_settings = replace(settings, k=max(rerank, settings.k))

@@ -95,10 +95,15 @@ def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypa
     out = tmp_path / "demo"
     code, stdout, stderr = run(monkeypatch, capsys, "demo", "--quick", "--out", out)
     assert code == 0, stderr
-    cells = [re.split(r"\s{2,}", line.strip()) for line in stdout.splitlines()
-             if line.startswith(("single image", "sequence matching", "adaptive matching", "SeqMatchNet"))]
-    rows = {name: [float(v) for v in values] for name, *values in cells}
-    assert set(rows) == {"single image", "sequence matching L=5", "adaptive matching L=5", "SeqMatchNet L=5"}
+    lines = stdout.splitlines()
+    table = lines[next(i for i, line in enumerate(lines) if "PR-AUC" in line) + 1:]
+    cells = [re.split(r"\s{2,}", line.strip()) for line in table[:next(i for i, t in enumerate(table)
+                                                                         if t.startswith("seconds"))]]
+    rows = {name: [float(v) if v != "–" else None for v in values] for name, *values in cells}
+    assert set(rows) == {"single image", "sequence matching L=5", "adaptive matching L=5", "SeqSLAM L=5",
+                         "SeqSLAM cone L=5", "SeqSLAM hybrid L=5", "CaseVPR L=5", "graph matching", "SeqMatchNet L=5"}
+    assert all(0 <= value <= 1 for values in rows.values() for value in values[:4])
+    assert rows["SeqSLAM L=5"][4] is None and rows["adaptive matching L=5"][4] is not None  # frames: one alignment
     assert rows["sequence matching L=5"][0] > rows["single image"][0]  # sequences beat single frames here
     page = out / "report" / "index.html"
     html = page.read_text()

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
 TRAVERSALS = ("train_reference", "train_query", "test_reference", "test_query")
 CURVE_KS = tuple(range(1, 21))
+SEQSLAM_VELOCITIES = (0.8, 0.9, 1.0, 1.1, 1.2)  # OpenSeqSLAM2's v_min:v_step:v_max
 
 
 @dataclass(frozen=True)
@@ -105,10 +106,10 @@ def describe_world(
 
 def match_and_score(
     name: str, method: str, reference: Traversal, query: Traversal, gt: GroundTruth, length: int,
-    device: str = "cpu", models: dict | None = None,
+    device: str = "cpu", models: dict | None = None, velocities: tuple[float, ...] = (1.0,),
 ) -> MethodRun:
     """One method at one length, scored at every K of the curves."""
-    settings = MatchSettings(SequenceSpec(length), k=max(CURVE_KS), device=device)
+    settings = MatchSettings(SequenceSpec(length, velocities=velocities), k=max(CURVE_KS), device=device)
     result = run_method(method, reference, query, settings, models)
     return MethodRun(name, result, evaluate_match(result, gt, CURVE_KS))
 
@@ -228,9 +229,19 @@ def run_demo(
     return DemoResult(runs, page, seconds)
 
 
+#: the other matchers, run at the longest L: (row name, method, velocities); OpenSeqSLAM2's range for its searches
+OTHER_MATCHERS = (
+    ("adaptive matching", "adaptive", (1.0,)),
+    ("SeqSLAM", "seqslam", SEQSLAM_VELOCITIES),
+    ("SeqSLAM cone", "seqslam-cone", SEQSLAM_VELOCITIES),
+    ("SeqSLAM hybrid", "seqslam-hybrid", SEQSLAM_VELOCITIES),
+    ("CaseVPR", "casevpr", (1.0,)),
+)
+
+
 def untrained_runs(reference: Traversal, query: Traversal, gt: GroundTruth, settings: DemoSettings) -> list[MethodRun]:
-    """Single-image retrieval and sequence matching at every L, then adaptive matching at the longest L (the route
-    has stops and speed changes: the matcher made for them, beside constant slope)."""
+    """Single-image retrieval and sequence matching at every L, then the other matchers at the longest L (the route
+    has stops and speed changes: adaptive matching is made for them) and graph matching over the whole route."""
     runs = [
         match_and_score("single image" if length == 1 else f"sequence matching L={length}",
                         "single" if length == 1 else "matching", reference, query, gt, length, settings.device)
@@ -238,8 +249,9 @@ def untrained_runs(reference: Traversal, query: Traversal, gt: GroundTruth, sett
     ]
     longest = max(settings.lengths)
     if longest > 1:
-        runs.append(match_and_score(f"adaptive matching L={longest}", "adaptive", reference, query, gt, longest,
-                                    settings.device))
+        runs += [match_and_score(f"{name} L={longest}", method, reference, query, gt, longest, settings.device,
+                                 velocities=velocities) for name, method, velocities in OTHER_MATCHERS]
+    runs.append(match_and_score("graph matching", "graph", reference, query, gt, 1, settings.device))
     return runs
 
 
@@ -250,6 +262,7 @@ def demo_recall_table(runs: Sequence[MethodRun], ks: Sequence[int] = (1, 5, 20))
     lines = [f"{'':<{width}}" + "".join(f"{'R@' + str(k):>8}" for k in ks) + f"{'PR-AUC':>8}{'frames':>8}"]
     for run in runs:
         recall = run.evaluation.recall
+        frames = run.evaluation.frame_precision
         lines.append(f"{run.name:<{width}}" + "".join(f"{recall[k]:>8.3f}" for k in ks)
-                     + f"{run.evaluation.pr.auc:>8.3f}{run.evaluation.frame_precision:>8.3f}")
+                     + f"{run.evaluation.pr.auc:>8.3f}" + (f"{frames:>8.3f}" if frames == frames else f"{'–':>8}"))
     return "\n".join(lines)
