@@ -463,14 +463,17 @@ def evaluate_match(
     if uniqueness is not None:
         scores = uniqueness_margins(top.indices, top.distances, uniqueness)[:, None]
     evaluation = evaluate(top.indices, scores, top.has_window, gt, ks, no_positive)
-    pairs = result.correspondences or match_correspondences(result)
+    pairs = match_correspondences(result)
     return evaluation if pairs is None else replace(evaluation, frame_precision=frame_precision(*pairs, gt))
 
 
 def match_correspondences(result: MatchResult) -> tuple[np.ndarray, np.ndarray] | None:
-    """The per-frame correspondences of a result's top-1 windows aligned at slope 1 (None with other velocities)."""
+    """The per-frame correspondences (query rows, reference rows [n_query, L]) of a result's top-1 matches: the
+    matcher's own (an adaptive path), else the windows' alignment at slope 1 (None with other velocities)."""
     from seqvpr.sequences.correspondences import window_correspondences
 
+    if result.correspondences is not None:
+        return result.correspondences
     spec = result.settings.sequence
     if tuple(spec.velocities) != (1.0,) or result.topk.indices.shape[1] == 0:
         return None

@@ -37,6 +37,39 @@ def test_match_json_and_predictions(monkeypatch, capsys, tmp_path, pair):
     assert code == 0 and json.loads(stdout)["recall"] == result["recall"]
 
 
+@pytest.mark.parametrize("method, velocities", [("matching", "1"), ("adaptive", "1"), ("matching", "0.9,1.1")])
+def test_match_writes_the_top1_correspondences_with_their_frame_precision(monkeypatch, capsys, tmp_path, pair,
+                                                                          method, velocities):
+    import csv
+
+    ref, qry = pair
+    out = tmp_path / "out"
+    (out).mkdir()
+    (out / "correspondences.csv").write_text("stale\n")  # a previous run's pairs
+    code, stdout, stderr = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "1f", "-L", "5",
+                               "--method", method, "--velocities", velocities, "--json", "--out", out)
+    assert code == 0, stderr
+    result = json.loads(stdout)
+    if velocities != "1":  # several slopes: no single alignment, no file, no figure
+        assert not (out / "correspondences.csv").exists() and result["frame_precision"] is None
+        return
+    with open(out / "correspondences.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    by_query = {}
+    for row in rows:
+        by_query.setdefault(int(row["query"]), []).append(row)
+    assert len(by_query) == 36 and all(len(pairs) == 5 for pairs in by_query.values())  # 40 frames, L = 5
+    for query, pairs in by_query.items():
+        assert [int(p["query_frame"]) for p in pairs] == list(range(query - 2, query + 3))
+        steps = np.diff([int(p["reference_frame"]) for p in pairs])
+        assert set(steps) <= ({1} if method == "matching" else {1, 2})
+    predictions = {int(r["query"]): r for r in csv.DictReader(open(out / "predictions.csv", newline=""))}
+    for query, pairs in by_query.items():  # the window's own frame is paired with the top-1 reference
+        assert int(pairs[2]["reference_frame"]) == int(predictions[query]["references"].split()[0])
+    correct = [int(row["correct"]) for row in rows]
+    assert result["frame_precision"] == pytest.approx(np.mean(correct))
+
+
 def test_help_has_examples(monkeypatch, capsys):
     code, stdout, _ = run(monkeypatch, capsys, "match", "--help")
     assert code == 0 and "Examples:" in stdout and "--seq-len" in stdout

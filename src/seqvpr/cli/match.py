@@ -293,13 +293,20 @@ def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str,
 
 
 def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label: str, pair) -> None:
-    """predictions.csv and run.json in --out, then the table (or one JSON object) on stdout."""
-    from seqvpr.evaluation.predictions import save_match_predictions
+    """predictions.csv, correspondences.csv (when the method pairs frames) and run.json in --out, then the table (or
+    one JSON object) on stdout."""
+    from seqvpr.evaluation.predictions import save_correspondences, save_match_predictions
     from seqvpr.evaluation.results import evaluation_json, recall_table
     from seqvpr.io import atomic_write
+    from seqvpr.pipeline import match_correspondences
 
     out = Path(o["out_dir"])
     save_match_predictions(out / "predictions.csv", result, gt)
+    pairs = match_correspondences(result)
+    if pairs is not None:
+        save_correspondences(out / "correspondences.csv", result, pairs, gt)
+    elif (out / "correspondences.csv").exists():  # a previous run's pairs would not describe this one
+        (out / "correspondences.csv").unlink()
     with atomic_write(out / "run.json") as handle:
         json.dump(evaluation_json(evaluation, run), handle, indent=2, default=str)
     if o["as_json"]:
@@ -310,6 +317,8 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
     if evaluation.frame_precision == evaluation.frame_precision:  # not NaN
         click.echo(f"frame-level precision of the top-1 matches' correspondences: {evaluation.frame_precision:.3f}")
     click.echo(f"predictions: {out / 'predictions.csv'}")
+    if pairs is not None:
+        click.echo(f"correspondences: {out / 'correspondences.csv'}")
 
 
 @click.command(name="eval", epilog="\b\nExample:\n  seqvpr eval seqvpr-out/predictions.csv --reference day.mat --query night.mat --radius 2f")

@@ -125,6 +125,27 @@ def save_match_predictions(path: str | Path, result: MatchResult, gt: GroundTrut
                       correct, gt.has_positive()[rows])
 
 
+CORRESPONDENCE_COLUMNS = ("query", "position", "query_frame", "reference_frame", "correct")
+
+
+def save_correspondences(path: str | Path, result: MatchResult, pairs: tuple[np.ndarray, np.ndarray],
+                         gt: GroundTruth) -> None:
+    """The top-1 matches' per-frame correspondences as CSV, one row per pair: the query (source frame index of the
+    frame whose window it is), the pair's position in the window, the query and reference source frames, and
+    ``correct`` (1 / 0; empty where that query frame has no positive). Queries without a match are not written."""
+    q_rows, r_rows = (np.asarray(a) for a in pairs)
+    q_frames, r_frames = result.query.frame_index, result.reference.frame_index
+    has_positive = gt.has_positive()
+    with atomic_write(path, newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(CORRESPONDENCE_COLUMNS)
+        for i in np.flatnonzero((q_rows >= 0).any(1)):
+            for position in np.flatnonzero((q_rows[i] >= 0) & (r_rows[i] >= 0)):
+                q, r = int(q_rows[i, position]), int(r_rows[i, position])
+                correct = str(int(gt.contains(np.array([q]), np.array([r]))[0])) if has_positive[q] else ""
+                writer.writerow([int(q_frames[i]), int(position), int(q_frames[q]), int(r_frames[r]), correct])
+
+
 def evaluate_predictions(
     path: str | Path, reference: Traversal, query: Traversal, gt: GroundTruth, ks: Sequence[int] = DEFAULT_KS,
     no_positive: NoPositivePolicy = "exclude",
