@@ -51,7 +51,8 @@ def test_contrast_scorer_blocked_equals_whole_and_is_the_kernel_on_the_enhanced_
 
 
 def plain_trajectories(spec, seg, n):
-    """Per anchor r, the grid's in-segment straight trajectories (lists of reference frames), by enumeration."""
+    """Per anchor r, the grid's in-segment straight trajectories (lists of reference frames), by enumeration; under
+    ``shift`` a trajectory that would leave r's segment is moved inside it, as the kernel moves its windows."""
     h = max(spec.offset, spec.length - 1 - spec.offset)
     if h == 0:
         grid = [1.0]
@@ -63,7 +64,12 @@ def plain_trajectories(spec, seg, n):
         paths = []
         for v in grid:
             steps = [int(np.rint(k * v)) for k in range(spec.length)]
-            frames = [r - steps[spec.offset] + t for t in steps]
+            start = r - steps[spec.offset]
+            if spec.boundary == "shift":
+                first = min(f for f in range(n) if seg[f] == seg[r])
+                last = max(f for f in range(n) if seg[f] == seg[r])
+                start = min(max(start, first), last - steps[-1])
+            frames = [start + t for t in steps]
             if all(0 <= f < n and seg[f] == seg[r] for f in frames):
                 paths.append(frames)
         out.append(paths)
@@ -91,10 +97,11 @@ def plain_hybrid(d, best, start, spec, seg):
 
 
 SHAPES = dict(seed=st.integers(0, 9999), length=st.integers(1, 7), align=st.sampled_from(["centered", "causal"]),
-              low=st.sampled_from([0.5, 0.8, 1.0]), high=st.sampled_from([1.0, 1.2, 1.6]), breaks=st.booleans())
+              low=st.sampled_from([0.5, 0.8, 1.0]), high=st.sampled_from([1.0, 1.2, 1.6]), breaks=st.booleans(),
+              boundary=st.sampled_from(["drop", "shift"]))
 
 
-def scored_against_a_plain_loop(scorer, plain, seed, length, align, low, high, breaks):
+def scored_against_a_plain_loop(scorer, plain, seed, length, align, low, high, breaks, boundary):
     """The scorer's distances for every query window (prepared and located as sequence_topk does) against
     ``plain(d, best, start, spec, seg)``; the same for the block holding reference rows 7.. only."""
     from seqvpr.sequences.matching import sequence_distance_rows
@@ -105,7 +112,7 @@ def scored_against_a_plain_loop(scorer, plain, seed, length, align, low, high, b
     q[5] = r[20] + 0.01  # a query frame whose best match is certain, so votes and kept paths occur
     r_seg = np.sort(rng.integers(0, 3, 30)) if breaks else np.zeros(30, np.int64)
     q_seg = np.zeros(12, np.int64)
-    spec = SequenceSpec(length, align, velocities=(low, high))
+    spec = SequenceSpec(length, align, boundary, velocities=(low, high))
     starts = window_starts(q_seg, length, spec.offset, "drop")
     valid = starts[starts >= 0]
     if len(valid) == 0:
@@ -123,20 +130,22 @@ def scored_against_a_plain_loop(scorer, plain, seed, length, align, low, high, b
 
 @settings(max_examples=40, deadline=None)
 @given(**SHAPES)
-def test_cone_search_counts_best_matches_inside_the_cone_as_a_plain_loop(seed, length, align, low, high, breaks):
+def test_cone_search_counts_best_matches_inside_the_cone_as_a_plain_loop(seed, length, align, low, high, breaks,
+                                                                         boundary):
     from seqvpr.sequences.seqslam import ConeScorer
 
     scored_against_a_plain_loop(ConeScorer(), lambda d, best, start, spec, seg: plain_cone(best, start, spec, seg,
                                                                                            d.shape[1]),
-                                seed, length, align, low, high, breaks)
+                                seed, length, align, low, high, breaks, boundary)
 
 
 @settings(max_examples=40, deadline=None)
 @given(**SHAPES)
-def test_hybrid_search_keeps_trajectories_through_a_best_match_as_a_plain_loop(seed, length, align, low, high, breaks):
+def test_hybrid_search_keeps_trajectories_through_a_best_match_as_a_plain_loop(seed, length, align, low, high,
+                                                                               breaks, boundary):
     from seqvpr.sequences.seqslam import HybridScorer
 
-    scored_against_a_plain_loop(HybridScorer(), plain_hybrid, seed, length, align, low, high, breaks)
+    scored_against_a_plain_loop(HybridScorer(), plain_hybrid, seed, length, align, low, high, breaks, boundary)
 
 
 def test_velocity_grid_is_openseqslam2s():
