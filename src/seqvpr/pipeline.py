@@ -285,15 +285,27 @@ def match_traversals(
         progress=tick,
         scorer=scorer,
     )
-    pairs = None
-    from seqvpr.sequences.adaptive import AdaptiveScorer
-
-    if isinstance(scorer, AdaptiveScorer):  # else the windows' own alignment (match_correspondences)
-        from seqvpr.sequences.correspondences import adaptive_correspondences
-
-        pairs = adaptive_correspondences(qry, ref, topk.indices[:, 0], settings.sequence, scorer, query.segment_ids,
-                                         reference.segment_ids)
+    pairs = top1_pairs(qry, ref, topk, settings, scorer, query.segment_ids, reference.segment_ids)
     return MatchResult(reference, query, topk, settings, correspondences=pairs)
+
+
+def top1_pairs(qry: torch.Tensor, ref, topk: TopK, settings: MatchSettings, scorer, q_seg: np.ndarray,
+               r_seg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The matcher's own per-frame pairs of the top-1 matches: the adaptive path, or the straight trajectory that
+    won (any velocity search); None where the windows' slope-1 alignment is the answer (``match_correspondences``)
+    or the matcher pairs no frames (the cone)."""
+    from seqvpr.sequences.adaptive import AdaptiveScorer
+    from seqvpr.sequences.correspondences import (
+        adaptive_correspondences, trajectory_correspondences, trajectory_velocities,
+    )
+
+    best = topk.indices[:, 0]
+    if isinstance(scorer, AdaptiveScorer):
+        return adaptive_correspondences(qry, ref, best, settings.sequence, scorer, q_seg, r_seg)
+    velocities = trajectory_velocities(scorer, settings.sequence)
+    if velocities is None or tuple(velocities) == tuple(settings.sequence.velocities) == (1.0,):
+        return None
+    return trajectory_correspondences(qry, ref, best, settings.sequence, scorer, q_seg, r_seg, settings.memory_budget)
 
 
 def filter_traversals(
@@ -375,13 +387,11 @@ def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None, 
         ref = torch.from_numpy(ref)  # a view of the map: the re-ranking reads only the candidates' rows
     q_seg, r_seg = shortlist.query.segment_ids, shortlist.reference.segment_ids
     if isinstance(scorer, AdaptiveScorer):
-        from seqvpr.sequences.correspondences import adaptive_correspondences
-
         top = adaptive_rerank(qry, ref, shortlist.topk, settings.sequence, scorer, q_seg, r_seg, settings.k)
-        pairs = adaptive_correspondences(qry, ref, top.indices[:, 0], settings.sequence, scorer, q_seg, r_seg)
-        return MatchResult(shortlist.reference, shortlist.query, top, settings, correspondences=pairs)
-    top = rerank(qry, ref, shortlist.topk, settings.sequence, q_seg, r_seg, k=settings.k)
-    return MatchResult(shortlist.reference, shortlist.query, top, settings)
+    else:
+        top = rerank(qry, ref, shortlist.topk, settings.sequence, q_seg, r_seg, k=settings.k)
+    pairs = top1_pairs(qry, ref, top, settings, scorer, q_seg, r_seg)
+    return MatchResult(shortlist.reference, shortlist.query, top, settings, correspondences=pairs)
 
 
 def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings()) -> np.ndarray:

@@ -37,7 +37,8 @@ def test_match_json_and_predictions(monkeypatch, capsys, tmp_path, pair):
     assert code == 0 and json.loads(stdout)["recall"] == result["recall"]
 
 
-@pytest.mark.parametrize("method, velocities", [("matching", "1"), ("adaptive", "1"), ("matching", "0.9,1.1")])
+@pytest.mark.parametrize("method, velocities", [("matching", "1"), ("adaptive", "1"), ("matching", "0.6,1.4"),
+                                              ("seqslam-cone", "0.6,1.4")])
 def test_match_writes_the_top1_correspondences_with_their_frame_precision(monkeypatch, capsys, tmp_path, pair,
                                                                           method, velocities):
     import csv
@@ -50,7 +51,7 @@ def test_match_writes_the_top1_correspondences_with_their_frame_precision(monkey
                                "--method", method, "--velocities", velocities, "--json", "--out", out)
     assert code == 0, stderr
     result = json.loads(stdout)
-    if velocities != "1":  # several slopes: no single alignment, no file, no figure
+    if method == "seqslam-cone":  # votes over several trajectories: no pairs, no file, no figure
         assert not (out / "correspondences.csv").exists() and result["frame_precision"] is None
         return
     with open(out / "correspondences.csv", newline="") as handle:
@@ -61,8 +62,11 @@ def test_match_writes_the_top1_correspondences_with_their_frame_precision(monkey
     assert len(by_query) == 36 and all(len(pairs) == 5 for pairs in by_query.values())  # 40 frames, L = 5
     for query, pairs in by_query.items():
         assert [int(p["query_frame"]) for p in pairs] == list(range(query - 2, query + 3))
-        steps = np.diff([int(p["reference_frame"]) for p in pairs])
-        assert set(steps) <= ({1} if method == "matching" else {1, 2})
+        frames = [int(p["reference_frame"]) for p in pairs]
+        if velocities == "1":
+            assert set(np.diff(frames)) <= ({1} if method == "matching" else {1, 2})
+        else:  # the winning slope's straight trajectory (np.rint of k * v from the window's start)
+            assert [f - frames[0] for f in frames] in ([0, 1, 1, 2, 2], [0, 1, 3, 4, 6])
     predictions = {int(r["query"]): r for r in csv.DictReader(open(out / "predictions.csv", newline=""))}
     for query, pairs in by_query.items():  # the window's own frame is paired with the top-1 reference
         assert int(pairs[2]["reference_frame"]) == int(predictions[query]["references"].split()[0])
@@ -136,7 +140,7 @@ def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypa
     assert set(rows) == {"single image", "sequence matching L=5", "adaptive matching L=5", "SeqSLAM L=5",
                          "SeqSLAM cone L=5", "SeqSLAM hybrid L=5", "CaseVPR L=5", "graph matching", "SeqMatchNet L=5"}
     assert all(0 <= value <= 1 for values in rows.values() for value in values[:4])
-    assert rows["SeqSLAM L=5"][4] is None and rows["adaptive matching L=5"][4] is not None  # frames: one alignment
+    assert rows["SeqSLAM cone L=5"][4] is None and rows["SeqSLAM L=5"][4] is not None  # the cone pairs no frames
     assert rows["sequence matching L=5"][0] > rows["single image"][0]  # sequences beat single frames here
     page = out / "report" / "index.html"
     html = page.read_text()

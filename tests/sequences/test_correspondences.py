@@ -73,3 +73,36 @@ def test_uniqueness_margins_equal_a_plain_loop(seed, k, exclusion):
         second = others[0] if others else distances[i, -1]
         assert got[i] == distances[i, 0] - second
     assert got[5] == np.inf
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 9999), length=st.integers(2, 7), boundary=st.sampled_from(["drop", "shift"]),
+       which=st.sampled_from(["kernel", "contrast", "hybrid"]))
+def test_trajectory_correspondences_follow_the_trajectory_that_scored_the_match(seed, length, boundary, which):
+    """The pairs are one of the searched straight trajectories, and their (enhanced) mean distance is the match's
+    own distance: the winning trajectory, recomputed by a plain mean over the full matrix."""
+    from seqvpr.sequences.matching import frame_distances, sequence_topk
+    from seqvpr.sequences.seqslam import ContrastScorer, HybridScorer, enhance_contrast, velocity_grid
+    from seqvpr.sequences.correspondences import trajectory_correspondences
+    from seqvpr.sequences.windows import velocity_steps
+
+    rng = np.random.default_rng(seed)
+    r = torch.from_numpy(rng.standard_normal((90, 8)))
+    q = r[20:60] + 0.7 * torch.from_numpy(rng.standard_normal((40, 8)))
+    q_seg, r_seg = np.r_[np.zeros(25, int), np.ones(15, int)], np.sort(rng.integers(0, 3, 90))
+    spec = SequenceSpec(length, boundary=boundary, velocities=(0.7, 1.0, 1.4))
+    scorer = {"kernel": None, "contrast": ContrastScorer(6), "hybrid": ContrastScorer(6, HybridScorer())}[which]
+    top = sequence_topk(q, r, spec, 1, q_seg, r_seg, scorer=scorer)
+    q_rows, r_rows = trajectory_correspondences(q, r, top.indices[:, 0], spec, scorer, q_seg, r_seg)
+    d = frame_distances(q, r)
+    matrix = (d if scorer is None else enhance_contrast(d, r_seg, 6)).numpy()
+    velocities = velocity_grid(spec) if which == "hybrid" else spec.velocities
+    shapes = {tuple(velocity_steps(length, v)) for v in velocities}
+    matched = np.flatnonzero(np.isfinite(top.distances[:, 0]))
+    assert len(matched) and np.array_equal(np.flatnonzero(q_rows[:, 0] >= 0), matched)
+    for i in matched:
+        assert tuple(r_rows[i] - r_rows[i, 0]) in shapes  # a straight trajectory of the search
+        assert len(set(r_seg[r_rows[i]])) == 1  # inside one segment
+        assert boundary == "shift" or r_rows[i, spec.offset] == top.indices[i, 0]  # through the match's frame
+        mean = matrix[q_rows[i], r_rows[i]].mean()
+        np.testing.assert_allclose(mean, top.distances[i, 0], rtol=1e-6, atol=1e-9)

@@ -3,17 +3,21 @@ to by its best (top-1) match, so frame-level correctness can be measured (CaseVP
 precision), which Recall@K over whole windows cannot show.
 
 A constant-velocity match pairs query frame k of the window with frame k of the reference window (the kernel's
-windows, boundaries and segments); an adaptive match pairs them along its best path (``adaptive.adaptive_path``).
+windows, boundaries and segments); a search over several straight trajectories (a velocity sweep, SeqSLAM's
+trajectory and hybrid searches) pairs them along the trajectory that scored the match; an adaptive match along its
+best path (``adaptive.adaptive_path``). OpenSeqSLAM2's cone counts votes over many trajectories and pairs none.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import torch
 
 from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_path
-from seqvpr.sequences.matching import frame_distances
-from seqvpr.sequences.windows import SequenceSpec, window_frames, window_starts
+from seqvpr.sequences.matching import frame_distances, max_span
+from seqvpr.sequences.windows import SequenceSpec, velocity_steps, window_frames, window_starts
 
 
 def window_correspondences(best: np.ndarray, spec: SequenceSpec, query_segments: np.ndarray,
@@ -52,3 +56,54 @@ def adaptive_correspondences(query: torch.Tensor, reference, best: np.ndarray, s
         q_rows[i] = frames
         r_rows[i] = adaptive_path(d, j - lo, spec.offset, scorer, r_seg[lo:hi]) + lo
     return q_rows, r_rows
+
+
+def trajectory_velocities(scorer, spec: SequenceSpec) -> tuple[float, ...] | None:
+    """The straight trajectories a window scorer chooses among (None: it pairs no frames, as the cone)."""
+    if scorer is None:
+        return tuple(spec.velocities)
+    velocities = getattr(scorer, "trajectory_velocities", None)
+    return velocities(spec) if velocities is not None else None
+
+
+def trajectory_correspondences(query: torch.Tensor, reference, best: np.ndarray, spec: SequenceSpec, scorer,
+                               query_segments: np.ndarray, reference_segments: np.ndarray,
+                               memory_budget: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Query rows and reference rows [n_query, L] along the straight trajectory that gave each query's top-1 match
+    its distance: each of the scorer's velocities is scored again at the match, on the reference stretch around
+    it, and the best one's frames are the pairs (-1 where a query has no match). None for a scorer that pairs no
+    frames. A scorer that needs the whole traversals (hybrid) is prepared once, as the match prepared it."""
+    velocities = trajectory_velocities(scorer, spec)
+    if velocities is None:
+        return None
+    q_seg, r_seg = np.asarray(query_segments), np.asarray(reference_segments)
+    if hasattr(scorer, "prepare"):
+        scorer = scorer.prepare(query, reference, q_seg, r_seg, memory_budget)
+    q_starts = window_starts(q_seg, spec.length, spec.offset, spec.boundary)
+    halo = scorer.span(spec) if scorer is not None else max_span(spec)
+    starts = {v: window_starts(r_seg, int(velocity_steps(spec.length, v)[-1]) + 1,
+                               int(velocity_steps(spec.length, v)[spec.offset]), spec.boundary) for v in velocities}
+    q_rows = np.full((len(best), spec.length), -1, dtype=np.int64)
+    r_rows = np.full_like(q_rows, -1)
+    for i in np.flatnonzero((q_starts >= 0) & (best >= 0)):
+        j = int(best[i])
+        lo, hi = max(0, j - halo), min(len(r_seg), j + halo + 1)
+        stretch = torch.as_tensor(np.asarray(reference[lo:hi]), dtype=query.dtype)
+        scores = [_score_at(query, stretch, replace(spec, velocities=(v,)), q_starts[i], r_seg[lo:hi], scorer, lo,
+                            j - lo) for v in velocities]
+        chosen = velocities[int(np.argmin(scores))]
+        if not np.isfinite(min(scores)) or starts[chosen][j] < 0:
+            continue
+        q_rows[i] = window_frames(q_starts[i : i + 1], spec.length)[0]
+        r_rows[i] = starts[chosen][j] + velocity_steps(spec.length, chosen)
+    return q_rows, r_rows
+
+
+def _score_at(query: torch.Tensor, stretch: torch.Tensor, spec: SequenceSpec, query_start: int,
+              stretch_segments: np.ndarray, scorer, first: int, column: int) -> float:
+    """One window's distance at one reference column of a stretch, as the match's blocks compute it."""
+    from seqvpr.sequences.matching import sequence_distance_rows
+
+    row = sequence_distance_rows(query, stretch, spec, np.array([query_start]), stretch_segments, scorer=scorer,
+                                 reference_first=first)
+    return float(row[0, column])

@@ -61,6 +61,12 @@ class ContrastScorer:
         inner = self.inner.span(spec) if self.inner is not None else max_span(spec)
         return inner + self.window // 2 + 1
 
+    def trajectory_velocities(self, spec: SequenceSpec) -> tuple[float, ...] | None:
+        """The straight trajectories the inner scorer chooses among (the kernel: ``spec.velocities``)."""
+        from seqvpr.sequences.correspondences import trajectory_velocities
+
+        return trajectory_velocities(self.inner, spec)
+
     def prepare(self, *traversals) -> ContrastScorer:
         """The inner scorer bound to the whole traversals, where it needs them (hybrid search)."""
         return replace(self, inner=self.inner.prepare(*traversals)) if hasattr(self.inner, "prepare") else self
@@ -89,22 +95,16 @@ def velocity_grid(spec: SequenceSpec) -> tuple[float, ...]:
     return tuple(k / h for k in range(max(low, 1), high + 1)) or (1.0,)
 
 
-@dataclass(frozen=True)
-class Trajectories:
+def grid_trajectories(spec: SequenceSpec, reference_segments: np.ndarray, device) -> list[torch.Tensor]:
     """The grid's straight trajectories in a block: per velocity, the reference frame each query frame of the window
     meets from anchor column r, [n_reference, L] (-1 where the trajectory leaves r's segment)."""
-
-    frames: list[torch.Tensor]
-
-    @classmethod
-    def of(cls, spec: SequenceSpec, reference_segments: np.ndarray, device) -> Trajectories:
-        frames = []
-        for velocity in velocity_grid(spec):
-            steps = velocity_steps(spec.length, velocity)
-            starts = window_starts(reference_segments, int(steps[-1]) + 1, int(steps[spec.offset]), spec.boundary)
-            rows = np.where(starts[:, None] >= 0, starts[:, None] + steps[None, :], -1)
-            frames.append(torch.as_tensor(rows, device=device))
-        return cls(frames)
+    frames = []
+    for velocity in velocity_grid(spec):
+        steps = velocity_steps(spec.length, velocity)
+        starts = window_starts(reference_segments, int(steps[-1]) + 1, int(steps[spec.offset]), spec.boundary)
+        frames.append(torch.as_tensor(np.where(starts[:, None] >= 0, starts[:, None] + steps[None, :], -1),
+                                      device=device))
+    return frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,7 +150,7 @@ class ConeScorer(BestFrames):
     def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
                  spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
         best = self.window_best(query_starts, spec, d.device)
-        paths = Trajectories.of(spec, reference_segments, d.device).frames
+        paths = grid_trajectories(spec, reference_segments, d.device)
         votes = torch.zeros((len(best), d.shape[1]), dtype=d.dtype, device=d.device)
         for k in range(spec.length):
             hit = torch.zeros(votes.shape, dtype=torch.bool, device=d.device)
@@ -169,6 +169,10 @@ class HybridScorer(BestFrames):
     distance is the best kept trajectory's mean distance, +inf where none is kept. Wrapped in ``ContrastScorer``
     it reads the contrast-enhanced distances, as OpenSeqSLAM2's does."""
 
+    def trajectory_velocities(self, spec: SequenceSpec) -> tuple[float, ...]:
+        """The grid's velocities: a match is scored by one of their trajectories."""
+        return velocity_grid(spec)
+
     def __call__(self, d: torch.Tensor, rows: np.ndarray, query_starts: np.ndarray, reference_segments: np.ndarray,
                  spec: SequenceSpec, inplace: bool = False) -> torch.Tensor:
         best = self.window_best(query_starts, spec, d.device)
@@ -177,7 +181,7 @@ class HybridScorer(BestFrames):
         member.scatter_(1, torch.where((best >= 0) & (best < n_r), best, n_r), True)
         member[:, n_r] = False
         result = torch.full((n_w, n_r), float("inf"), dtype=d.dtype, device=d.device)
-        for velocity, frames in zip(velocity_grid(spec), Trajectories.of(spec, reference_segments, d.device).frames):
+        for velocity, frames in zip(velocity_grid(spec), grid_trajectories(spec, reference_segments, d.device)):
             kept = torch.zeros((n_w, n_r), dtype=torch.bool, device=d.device)
             for k in range(spec.length):
                 kept |= member[:, torch.where(frames[:, k] >= 0, frames[:, k], n_r)]
