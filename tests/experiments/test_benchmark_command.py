@@ -41,6 +41,14 @@ test = "200:300"
 """
 
 
+def benchmark_csv(monkeypatch, capsys, config, out) -> tuple[str, list[dict[str, str]]]:
+    """Run ``seqvpr benchmark CONFIG --out OUT``; its stdout and results.csv rows."""
+    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", out)
+    assert code == 0, stderr
+    with open(out / "results.csv", newline="") as handle:
+        return stdout, list(csv.DictReader(handle))
+
+
 def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(monkeypatch, capsys, route, tmp_path):
     config = route / "bench.toml"
     config.write_text(config_text('["single", "matching", "seqmatchnet", "smoothing", "hvpr"]'))
@@ -69,10 +77,8 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
 
     config = route / "bench_matchers.toml"
     config.write_text(config_text('["single", "adaptive", "graph"]', lengths="[5, 7]"))
-    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
-    assert code == 0, stderr
-    with open(tmp_path / "b" / "results.csv", newline="") as handle:
-        rows = {(r["method"], r["L"]): r for r in csv.DictReader(handle)}
+    stdout, found = benchmark_csv(monkeypatch, capsys, config, tmp_path / "b")
+    rows = {(r["method"], r["L"]): r for r in found}
     splits = load_splits(read_config(config).datasets[0])
     gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
     result = run_method("adaptive", *splits.test, MatchSettings(SequenceSpec(7), k=20))
@@ -97,10 +103,8 @@ def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(mo
 
     config = route / "bench_seqnet.toml"
     config.write_text(config_text('["seqnet", "jist", "hvpr"]', lengths="[5]"))
-    code, stdout, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
-    assert code == 0, stderr
-    with open(tmp_path / "b" / "results.csv", newline="") as handle:
-        rows = {r["method"]: r for r in csv.DictReader(handle)}
+    stdout, found = benchmark_csv(monkeypatch, capsys, config, tmp_path / "b")
+    rows = {r["method"]: r for r in found}
     assert rows["jist"]["error"].startswith("needs images") and rows["jist"]["R@1"] == ""
     assert "| jist (L=5) | n/a | n/a |" in stdout
     assert rows["seqnet"]["error"] == "" and rows["hvpr"]["error"] == ""
