@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_path
-from seqvpr.sequences.matching import frame_distances, max_span
+from seqvpr.sequences.matching import frame_distances, max_span, sequence_rows
 from seqvpr.sequences.windows import SequenceSpec, velocity_steps, window_frames, window_starts
 
 
@@ -88,22 +88,15 @@ def trajectory_correspondences(query: torch.Tensor, reference, best: np.ndarray,
     for i in np.flatnonzero((q_starts >= 0) & (best >= 0)):
         j = int(best[i])
         lo, hi = max(0, j - halo), min(len(r_seg), j + halo + 1)
+        frames = window_frames(q_starts[i : i + 1], spec.length)[0]
         stretch = torch.as_tensor(np.asarray(reference[lo:hi]), dtype=query.dtype)
-        scores = [_score_at(query, stretch, replace(spec, velocities=(v,)), q_starts[i], r_seg[lo:hi], scorer, lo,
-                            j - lo) for v in velocities]
+        d = frame_distances(query[torch.as_tensor(frames)], stretch)
+        score = scorer.locate(frames, lo) if hasattr(scorer, "locate") else (scorer or sequence_rows)
+        scores = [float(score(d, np.array([spec.offset]), np.array([0]), r_seg[lo:hi],
+                              replace(spec, velocities=(v,)), inplace=False)[0, j - lo]) for v in velocities]
         chosen = velocities[int(np.argmin(scores))]
         if not np.isfinite(min(scores)) or starts[chosen][j] < 0:
             continue
-        q_rows[i] = window_frames(q_starts[i : i + 1], spec.length)[0]
+        q_rows[i] = frames
         r_rows[i] = starts[chosen][j] + velocity_steps(spec.length, chosen)
     return q_rows, r_rows
-
-
-def _score_at(query: torch.Tensor, stretch: torch.Tensor, spec: SequenceSpec, query_start: int,
-              stretch_segments: np.ndarray, scorer, first: int, column: int) -> float:
-    """One window's distance at one reference column of a stretch, as the match's blocks compute it."""
-    from seqvpr.sequences.matching import sequence_distance_rows
-
-    row = sequence_distance_rows(query, stretch, spec, np.array([query_start]), stretch_segments, scorer=scorer,
-                                 reference_first=first)
-    return float(row[0, column])
