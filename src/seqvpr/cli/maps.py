@@ -1,4 +1,4 @@
-"""``seqvpr map build`` and ``seqvpr map info``: parse, call ``seqvpr.maps``, print."""
+"""``seqvpr map build``, ``index``, ``shard`` and ``info``: parse, call ``seqvpr.maps``, print."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
+    COUNT,
     DEVICE,
     NONNEGATIVE, SEED, extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options,
     locks_output
@@ -114,6 +115,33 @@ def index_command(map_dir: str, index_spec: str, windows: int, window_method: st
 def _echo_index(record: dict) -> None:
     click.echo(f"index {record['spec']} over {record['over']} ({record['ntotal']} rows) in {record['build_seconds']} s "
                f"({record['file']})")
+
+
+SHARD_EPILOG = """\b
+Examples:
+  seqvpr map shard maps/city --shards 4 --out maps/city-4
+  torchrun --standalone --nproc-per-node 4 "$(command -v seqvpr)" match --map maps/city-4 -q drive.npy -L 5 --radius 25m
+  seqvpr match --map maps/city-4 -q drive.npy -L 5 --radius 25m      # one process matches every shard in turn
+"""
+
+
+@map_group.command(epilog=SHARD_EPILOG)
+@click.argument("map_dir", type=click.Path())
+@click.option("--shards", type=COUNT, required=True, help="How many shards: one (or more) per torchrun rank.")
+@click.option("--overlap", type=NONNEGATIVE, default=63, show_default=True,
+              help="Frames each shard shares with each neighbour: windows of up to OVERLAP + 1 frames (any "
+                   "velocity) are never cut at a shard edge.")
+@click.option("--out", "out_dir", required=True, type=OUT_FOLDER, help="The sharded map folder to write.")
+@locks_output("out_dir")
+def shard(map_dir: str, shards: int, overlap: int, out_dir: str) -> None:
+    """Split MAP into --shards maps for matching under torchrun, one rank per shard (match --map SHARDED)."""
+    from seqvpr.maps.shards import shard_map
+
+    sharded = shard_map(map_dir, out_dir, shards, overlap)
+    for record in sharded.shards:
+        click.echo(f"{record.folder}: rows {record.own_first}..{record.own_last - 1} "
+                   f"(stored from {record.first}, overlap {sharded.overlap})")
+    click.echo(f"sharded map: {out_dir} ({sharded.count} frames in {len(sharded.shards)} shards)")
 
 
 @map_group.command()

@@ -122,7 +122,10 @@ def match(**o: Any) -> None:
         raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
     if o["map_dir"]:
-        return _match_map(o, models, method, k_values, speeds, budget)
+        from seqvpr.maps.shards import is_sharded_map
+
+        sharded = is_sharded_map(o["map_dir"])
+        return (_match_sharded if sharded else _match_map)(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     if o["msls_subtask"]:
         query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
@@ -181,6 +184,40 @@ def _say_skipped(pair, kept) -> None:
         skipped = dropped_frames(original, described)
         if skipped:
             click.echo(f"skipped {len(skipped)} unreadable images of {original.name}: {', '.join(skipped)}", err=True)
+
+
+def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
+    """``match --map SHARDED``: under torchrun each rank matches its shards and rank 0 merges, scores and writes;
+    alone, one process matches every shard."""
+    from seqvpr import distributed
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.maps.shards import map_table, match_sharded_map, open_sharded_map
+    from seqvpr.methods import run_length
+    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
+    from seqvpr.sequences.windows import SequenceSpec, parse_steps
+
+    sharded = open_sharded_map(o["map_dir"])
+    if o["shortlist"]:
+        raise SeqvprError("--shortlist searches one map's index; a sharded map is matched exactly, shard by shard")
+    descriptor = sharded.open_shard(0).info.description["descriptor"]
+    _check_map_options(o, descriptor)
+    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    gt = resolve_ground_truth(map_table(sharded), query, o["radius"], o["gt_file"], layout=o["gt_layout"])
+    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
+    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
+                             budget, parse_steps(o["steps"]), o["contrast_window"])
+    with distributed.process_group(o["device"]) as world:
+        result = match_sharded_map(sharded, query, method, settings, models,
+                                   progress=tqdm_progress if world.is_root else None, cache_dir=o["cache_dir"],
+                                   skip_bad=o["skip_bad"])
+    if result is None:  # another rank: rank 0 scores and writes
+        return
+    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
+    run = _run_settings({**o, "reference": o["map_dir"]}, method, models, descriptor, gt.description,
+                        settings.as_dict())
+    run["map"], run["shards"], run["ranks"] = o["map_dir"], len(sharded.shards), world.size
+    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (result.reference, query))
 
 
 def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:

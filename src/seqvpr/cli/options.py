@@ -68,7 +68,7 @@ def locks_output(option: str) -> Callable[[Callable], Callable]:
         @functools.wraps(function)
         def locked(*args: Any, **kwargs: Any) -> Any:
             target = kwargs.get(option)
-            if not target:
+            if not target or _torchrun_rank() != 0:  # under torchrun rank 0 alone writes the output
                 return function(*args, **kwargs)
             from seqvpr.io import output_lock
 
@@ -78,6 +78,16 @@ def locks_output(option: str) -> Callable[[Callable], Callable]:
         return locked
 
     return decorate
+
+
+def _torchrun_rank() -> int:
+    """This process's rank under torchrun (0 alone); a malformed value is left to ``seqvpr.distributed``."""
+    import os
+
+    try:
+        return int(os.environ.get("RANK", 0))
+    except ValueError:
+        return 0
 
 
 class Number(click.ParamType):

@@ -67,6 +67,7 @@ class MapInfo:
     created: str = ""
     index: dict[str, Any] | None = None
     columns: tuple[str, ...] = field(default=())
+    shard: dict[str, Any] | None = None  # in a sharded map: its number, and its rows of the whole (``shards``)
 
     def to_json(self) -> dict[str, Any]:
         values = asdict(self)
@@ -126,6 +127,38 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
             (tmp / "names.txt").write_text("".join(f"{p}\n" for p in frames.image_paths))
         (tmp / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
     return Path(folder)
+
+
+PER_FRAME_FILES = ("segments.npy", "frame_index.npy", "sources.npy", *(f"{c}.npy" for c in OPTIONAL_COLUMNS))
+
+
+def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[str, Any]) -> None:
+    """Rows ``[lo, hi)`` of an opened map as a map of their own in ``folder`` (which must not exist): every stored
+    file sliced as stored (codes stay the same codes), the side files copied, ``map.json`` last with ``shard``."""
+    import shutil
+
+    folder.mkdir(parents=True)
+    stored = np.load(saved.folder / DESCRIPTORS_FILE, mmap_mode="r", allow_pickle=False)
+    np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
+    for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
+        if (saved.folder / name).is_file():
+            shutil.copyfile(saved.folder / name, folder / name)
+    rows = {}
+    for name in PER_FRAME_FILES:
+        if (saved.folder / name).is_file():
+            rows[name] = np.load(saved.folder / name, allow_pickle=False)[lo:hi]
+    kept, remapped = np.unique(rows["sources.npy"], return_inverse=True)
+    rows["sources.npy"] = remapped.astype(np.int32)
+    for name, values in rows.items():
+        np.save(folder / name, values)
+    names = saved.folder / "names.txt"
+    if names.is_file():
+        (folder / "names.txt").write_text("".join(f"{line}\n" for line in names.read_text().splitlines()[lo:hi]))
+    sources = tuple(MapSource(saved.info.sources[int(k)].source, saved.info.sources[int(k)].name,
+                              int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
+                    for i, k in enumerate(kept))
+    info = replace(saved.info, count=hi - lo, sources=sources, index=None, shard=shard)
+    (folder / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
 
 
 @dataclass(frozen=True)

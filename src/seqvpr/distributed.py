@@ -1,0 +1,98 @@
+"""torch.distributed under ``torchrun``: the rank and world size torchrun sets, one process group for a command,
+and a gather that fails every rank with the failing rank's error (so no rank waits forever and none writes output).
+
+Run without torchrun, the world is one process and nothing here touches torch.distributed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import TypeVar
+
+from seqvpr.errors import SeqvprError
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class World:
+    """This process's place among the ranks of a run: rank, how many there are, and its rank on its machine."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    @property
+    def is_root(self) -> bool:
+        return self.rank == 0
+
+
+_current = World()
+
+
+def from_environment() -> World:
+    """The world torchrun describes in ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` (one process when unset)."""
+    try:
+        world = World(int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)),
+                      int(os.environ.get("LOCAL_RANK", 0)))
+    except ValueError:
+        raise SeqvprError("RANK, WORLD_SIZE and LOCAL_RANK must be whole numbers (torchrun sets them)") from None
+    if world.size < 1 or not 0 <= world.rank < world.size:
+        raise SeqvprError(f"rank {world.rank} is not one of WORLD_SIZE={world.size} ranks")
+    return world
+
+
+def current() -> World:
+    """The world of the running command (one process outside ``process_group``)."""
+    return _current
+
+
+@contextlib.contextmanager
+def process_group(device: str = "cpu") -> Iterator[World]:
+    """Join torchrun's process group for the duration (gloo on CPU, NCCL on CUDA), and leave it after."""
+    global _current
+    world = from_environment()
+    if world.size == 1:
+        yield world
+        return
+    import torch.distributed as dist
+
+    backend = "nccl" if str(device).startswith("cuda") else "gloo"
+    if str(device).startswith("cuda"):
+        import torch
+
+        torch.cuda.set_device(world.local_rank)
+    dist.init_process_group(backend)
+    _current = world
+    try:
+        yield world
+    finally:
+        _current = World()
+        dist.destroy_process_group()
+
+
+def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T] | None:
+    """Every rank's ``work()``, gathered on rank 0 in rank order (other ranks get None). A rank whose work raises
+    makes every rank raise one line naming it, after all have finished theirs."""
+    world = world or current()
+    if world.size == 1:
+        return [work()]
+    import torch.distributed as dist
+
+    value, error = None, None
+    try:
+        value = work()
+    except Exception as failure:  # reported to every rank below, then raised on each
+        error = str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"
+    errors: list[str | None] = [None] * world.size
+    dist.all_gather_object(errors, error)
+    failed = [(rank, text) for rank, text in enumerate(errors) if text is not None]
+    if failed:
+        rank, text = failed[0]
+        raise SeqvprError(f"rank {rank} of {world.size} failed: {text}")
+    values: list[T] | None = [None] * world.size if world.is_root else None  # type: ignore[list-item]
+    dist.gather_object(value, values, dst=0)
+    return values

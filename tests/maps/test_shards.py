@@ -1,0 +1,136 @@
+"""Sharded maps: the shards tile the map, and matching them (one process, or two torchrun ranks) gives exactly what
+matching the whole map gives, windows across shard edges included; a failing rank fails the run, leaving nothing."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from seqvpr.data.sources import load_traversal
+from seqvpr.maps import build_map, match_map
+from seqvpr.maps.shards import match_sharded_map, open_sharded_map, shard_map, shard_ranges
+from seqvpr.pipeline import MatchSettings
+from seqvpr.sequences.windows import SequenceSpec
+from tests.helpers import raises_one_line, run_cli, write_route_files
+
+
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory):
+    """A 240-frame map in two segments (two sources), and its query."""
+    folder = tmp_path_factory.mktemp("shards")
+    write_route_files(folder, n_frames=240, dim=24, seed=5)
+    (folder / "a").mkdir()
+    write_route_files(folder / "a", n_frames=90, dim=24, seed=6)
+    build_map([str(folder / "ref.npz"), str(folder / "a" / "ref.npz")], folder / "map")
+    return folder
+
+
+@settings(max_examples=40, deadline=None)
+@given(count=st.integers(1, 500), shards=st.integers(1, 9), overlap=st.integers(0, 40))
+def test_shards_own_equal_runs_that_tile_the_map_and_store_overlap_beyond_them(count, shards, overlap):
+    if shards > count:
+        raises_one_line("--shards must be between 1", shard_ranges, count, shards, overlap)
+        return
+    ranges = shard_ranges(count, shards, overlap)
+    assert [a for _, a, _, _ in ranges] == [0, *[b for _, _, b, _ in ranges[:-1]]] and ranges[-1][2] == count
+    sizes = [b - a for _, a, b, _ in ranges]
+    assert max(sizes) - min(sizes) <= 1
+    for lo, a, b, hi in ranges:
+        assert lo == max(0, a - overlap) and hi == min(count, b + overlap)
+
+
+@pytest.mark.parametrize("method, length, velocities, shards, overlap", [
+    ("matching", 5, (1.0,), 3, 4),          # the minimum overlap for L = 5
+    ("matching", 9, (0.8, 1.0, 1.2), 4, 10),  # a velocity sweep spans 11 frames
+    ("adaptive", 6, (1.0,), 5, 10),
+    ("seqslam", 7, (1.0,), 2, 30),
+    ("single", 1, (1.0,), 7, 0),
+    ("smoothing", 5, (1.0,), 3, 4),
+])
+def test_a_sharded_match_is_the_whole_maps(whole, tmp_path, method, length, velocities, shards, overlap):
+    sharded = shard_map(whole / "map", tmp_path / "sharded", shards, overlap)
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    settings_ = MatchSettings(SequenceSpec(length, velocities=velocities), k=15)
+    expected = match_map(load_map_of(whole), query, method, settings_)
+    got = match_sharded_map(sharded, query, method, settings_)
+    np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
+    np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-6)
+    np.testing.assert_array_equal(got.topk.has_window, expected.topk.has_window)
+    np.testing.assert_array_equal(got.reference.segment_ids, expected.reference.segment_ids)
+    np.testing.assert_array_equal(got.reference.descriptors[:], np.asarray(expected.reference.descriptors))
+    if expected.correspondences is not None:
+        for a, b in zip(got.correspondences, expected.correspondences):
+            np.testing.assert_array_equal(a, b)
+    edges = [r.own_first for r in sharded.shards[1:]]
+    straddling = [e for e in edges if np.isin(expected.topk.indices[:, 0], np.arange(e - length, e + length)).any()]
+    assert straddling or shards == 1 or length == 1  # windows across a shard edge were among the matches
+
+
+def load_map_of(folder: Path):
+    from seqvpr.maps import load_map
+
+    return load_map(folder / "map")
+
+
+def test_methods_a_shard_cannot_score_and_windows_longer_than_the_overlap_are_one_line(whole, tmp_path):
+    sharded = shard_map(whole / "map", tmp_path / "sharded", 3, 4)
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    for method in ("hmm", "graph", "hvpr"):
+        raises_one_line("a sharded map is matched by", match_sharded_map, sharded, query, method,
+                        MatchSettings(SequenceSpec(1 if method != "hvpr" else 5), k=5))
+    for method in ("seqslam-cone", "seqslam-hybrid"):
+        raises_one_line("best match over the whole map", match_sharded_map, sharded, query, method,
+                        MatchSettings(SequenceSpec(5), k=5))
+    raises_one_line("overlap by 4 frames, so windows may span at most 5; this match needs 6",
+                    match_sharded_map, sharded, query, "matching", MatchSettings(SequenceSpec(6), k=5))
+    (tmp_path / "sharded" / "shards.json").write_text('{"format": "seqvpr-sharded-map", "version": 1}')
+    raises_one_line("malformed sharded map description", open_sharded_map, tmp_path / "sharded")
+
+
+def test_map_shard_and_match_on_the_command_line_give_the_whole_maps_predictions(whole, tmp_path, monkeypatch,
+                                                                                 capsys):
+    code, out, err = run_cli(monkeypatch, capsys, "map", "shard", whole / "map", "--shards", "3", "--overlap", "9",
+                             "--out", tmp_path / "s")
+    assert code == 0, err
+    assert "shard-001: rows 110..219 (stored from 101, overlap 9)" in out
+    common = ("-q", whole / "qry.npz", "-L", "5", "--radius", "10m", "--method", "adaptive")
+    code, _, err = run_cli(monkeypatch, capsys, "match", "--map", whole / "map", *common, "--out", tmp_path / "a")
+    assert code == 0, err
+    code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "s", *common, "--out", tmp_path / "b")
+    assert code == 0, err
+    for name in ("predictions.csv", "correspondences.csv"):
+        assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
+
+
+def torchrun(args, cwd: Path) -> subprocess.CompletedProcess:
+    """``torchrun --standalone --nproc-per-node 2 seqvpr ARGS``, as a user launches it."""
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    command = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", "2", shutil.which("seqvpr", path=env["PATH"]),
+               *map(str, args)]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_rank_fails_the_run(whole, tmp_path):
+    shard_map(whole / "map", tmp_path / "s", 3, 9)
+    common = ["-q", whole / "qry.npz", "-L", "5", "--radius", "10m"]
+    done = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    alone = subprocess.run([shutil.which("seqvpr", path=str(Path(sys.executable).parent)), "match", "--map",
+                            tmp_path / "s", *map(str, common), "--out", tmp_path / "one"], capture_output=True,
+                           text=True)
+    assert alone.returncode == 0, alone.stderr
+    assert (tmp_path / "two" / "predictions.csv").read_text() == (tmp_path / "one" / "predictions.csv").read_text()
+    assert '"ranks": 2' in (tmp_path / "two" / "run.json").read_text()
+    shard = tmp_path / "s" / "shard-002" / "descriptors.npy"
+    np.save(shard, np.load(shard)[:10])  # the shard rank 0 matches second is damaged
+    failed = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "bad"], tmp_path)
+    assert failed.returncode != 0 and "shard-002/descriptors.npy" in failed.stderr
+    assert not (tmp_path / "bad").exists()

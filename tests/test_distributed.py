@@ -1,0 +1,65 @@
+"""torch.distributed under torchrun's environment: the world read from it, and a gather that reaches rank 0 in rank
+order or fails every rank with the failing rank's error (two gloo processes on this machine)."""
+
+from __future__ import annotations
+
+import json
+import socket
+from pathlib import Path
+
+import pytest
+import torch.multiprocessing as mp
+
+from seqvpr import distributed
+from seqvpr.errors import SeqvprError
+from tests.helpers import raises_one_line
+
+
+def test_the_world_is_torchruns_environment_or_one_process(monkeypatch):
+    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    assert distributed.from_environment() == distributed.World(0, 1, 0)
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert distributed.from_environment() == distributed.World(1, 2, 1)
+    monkeypatch.setenv("RANK", "2")
+    raises_one_line("rank 2 is not one of WORLD_SIZE=2 ranks", distributed.from_environment)
+    monkeypatch.setenv("RANK", "one")
+    raises_one_line("must be whole numbers", distributed.from_environment)
+    assert distributed.gather_to_root(lambda: 7, distributed.World()) == [7]  # alone: no process group
+
+
+def _rank(rank: int, port: int, fail_rank: int, out: str) -> None:
+    import os
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
+                      LOCAL_RANK=str(rank))
+
+    def work() -> dict:
+        if rank == fail_rank:
+            raise SeqvprError(f"shard {rank} is damaged")
+        return {"rank": rank}
+
+    with distributed.process_group("cpu") as world:
+        try:
+            outcome = {"gathered": distributed.gather_to_root(work, world)}
+        except SeqvprError as error:
+            outcome = {"error": str(error)}
+    Path(out, f"rank{rank}.json").write_text(json.dumps(outcome))
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.parametrize("fail_rank", [-1, 1])
+def test_gather_reaches_rank_0_in_order_or_fails_every_rank_with_the_failing_ranks_error(tmp_path, fail_rank):
+    mp.spawn(_rank, args=(free_port(), fail_rank, str(tmp_path)), nprocs=2, join=True)
+    outcomes = [json.loads((tmp_path / f"rank{rank}.json").read_text()) for rank in range(2)]
+    if fail_rank < 0:
+        assert outcomes == [{"gathered": [{"rank": 0}, {"rank": 1}]}, {"gathered": None}]
+    else:
+        assert outcomes[0] == outcomes[1] == {"error": "rank 1 of 2 failed: shard 1 is damaged"}
