@@ -15,7 +15,8 @@ from hypothesis import given, settings, strategies as st
 
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, match_map
-from seqvpr.maps.shards import match_sharded_map, open_sharded_map, shard_map, shard_ranges
+from seqvpr.maps.files import open_sharded_map
+from seqvpr.maps.shards import match_sharded_map, shard_map, shard_ranges
 from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import raises_one_line, run_cli, write_route_files
@@ -134,3 +135,21 @@ def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_ra
     failed = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "bad"], tmp_path)
     assert failed.returncode != 0 and "shard-002/descriptors.npy" in failed.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_one(whole, tmp_path, monkeypatch,
+                                                                                   capsys):
+    from seqvpr.localization import Localizer
+    from seqvpr.localization.replay import replay
+    from seqvpr.maps import load_map
+
+    shard_map(whole / "map", tmp_path / "s", 4, 7)
+    one, many = load_map(whole / "map"), load_map(tmp_path / "s")
+    assert many.info.count == one.info.count and many.info.sources == one.info.sources
+    np.testing.assert_array_equal(many.descriptors[17:200:3], np.asarray(one.descriptors[17:200:3]))
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    for options in ({"seq_len": 5, "k": 5}, {"method": "hmm", "k": 5}):
+        a, b = replay(Localizer.open(one, **options), query), replay(Localizer.open(many, **options), query)
+        np.testing.assert_array_equal(a.indices, b.indices)
+    code, out, err = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "s")
+    assert code == 0 and f"count:           {one.info.count}" in out, err

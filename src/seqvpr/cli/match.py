@@ -122,7 +122,7 @@ def match(**o: Any) -> None:
         raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
     if o["map_dir"]:
-        from seqvpr.maps.shards import is_sharded_map
+        from seqvpr.maps.files import is_sharded_map
 
         sharded = is_sharded_map(o["map_dir"])
         return (_match_sharded if sharded else _match_map)(o, models, method, k_values, speeds, budget)
@@ -192,7 +192,8 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
     from seqvpr import distributed
     from seqvpr.data.sources import load_traversal
     from seqvpr.data.traversal import slice_frame_range
-    from seqvpr.maps.shards import map_table, match_sharded_map, open_sharded_map
+    from seqvpr.maps.files import map_table, open_sharded_map
+    from seqvpr.maps.shards import match_sharded_map
     from seqvpr.methods import run_length
     from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
     from seqvpr.sequences.windows import SequenceSpec, parse_steps

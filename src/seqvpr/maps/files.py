@@ -14,7 +14,8 @@
     MAP/names.txt         one image path per frame (only when every source is images)
 
 ``map.json`` is written last, inside a temporary folder that is renamed to MAP when complete, so a half-built
-map never carries the name.
+map never carries the name. A sharded map (``shards.json`` beside ``shard-000/`` ... maps; ``seqvpr.maps.shards``
+makes and matches them) is read here too, and ``open_map`` opens it as the whole map, rows read through its shards.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -203,8 +205,11 @@ def read_map_info(folder: str | Path) -> MapInfo:
 
 
 def open_map(folder: str | Path) -> SavedMap:
-    """Open a saved map: descriptors memory-mapped read-only, the per-frame table read, every file checked."""
+    """Open a saved map: descriptors memory-mapped read-only, the per-frame table read, every file checked. A
+    sharded map (``seqvpr map shard``) opens as the whole map, its rows read through its shards."""
     folder = Path(folder)
+    if (folder / SHARDS_FILE).is_file():
+        return open_sharded_map(folder).as_map()
     info = read_map_info(folder)
     descriptors = _stored_rows(folder, info)
     column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
@@ -244,3 +249,122 @@ def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mm
     if array.shape != shape or array.dtype != np.dtype(dtype):
         raise SeqvprError(f"{path}: holds {array.dtype} {array.shape}, the map needs {dtype} {shape}")
     return array
+
+
+# ----------------------------------------------------------------------------------------------- sharded maps
+
+SHARDS_FILE = "shards.json"
+SHARDS_FORMAT = "seqvpr-sharded-map"
+SHARDS_VERSION = 1
+
+@dataclass(frozen=True)
+class ShardRecord:
+    """One shard: its folder (relative to the sharded map), its first row, and the rows it owns, in whole-map rows."""
+
+    folder: str
+    first: int
+    own_first: int
+    own_last: int
+
+
+@dataclass(frozen=True)
+class ShardedMap:
+    """An opened sharded map's description: where its shards are and which rows each owns."""
+
+    folder: Path
+    count: int
+    overlap: int
+    shards: tuple[ShardRecord, ...]
+    info: dict[str, Any]  # the unsharded map's ``map.json``
+
+    def open_shard(self, number: int) -> SavedMap:
+        """Shard ``number`` as a map, memory-mapped (only its own files are touched)."""
+        return open_map(self.folder / self.shards[number].folder)
+
+    def as_map(self) -> SavedMap:
+        """The whole map in one process, its rows read through the shards: what ``open_map`` gives for a sharded
+        map, so every command (match, localize, map info) takes one."""
+        values = {**self.info, "sources": tuple(MapSource(**s) for s in self.info["sources"]),
+                  "columns": tuple(self.info.get("columns", ())), "index": None, "shard": None}
+        return SavedMap(self.folder, MapInfo(**values), map_table(self))
+
+
+def is_sharded_map(folder: str | Path) -> bool:
+    return (Path(folder) / SHARDS_FILE).is_file()
+
+
+def open_sharded_map(folder: str | Path) -> ShardedMap:
+    """``shards.json`` of a sharded map, checked: the shards tile the map's rows and each overlaps as recorded."""
+    folder = Path(folder)
+    path = folder / SHARDS_FILE
+    if not path.is_file():
+        raise SeqvprError(f"{folder}: not a sharded map (no {SHARDS_FILE})")
+    try:
+        values = json.loads(path.read_text())
+        if values.get("format") != SHARDS_FORMAT or values.get("version") != SHARDS_VERSION:
+            raise ValueError(f"format {values.get('format')!r} version {values.get('version')!r}")
+        records = tuple(ShardRecord(**r) for r in values["shards"])
+        sharded = ShardedMap(folder, int(values["count"]), int(values["overlap"]), records, dict(values["map"]))
+    except (ValueError, TypeError, KeyError, AttributeError) as error:
+        raise SeqvprError(f"{path}: malformed sharded map description ({type(error).__name__}: {error})") from None
+    owned = [(r.own_first, r.own_last) for r in records]
+    if [a for a, _ in owned] != [0, *[b for _, b in owned[:-1]]] or owned[-1][1] != sharded.count:
+        raise SeqvprError(f"{path}: its shards do not tile the map's {sharded.count} frames")
+    return sharded
+
+
+class ShardedRows:
+    """The whole map's descriptor rows read through its shards' memory maps (each row from the shard owning it),
+    indexed like an array a slice or a row list at a time; nothing is loaded until asked for."""
+
+    ndim = 2
+
+    def __init__(self, sharded: ShardedMap, shards: Sequence[SavedMap]) -> None:
+        self.shards, self.records = list(shards), sharded.shards
+        first = self.shards[0].descriptors
+        self.shape, self.dtype = (sharded.count, first.shape[1]), np.dtype(first.dtype)
+        self.bounds = np.array([r.own_last for r in self.records])
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the shards store (their overlaps included)."""
+        return int(sum(shard.descriptors.nbytes for shard in self.shards))
+
+    def __getitem__(self, key) -> np.ndarray:
+        rows = np.arange(self.shape[0])[key]
+        owner = np.searchsorted(self.bounds, rows, side="right")
+        out = np.empty((len(rows), self.shape[1]), dtype=self.dtype)
+        for number in np.unique(owner):
+            picked = owner == number
+            local = rows[picked] - self.records[number].first
+            span = slice(int(local[0]), int(local[-1]) + 1)
+            contiguous = len(local) == span.stop - span.start and bool(np.all(np.diff(local) == 1))
+            out[picked] = self.shards[number].descriptors[span if contiguous else local]
+        return out
+
+
+def map_table(sharded: ShardedMap) -> Traversal:
+    """The whole map's frames from each shard's own rows (frame index, segments as in the whole map, positions,
+    ...), their descriptors read through the shards (``ShardedRows``): the reference a sharded match reports."""
+    shards = [sharded.open_shard(number) for number in range(len(sharded.shards))]  # each checks its own files
+    parts: dict[str, list] = {"frame_index": [], "segment_ids": [], "image_paths": [],
+                              **{c: [] for c in OPTIONAL_COLUMNS}}
+    for shard, record in zip(shards, sharded.shards):
+        own = slice(record.own_first - record.first, record.own_last - record.first)
+        for name in parts:
+            value = getattr(shard.frames, name)
+            parts[name].append(None if value is None else value[own])
+    joined: dict[str, Any] = {}
+    for name, values in parts.items():
+        if any(v is None for v in values):
+            joined[name] = None
+        elif name == "image_paths":
+            joined[name] = tuple(p for v in values for p in v)
+        else:
+            joined[name] = np.concatenate(values)
+    return Traversal(sharded.folder.name, joined["frame_index"], joined["segment_ids"],
+                     ShardedRows(sharded, shards), joined["image_paths"], joined["positions"],
+                     joined["timestamps"], joined["headings"], source=str(sharded.folder))

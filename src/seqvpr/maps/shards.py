@@ -1,7 +1,7 @@
 """Sharded maps: one map split into N shards, each a map of its own that one process memory-maps and matches.
 
-    SHARDED/shards.json    format, version, the whole map's frame count, overlap, and per shard its folder, its
-                           first row and the rows it owns ``[own_first, own_last)``
+    SHARDED/shards.json    format, version, the whole map's frame count, overlap, per shard its folder, its first
+                           row and the rows it owns ``[own_first, own_last)``, and the unsharded map's map.json
     SHARDED/shard-000/     a map (``files``) of rows ``[own_first - overlap, own_last + overlap)``, clipped to the
                            whole; its ``map.json`` says which shard it is
 
@@ -10,6 +10,8 @@ every sequence window anchored at a frame a shard owns lies inside that shard wh
 ``overlap + 1`` frames: no window is cut at a shard edge. A shard's top-K over the frames it owns, merged with the
 others' (distance, then the lower map row, as the kernel breaks ties), is the unsharded map's top-K. Under
 ``torchrun`` each rank matches its shards (``seqvpr.distributed``); without it one process matches them all.
+``open_map`` opens a sharded map as the whole map too (``ShardedMap.as_map``), rows read through the shards, so
+the localiser and every other map command take one in a single process.
 """
 
 from __future__ import annotations
@@ -25,28 +27,18 @@ import numpy as np
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.io import atomic_folder
-from seqvpr.maps.files import OPTIONAL_COLUMNS, SavedMap, open_map, write_map_rows
+from seqvpr.maps.files import (
+    SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, ShardedMap, ShardRecord, map_table, open_map, open_sharded_map,
+    write_map_rows,
+)
 from seqvpr.sequences.matching import TopK
 
 if TYPE_CHECKING:
     from seqvpr.pipeline import MatchResult
 
-SHARDS_FILE = "shards.json"
-SHARDS_FORMAT = "seqvpr-sharded-map"
-SHARDS_VERSION = 1
 DEFAULT_OVERLAP = 63  # windows of up to 64 frames (any velocity) are never cut
 SHARDABLE_FAMILIES = ("matching", "retrieval")  # per-window scores: a shard's top-K over its own frames is exact
 WHOLE_MAP_SCORERS = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole map
-
-
-@dataclass(frozen=True)
-class ShardRecord:
-    """One shard: its folder (relative to the sharded map), its first row, and the rows it owns, in whole-map rows."""
-
-    folder: str
-    first: int
-    own_first: int
-    own_last: int
 
 
 @dataclass(frozen=True)
@@ -57,20 +49,6 @@ class ShardMatch:
     number: int
     topk: TopK
     pairs: tuple[np.ndarray, np.ndarray] | None
-
-
-@dataclass(frozen=True)
-class ShardedMap:
-    """An opened sharded map's description: where its shards are and which rows each owns."""
-
-    folder: Path
-    count: int
-    overlap: int
-    shards: tuple[ShardRecord, ...]
-
-    def open_shard(self, number: int) -> SavedMap:
-        """Shard ``number`` as a map, memory-mapped (only its own files are touched)."""
-        return open_map(self.folder / self.shards[number].folder)
 
 
 def shard_ranges(count: int, shards: int, overlap: int) -> list[tuple[int, int, int, int]]:
@@ -96,33 +74,10 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
                                                          "own": [a, b], "count": saved.info.count})
             records.append(ShardRecord(folder, lo, a, b))
         description = {"format": SHARDS_FORMAT, "version": SHARDS_VERSION, "count": saved.info.count,
-                       "overlap": overlap, "source": str(source), "shards": [r.__dict__ for r in records]}
+                       "overlap": overlap, "source": str(source), "shards": [r.__dict__ for r in records],
+                       "map": saved.info.to_json()}
         (tmp / SHARDS_FILE).write_text(json.dumps(description, indent=2))
     return open_sharded_map(out)
-
-
-def is_sharded_map(folder: str | Path) -> bool:
-    return (Path(folder) / SHARDS_FILE).is_file()
-
-
-def open_sharded_map(folder: str | Path) -> ShardedMap:
-    """``shards.json`` of a sharded map, checked: the shards tile the map's rows and each overlaps as recorded."""
-    folder = Path(folder)
-    path = folder / SHARDS_FILE
-    if not path.is_file():
-        raise SeqvprError(f"{folder}: not a sharded map (no {SHARDS_FILE})")
-    try:
-        values = json.loads(path.read_text())
-        if values.get("format") != SHARDS_FORMAT or values.get("version") != SHARDS_VERSION:
-            raise ValueError(f"format {values.get('format')!r} version {values.get('version')!r}")
-        records = tuple(ShardRecord(**r) for r in values["shards"])
-        sharded = ShardedMap(folder, int(values["count"]), int(values["overlap"]), records)
-    except (ValueError, TypeError, KeyError, AttributeError) as error:
-        raise SeqvprError(f"{path}: malformed sharded map description ({type(error).__name__}: {error})") from None
-    owned = [(r.own_first, r.own_last) for r in records]
-    if [a for a, _ in owned] != [0, *[b for _, b in owned[:-1]]] or owned[-1][1] != sharded.count:
-        raise SeqvprError(f"{path}: its shards do not tile the map's {sharded.count} frames")
-    return sharded
 
 
 def check_shardable(method: str, span: int, sharded: ShardedMap) -> None:
@@ -169,58 +124,6 @@ def merge_topks(parts: Sequence[TopK], k: int) -> TopK:
     picked, values = np.take_along_axis(rows, order, 1), np.take_along_axis(distances, order, 1)
     picked[~np.isfinite(values)] = -1
     return TopK(picked, values, parts[0].has_window)
-
-
-class ShardedRows:
-    """The whole map's descriptor rows read through its shards' memory maps (each row from the shard owning it),
-    indexed like an array a slice or a row list at a time; nothing is loaded until asked for."""
-
-    ndim = 2
-
-    def __init__(self, sharded: ShardedMap, shards: Sequence[SavedMap]) -> None:
-        self.shards, self.records = list(shards), sharded.shards
-        first = self.shards[0].descriptors
-        self.shape, self.dtype = (sharded.count, first.shape[1]), np.dtype(first.dtype)
-        self.bounds = np.array([r.own_last for r in self.records])
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, key) -> np.ndarray:
-        rows = np.arange(self.shape[0])[key]
-        owner = np.searchsorted(self.bounds, rows, side="right")
-        out = np.empty((len(rows), self.shape[1]), dtype=self.dtype)
-        for number in np.unique(owner):
-            picked = owner == number
-            local = rows[picked] - self.records[number].first
-            span = slice(int(local[0]), int(local[-1]) + 1)
-            contiguous = len(local) == span.stop - span.start and bool(np.all(np.diff(local) == 1))
-            out[picked] = self.shards[number].descriptors[span if contiguous else local]
-        return out
-
-
-def map_table(sharded: ShardedMap) -> Traversal:
-    """The whole map's frames from each shard's own rows (frame index, segments as in the whole map, positions,
-    ...), their descriptors read through the shards (``ShardedRows``): the reference a sharded match reports."""
-    shards = [sharded.open_shard(number) for number in range(len(sharded.shards))]
-    parts: dict[str, list] = {"frame_index": [], "segment_ids": [], "image_paths": [],
-                              **{c: [] for c in OPTIONAL_COLUMNS}}
-    for shard, record in zip(shards, sharded.shards):
-        own = slice(record.own_first - record.first, record.own_last - record.first)
-        for name in parts:
-            value = getattr(shard.frames, name)
-            parts[name].append(None if value is None else value[own])
-    joined: dict[str, Any] = {}
-    for name, values in parts.items():
-        if any(v is None for v in values):
-            joined[name] = None
-        elif name == "image_paths":
-            joined[name] = tuple(p for v in values for p in v)
-        else:
-            joined[name] = np.concatenate(values)
-    return Traversal(sharded.folder.name, joined["frame_index"], joined["segment_ids"],
-                     ShardedRows(sharded, shards), joined["image_paths"], joined["positions"],
-                     joined["timestamps"], joined["headings"], source=str(sharded.folder))
 
 
 def shard_numbers(shards: int, rank: int, world: int) -> list[int]:
