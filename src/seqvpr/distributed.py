@@ -55,8 +55,8 @@ def process_group(device: str = "cpu") -> Iterator[World]:
     """Join torchrun's process group for the duration (gloo on CPU, NCCL on CUDA), and leave it after."""
     global _current
     world = from_environment()
-    if world.size == 1:
-        yield world
+    if world.size == 1 or _current.size > 1:  # alone, or already joined by the command that called this
+        yield _current if _current.size > 1 else world
         return
     import torch.distributed as dist
 
@@ -96,3 +96,66 @@ def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T]
     values: list[T] | None = [None] * world.size if world.is_root else None  # type: ignore[list-item]
     dist.gather_object(value, values, dst=0)
     return values
+
+
+def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
+    """Rank 0's ``work()`` on every rank (the others do not run it); if it raises, every rank raises one line."""
+    world = world or current()
+    if world.size == 1:
+        return work()
+    import torch.distributed as dist
+
+    message: list = [None, None]
+    if world.is_root:
+        try:
+            message = [work(), None]
+        except Exception as failure:  # sent to every rank below, then raised on each
+            message = [None, str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"]
+    dist.broadcast_object_list(message, src=0)
+    if message[1] is not None:
+        raise SeqvprError(f"rank 0 of {world.size} failed: {message[1]}")
+    return message[0]
+
+
+def average_gradients(parameters, world: World | None = None) -> None:
+    """Replace every parameter's gradient by its mean over the ranks (one all-reduce of them all, flattened; a
+    parameter without a gradient counts as zeros), as DistributedDataParallel does."""
+    world = world or current()
+    if world.size == 1:
+        return
+    import torch
+    import torch.distributed as dist
+
+    params = [p for p in parameters if p.requires_grad]
+    for p in params:
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+    flat = torch.cat([p.grad.reshape(-1) for p in params])
+    dist.all_reduce(flat)
+    flat /= world.size
+    offset = 0
+    for p in params:
+        p.grad.copy_(flat[offset : offset + p.numel()].view_as(p))
+        offset += p.numel()
+
+
+def sum_over_ranks(values: list[float], world: World | None = None) -> list[float]:
+    """Each value summed over the ranks (float64)."""
+    world = world or current()
+    if world.size == 1:
+        return list(values)
+    import torch
+    import torch.distributed as dist
+
+    total = torch.tensor(values, dtype=torch.float64)
+    dist.all_reduce(total)
+    return total.tolist()
+
+
+def barrier(world: World | None = None) -> None:
+    """Wait until every rank is here."""
+    world = world or current()
+    if world.size > 1:
+        import torch.distributed as dist
+
+        dist.barrier()

@@ -156,7 +156,12 @@ def described_data(kind: str, o: dict):
 
 
 def echo_best(best_epoch: int, best_recall: dict[int, float], folder: Path | str) -> None:
-    """The closing lines of a training command: the best epoch's validation recall and the model folder."""
+    """The closing lines of a training command: the best epoch's validation recall and the model folder (rank 0
+    alone says them under torchrun)."""
+    from seqvpr.distributed import from_environment
+
+    if not from_environment().is_root:
+        return
     best = " ".join(f"R@{k} {v:.3f}" for k, v in sorted(best_recall.items()))
     click.echo(f"best epoch {best_epoch}: validation {best}\nmodel: {folder} "
                f"(apply with: seqvpr match --model {folder} ...)")

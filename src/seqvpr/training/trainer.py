@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from seqvpr import distributed
 from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -206,6 +207,11 @@ class SequenceLearner:
         """Triplets for ``queries`` with the current model (called in eval mode under ``torch.no_grad``)."""
         raise NotImplementedError
 
+    def loss_terms(self, batch: Sequence[Triplet]) -> int:
+        """How many terms the batch's loss averages (the triplet losses: one per query and negative): ranks that
+        share a batch weigh their parts by it, so their averaged gradients are the whole batch's."""
+        return sum(len(t.negatives) for t in batch) or len(batch)
+
     def batches(self, triplets: list[Triplet], settings: LoopSettings) -> list[list[Triplet]]:
         """The round's triplets in optimiser batches of ``batch_size`` (the last one may be smaller)."""
         size = settings.batch_size
@@ -251,14 +257,16 @@ def train_sequence_model(
     resume: bool = False,
     monitor: TrainingMonitor | None = None,
 ) -> TrainResult:
-    """Train ``learner``'s model; the best one by validation R@``select_k`` is written to ``out_dir``.
+    """Train ``learner``'s model; the best one by validation R@``select_k`` is written to ``out_dir``. Under
+    ``torchrun`` the ranks train one model together: rank 0 mines and shares the triplets, each rank takes its share
+    of every batch, gradients are averaged, and rank 0 alone writes (``seqvpr.distributed``).
 
     ``out_dir`` then holds the model folder files, ``history.csv``, and the resumable state of the last finished
     epoch. ``resume`` continues from that state (a run killed before its first state starts over, so
     ``resume=True`` is always safe to pass). Epoch 0 is the untrained model: validated and recorded, but kept only
     when ``settings.select_untrained`` is set or no epoch is trained; ties keep the earlier epoch.
     """
-    with deterministic_algorithms():
+    with deterministic_algorithms(), distributed.process_group(settings.device):
         return _train(data, learner, settings, Path(out_dir), resume, monitor or SilentMonitor())
 
 
@@ -278,18 +286,24 @@ def deterministic_algorithms() -> Iterator[None]:
 def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings, out: Path, resume: bool,
            monitor: TrainingMonitor) -> TrainResult:
     run = _Run(data, learner, settings)
+    root = run.world.is_root  # only rank 0 reports and writes
+    monitor = monitor if root else SilentMonitor()
     monitor.start_run(data, len(run.trainable))
-    if resume and run.state.exists(out):
-        history, best_epoch, best_recall = run.state.restore(out)
-    elif run.state.exists(out):
+    resuming = resume and run.state.exists(out)
+    if run.state.exists(out) and not resuming:
         raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
+    distributed.barrier(run.world)  # every rank has looked before rank 0 writes
+    if resuming:
+        history, best_epoch, best_recall = run.state.restore(out)
     else:
         history = [run.validate_record(0)]
         best_epoch, best_recall = -1, {k: -1.0 for k in history[0].recall}  # below any recall: epoch 1 replaces it
         if settings.select_untrained or settings.epochs == 0:
             best_epoch, best_recall = 0, history[0].recall
-            run.state.save_best(out, 0, best_recall)
-        run.state.save(out, history, best_epoch, best_recall)
+            if root:
+                run.state.save_best(out, 0, best_recall)
+        if root:
+            run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(history[0])
     select = run.settings.select_k
     for epoch in range(len(history), run.settings.epochs + 1):
@@ -297,9 +311,12 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
         history.append(record)
         if record.recall[select] > best_recall[select]:
             best_epoch, best_recall = epoch, record.recall
-            run.state.save_best(out, epoch, best_recall)
-        run.state.save(out, history, best_epoch, best_recall)
+            if root:
+                run.state.save_best(out, epoch, best_recall)
+        if root:
+            run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(record)
+    distributed.barrier(run.world)  # no rank leaves before rank 0 has written the last epoch
     return TrainResult(out, best_epoch, best_recall, history)
 
 
@@ -352,6 +369,7 @@ class _Run:
             settings = replace(settings, ks=tuple(sorted({*settings.ks, settings.select_k})))  # type: ignore[type-var]
         learner.check_data(data)
         self.data, self.learner, self.settings = data, learner, settings
+        self.world = distributed.current()
         self.device = torch.device(settings.device)
         context = training_context(data, learner.spec, self.device)
         self.trainable = np.flatnonzero((context.query_starts >= 0) & context.positives.has_positive())
@@ -396,32 +414,61 @@ class _Run:
         return self._record(epoch, lr, totals, sum(len(r) for r in rounds), time.perf_counter() - started)
 
     def _mine(self, queries: np.ndarray, rng: np.random.Generator) -> list[Triplet]:
+        """The round's triplets with the current model; with several ranks rank 0 mines and sends them with its
+        random state, so every rank holds the same triplets and draws the same numbers after."""
         self.model.eval()
-        with torch.no_grad():
-            return self.learner.mine(self.model, queries, rng)
+
+        def mine() -> tuple[list[Triplet], dict]:
+            with torch.no_grad():
+                return self.learner.mine(self.model, queries, rng), rng.bit_generator.state
+
+        triplets, state = distributed.broadcast_from_root(mine, self.world)
+        rng.bit_generator.state = state
+        return triplets
 
     def _step(self, batch: Sequence[Triplet], step: Step, rng: np.random.Generator, totals: _Epoch) -> None:
-        """One optimiser step on a batch of mined triplets (under autocast with a scaler when asked)."""
+        """One optimiser step on a batch of mined triplets (under autocast with a scaler when asked). With several
+        ranks each takes its share of the batch, weighted by its share of the loss's terms, and the gradients are
+        averaged over the ranks before the step: the whole batch's step (``_share``)."""
         self.model.train()
         if self.loss is not None:
             self.loss.train()
+        part, weight = self._share(batch)
         autocast = torch.autocast("cuda", dtype=torch.float16) if self.scaler else contextlib.nullcontext()
         self.optimizer.zero_grad(set_to_none=True)
         with autocast:
-            parts = self.learner.batch_loss(self.model, self.loss, batch, step, rng, self.settings)
-        total = parts["total"]
+            parts = self.learner.batch_loss(self.model, self.loss, part, step, rng, self.settings)
+        total = parts["total"] * (weight * self.world.size)
         if self.scaler is not None:
             self.scaler.scale(total).backward()
+            distributed.average_gradients(self._trainable(), self.world)
             self.scaler.step(self.optimizer)
             self.scaler.update()
         else:
             total.backward()
+            distributed.average_gradients(self._trainable(), self.world)
             self.optimizer.step()
-        totals.losses.append(float(total.detach()))
-        for name, value in parts.items():
-            if name != "total":
-                totals.parts.setdefault(name, []).append(float(value.detach()))
+        names = [name for name in parts if name != "total"]  # the learner's order, the same on every rank
+        values = distributed.sum_over_ranks([float(parts[name].detach()) * weight for name in ["total", *names]],
+                                            self.world)
+        totals.losses.append(values[0])
+        for name, value in zip(names, values[1:]):
+            totals.parts.setdefault(name, []).append(value)
         totals.steps += 1
+
+    def _share(self, batch: Sequence[Triplet]) -> tuple[Sequence[Triplet], float]:
+        """This rank's triplets of a batch and their share of its loss terms (alone: all of it, 1); a batch with
+        fewer triplets than ranks is computed whole on every rank, each weighing it 1 / ranks."""
+        size = self.world.size
+        if size == 1:
+            return batch, 1.0
+        if len(batch) < size:
+            return batch, 1.0 / size
+        part = [batch[i] for i in np.array_split(np.arange(len(batch)), size)[self.world.rank]]
+        return part, self.learner.loss_terms(part) / self.learner.loss_terms(batch)
+
+    def _trainable(self) -> list[torch.Tensor]:
+        return [p for group in self.optimizer.param_groups for p in group["params"]]
 
     def _record(self, epoch: int, lr: float, totals: _Epoch, queries: int, seconds: float) -> EpochRecord:
         record = self.validate_record(epoch)
