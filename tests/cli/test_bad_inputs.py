@@ -51,6 +51,8 @@ def world(tmp_path_factory):
     np.save(w / "complex.npy", rng.random((80, 16)) + 1j)
     (w / "mine").mkdir()
     (w / "mine" / "notes.txt").write_text("a user's own file")
+    (w / "badshards").mkdir()
+    (w / "badshards" / "shards.json").write_text('{"format": "seqvpr-sharded-map", "version": 1, "shards": "x"}')
     (w / "dangling").symlink_to(w / "nowhere")
     base = np.load(w / "ref.npz")
     np.savez(w / "ts_nan.npz", descriptors=base["descriptors"], timestamps=np.r_[np.nan, np.arange(79.0)])
@@ -198,6 +200,10 @@ CASES = {
     "benchmark: an unknown [benchmark] key (was ignored)": (("benchmark", "{w}/bench_typo.toml", "--out", "{out}"), "unknown keys"),
     "match: --steps MIN above MAX": ((*M, "--method", "adaptive", "-L", "3", "--steps", "3:1"), "--steps"),
     "match: --contrast-window 1": ((*M, "--method", "seqslam", "-L", "3", "--contrast-window", "1"), "--contrast-window"),
+    "map shard: more shards than frames": (("map", "shard", "{w}/map", "--shards", "100000", "--out", "{out}"), "--shards must be between 1"),
+    "map shard: onto a folder of the user's files": (("map", "shard", "{w}/map", "--shards", "2", "--out", "{w}/mine"), "holds other files"),
+    "map shard: not a map": (("map", "shard", "{w}/noimages", "--shards", "2", "--out", "{out}"), "not a seqvpr map"),
+    "match: a malformed shards.json": (("match", "--map", "{w}/badshards", "-q", "{w}/qry.npz", "--radius", "10m"), "malformed sharded map"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }
