@@ -153,3 +153,20 @@ def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_o
         np.testing.assert_array_equal(a.indices, b.indices)
     code, out, err = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "s")
     assert code == 0 and f"count:           {one.info.count}" in out, err
+
+
+def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path):
+    shard_map(whole / "map", tmp_path / "s", 2, 9)
+    common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5"]
+    done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    alone = subprocess.run([shutil.which("seqvpr", path=str(Path(sys.executable).parent)), "localize", "--map",
+                            whole / "map", *map(str, common), "--out", tmp_path / "one"], capture_output=True,
+                           text=True)
+    assert alone.returncode == 0, alone.stderr
+    columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
+    assert columns("two") == columns("one")  # status, score, estimate, best map frame: every frame the same
+    refused = torchrun(["localize", "--map", tmp_path / "s", *common, "--method", "hmm", "--out", tmp_path / "f"],
+                       tmp_path)
+    assert refused.returncode != 0 and "exact sequence matching" in refused.stderr
+    assert not (tmp_path / "f").exists()

@@ -76,13 +76,18 @@ def localize(**o: Any) -> None:
         raise SeqvprError("--calibrate needs ground truth: give --radius or --ground-truth")
     if not 0.0 < o["target_precision"] <= 1.0:
         raise SeqvprError(f"--target-precision must be in (0, 1], got {o['target_precision']}")
-    localizer = _open(o, max(k_values))
-    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-    gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"]) \
-        if (o["radius"] or o["gt_file"]) else None
-    if o["resume_state"]:
-        localizer.restore(o["resume_state"])
-    run = replay(localizer, query, tqdm_progress(len(query), "localize"))
+    from seqvpr import distributed
+
+    with distributed.process_group(o["device"]) as world:  # under torchrun over a sharded map: ranks share it
+        localizer = _open(o, max(k_values))
+        query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+        gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"]) \
+            if (o["radius"] or o["gt_file"]) else None
+        if o["resume_state"]:
+            localizer.restore(o["resume_state"])
+        run = replay(localizer, query, tqdm_progress(len(query), "localize") if world.is_root else None)
+    if not world.is_root:  # rank 0 reports and writes
+        return
     if o["save_state"]:
         localizer.save_state(o["save_state"])
     if o["calibrate"]:

@@ -26,7 +26,7 @@ import torch
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.encoder import FrameEncoder, describes_images
-from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
+from seqvpr.localization.matchers import ShardedExactMatcher, ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
 from seqvpr.maps.build import FrameDescription
 from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.maps.match import check_map_models
@@ -249,7 +249,17 @@ def next_status(scored: Scored | None, threshold: float, misses: int, lost_after
 
 
 def _matcher(saved: SavedMap, settings: LocalizerSettings):
-    """The per-frame step the settings ask for."""
+    """The per-frame step the settings ask for (over a sharded map under torchrun: each rank its shards)."""
+    from seqvpr import distributed
+    from seqvpr.maps.files import is_sharded_map, open_sharded_map
+
+    world = distributed.current()
+    if world.size > 1 and is_sharded_map(saved.folder):
+        if settings.method == "hmm" or settings.shortlist:
+            raise SeqvprError("a sharded map under torchrun is localised by exact sequence matching; the filter and "
+                              "the shortlist need the whole map (localise it in one process)")
+        return ShardedExactMatcher(open_sharded_map(saved.folder), world, settings.window, settings.k,
+                                   settings.exclusion)
     segments = saved.frames.segment_ids
     if settings.method == "hmm":
         return FilterMatcher(saved.descriptors, segments, settings.k, settings.filter, settings.seed)

@@ -5,6 +5,7 @@ distances and a score out (None while warming up), with the time spent measuring
 - ``ShortlistMatcher``: the map's faiss index gives candidates (the window's and the H frames before it, carried
   forward), re-ranked by exact sequence distance; cost independent of the map's size.
 - ``FilterMatcher``: one distance pass, then the topological filter.
+- ``ShardedExactMatcher``: ``ExactMatcher`` over a sharded map under torchrun: each rank its shards, rank 0 merges.
 """
 
 from __future__ import annotations
@@ -78,6 +79,69 @@ class ExactMatcher(FullMapPass):
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         self.sums.load_state(state)
+
+
+class ShardedExactMatcher:
+    """Exact causal sequence matching over a sharded map, one rank per shard (or several): each rank keeps, over the
+    frames its shards own, the best ``max(k, 2 * exclusion + 2)`` windows, and rank 0 merges them. That is the
+    unsharded matcher's answer: the best window outside the exclusion zone of the best, which the score needs, is
+    among each shard's first 2 * exclusion + 2. Other ranks get None for every frame (rank 0 reports)."""
+
+    def __init__(self, sharded, world, length: int, k: int, exclusion: int) -> None:
+        from seqvpr.maps.shards import shard_numbers
+
+        self.world, self.k, self.exclusion = world, k, exclusion
+        self.keep = max(k, 2 * exclusion + 2)
+        self.parts = []
+        for number in shard_numbers(len(sharded.shards), world.rank, world.size):
+            shard, record = sharded.open_shard(number), sharded.shards[number]
+            owned = np.zeros(shard.info.count, dtype=bool)
+            owned[record.own_first - record.first : record.own_last - record.first] = True
+            self.parts.append((FullMapPass(shard.descriptors), DiagonalSums(shard.frames.segment_ids, length), owned,
+                               record.first))
+
+    def reset(self) -> None:
+        for _, sums, _, _ in self.parts:
+            sums.reset()
+
+    def push(self, query: torch.Tensor) -> Scored | None:
+        from seqvpr import distributed
+
+        found, warming, distance_ms = [], False, 0.0
+        for full, sums, owned, first in self.parts:
+            distances, spent = full.measure(query)
+            distance_ms += spent
+            means = sums.push(distances)
+            if means is None:
+                warming = True
+                continue
+            rows, values = best_k(np.where(owned, means, np.inf), self.keep)
+            found.append((np.where(rows >= 0, rows + first, -1), values))
+        if warming:  # every rank has seen the same frames: all warm up together, no message needed
+            return None
+        started = time.perf_counter()
+        gathered = distributed.gather_to_root(lambda: found, self.world)
+        if gathered is None:
+            return None
+        rows = np.concatenate([r for part in gathered for r, _ in part] or [np.zeros(0, np.int64)])
+        values = np.concatenate([v for part in gathered for _, v in part] or [np.zeros(0)])
+        order = np.lexsort((np.where(rows >= 0, rows, np.iinfo(np.int64).max), values))
+        rows, values = rows[order], values[order]
+        indices, distances = _padded(rows[: self.k], values[: self.k], self.k)
+        score = _candidate_uniqueness(rows, values, self.exclusion) if len(rows) and rows[0] >= 0 else 0.0
+        return Scored(indices, distances, score, distance_ms, _ms(started))  # sequence: sums, gather and merge
+
+    def state(self) -> dict[str, np.ndarray]:
+        raise SeqvprError("a localiser over a sharded map under torchrun keeps no state to save")
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        raise SeqvprError("a localiser over a sharded map under torchrun takes no saved state")
+
+
+def _padded(rows: np.ndarray, values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    missing = k - len(rows)
+    return (np.concatenate([rows, np.full(missing, -1)]), np.concatenate([values, np.full(missing, np.inf)])) \
+        if missing > 0 else (rows, values)
 
 
 class ShortlistMatcher:
