@@ -110,12 +110,13 @@ def test_map_shard_and_match_on_the_command_line_give_the_whole_maps_predictions
         assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
 
 
-def torchrun(args, cwd: Path) -> subprocess.CompletedProcess:
-    """``torchrun --standalone --nproc-per-node 2 seqvpr ARGS``, as a user launches it."""
+def torchrun(args, cwd: Path, ranks: int = 2) -> subprocess.CompletedProcess:
+    """``torchrun --standalone --nproc-per-node 2 seqvpr ARGS`` as a user launches it; with ``ranks=0`` the same
+    command alone."""
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
-    command = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", "2", shutil.which("seqvpr", path=env["PATH"]),
-               *map(str, args)]
+    launcher = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", str(ranks)] if ranks else []
+    command = [*launcher, shutil.which("seqvpr", path=env["PATH"]), *map(str, args)]
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
 
 
@@ -124,9 +125,7 @@ def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_ra
     common = ["-q", whole / "qry.npz", "-L", "5", "--radius", "10m"]
     done = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    alone = subprocess.run([shutil.which("seqvpr", path=str(Path(sys.executable).parent)), "match", "--map",
-                            tmp_path / "s", *map(str, common), "--out", tmp_path / "one"], capture_output=True,
-                           text=True)
+    alone = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
     assert alone.returncode == 0, alone.stderr
     assert (tmp_path / "two" / "predictions.csv").read_text() == (tmp_path / "one" / "predictions.csv").read_text()
     assert '"ranks": 2' in (tmp_path / "two" / "run.json").read_text()
@@ -160,9 +159,7 @@ def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single
     common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5"]
     done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    alone = subprocess.run([shutil.which("seqvpr", path=str(Path(sys.executable).parent)), "localize", "--map",
-                            whole / "map", *map(str, common), "--out", tmp_path / "one"], capture_output=True,
-                           text=True)
+    alone = torchrun(["localize", "--map", whole / "map", *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
     assert alone.returncode == 0, alone.stderr
     columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
     assert columns("two") == columns("one")  # status, score, estimate, best map frame: every frame the same
