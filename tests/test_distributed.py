@@ -63,3 +63,14 @@ def test_gather_reaches_rank_0_in_order_or_fails_every_rank_with_the_failing_ran
         assert outcomes == [{"gathered": [{"rank": 0}, {"rank": 1}]}, {"gathered": None}]
     else:
         assert outcomes[0] == outcomes[1] == {"error": "rank 1 of 2 failed: shard 1 is damaged"}
+
+
+def test_match_under_torchrun_needs_a_sharded_map(monkeypatch, capsys, tmp_path):
+    from tests.helpers import run_cli, write_route_files
+
+    write_route_files(tmp_path, n_frames=60, dim=8, seed=0)
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    code, _, err = run_cli(monkeypatch, capsys, "match", "-r", tmp_path / "ref.npz", "-q", tmp_path / "qry.npz",
+                           "--radius", "10m", "--out", tmp_path / "out")
+    assert code == 2 and "shares the work of a sharded map" in err and not (tmp_path / "out").exists()

@@ -121,10 +121,14 @@ def match(**o: Any) -> None:
     if o["history"] < 0 or (o["history"] and not o["shortlist"]):
         raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
-    if o["map_dir"]:
-        from seqvpr.maps.files import is_sharded_map
+    from seqvpr.distributed import from_environment
+    from seqvpr.maps.files import is_sharded_map
 
-        sharded = is_sharded_map(o["map_dir"])
+    sharded = bool(o["map_dir"]) and is_sharded_map(o["map_dir"])
+    if from_environment().size > 1 and not sharded:
+        raise SeqvprError("under torchrun, seqvpr match shares the work of a sharded map (seqvpr map shard MAP "
+                          "--shards N); give one as --map, or run without torchrun")
+    if o["map_dir"]:
         return (_match_sharded if sharded else _match_map)(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     if o["msls_subtask"]:
