@@ -121,13 +121,7 @@ def match(**o: Any) -> None:
     if o["history"] < 0 or (o["history"] and not o["shortlist"]):
         raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
-    from seqvpr.distributed import from_environment
-    from seqvpr.maps.files import is_sharded_map
-
-    sharded = bool(o["map_dir"]) and is_sharded_map(o["map_dir"])
-    if from_environment().size > 1 and not sharded:
-        raise SeqvprError("under torchrun, seqvpr match shares the work of a sharded map (seqvpr map shard MAP "
-                          "--shards N); give one as --map, or run without torchrun")
+    sharded = _sharded_reference(o["map_dir"])
     if o["map_dir"]:
         return (_match_sharded if sharded else _match_map)(o, models, method, k_values, speeds, budget)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
@@ -188,6 +182,18 @@ def _say_skipped(pair, kept) -> None:
         skipped = dropped_frames(original, described)
         if skipped:
             click.echo(f"skipped {len(skipped)} unreadable images of {original.name}: {', '.join(skipped)}", err=True)
+
+
+def _sharded_reference(map_dir: str | None) -> bool:
+    """Whether --map names a sharded map; under torchrun it must (ranks share a sharded map's work)."""
+    from seqvpr.distributed import from_environment
+    from seqvpr.maps.files import is_sharded_map
+
+    sharded = bool(map_dir) and is_sharded_map(map_dir)
+    if from_environment().size > 1 and not sharded:
+        raise SeqvprError("under torchrun, seqvpr match shares the work of a sharded map (seqvpr map shard MAP "
+                          "--shards N); give one as --map, or run without torchrun")
+    return sharded
 
 
 def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
