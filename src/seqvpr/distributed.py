@@ -74,12 +74,12 @@ def process_group(device: str = "cpu") -> Iterator[World]:
         dist.destroy_process_group()
 
 
-def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T] | None:
-    """Every rank's ``work()``, gathered on rank 0 in rank order (other ranks get None). A rank whose work raises
-    makes every rank raise one line naming it, after all have finished theirs."""
+def everywhere(work: Callable[[], T], world: World | None = None) -> T:
+    """Every rank's own ``work()``; if it raises on any rank, every rank raises one line naming the first that
+    failed, once all have finished theirs (a sync point: no rank goes on before all have done this)."""
     world = world or current()
     if world.size == 1:
-        return [work()]
+        return work()
     import torch.distributed as dist
 
     value, error = None, None
@@ -93,6 +93,18 @@ def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T]
     if failed:
         rank, text = failed[0]
         raise SeqvprError(f"rank {rank} of {world.size} failed: {text}")
+    return value  # type: ignore[return-value]
+
+
+def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T] | None:
+    """Every rank's ``work()``, gathered on rank 0 in rank order (other ranks get None). A rank whose work raises
+    makes every rank raise one line naming it, after all have finished theirs."""
+    world = world or current()
+    if world.size == 1:
+        return [work()]
+    import torch.distributed as dist
+
+    value = everywhere(work, world)
     values: list[T] | None = [None] * world.size if world.is_root else None  # type: ignore[list-item]
     dist.gather_object(value, values, dst=0)
     return values

@@ -136,3 +136,28 @@ def test_two_ranks_train_jist_as_one_process(tmp_path):
     assert got.keys() == expected.keys()
     for key in expected:
         np.testing.assert_allclose(got[key].numpy(), expected[key].numpy(), rtol=1e-4, atol=1e-4, err_msg=key)
+
+
+def _failing_rank(rank: int, port: int, out: str) -> None:
+    import os
+
+    import torch
+
+    torch.set_num_threads(1)
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
+                      LOCAL_RANK=str(rank))
+    from seqvpr.models.seqmatchnet import TransformConfig
+    from seqvpr.training.seqmatchnet import train_seqmatchnet
+
+    from seqvpr.sequences.windows import SequenceSpec
+
+    # rank 1's windows are longer than the data: it fails after joining the group, while rank 0 goes on to write
+    length = SMN.sequence.length if rank == 0 else 500
+    train_seqmatchnet(small_data(), TransformConfig(16), replace(SMN, epochs=2, sequence=SequenceSpec(length)),
+                      Path(out))
+
+
+def test_a_rank_that_fails_fails_the_run_before_rank_0_writes_anything(tmp_path):
+    with pytest.raises(mp.ProcessRaisedException, match="rank 1 of 2 failed: .*longer than every segment"):
+        mp.spawn(_failing_rank, args=(free_port(), str(tmp_path / "run")), nprocs=2, join=True)
+    assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())

@@ -285,14 +285,17 @@ def deterministic_algorithms() -> Iterator[None]:
 
 def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings, out: Path, resume: bool,
            monitor: TrainingMonitor) -> TrainResult:
-    run = _Run(data, learner, settings)
+    def set_up() -> tuple[_Run, bool]:
+        run = _Run(data, learner, settings)
+        if run.state.exists(out) and not resume:
+            raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
+        return run, resume and run.state.exists(out)
+
+    # every rank set up (or all fail with the first failure's line) and looked at out before rank 0 writes
+    run, resuming = distributed.everywhere(set_up)
     root = run.world.is_root  # only rank 0 reports and writes
     monitor = monitor if root else SilentMonitor()
     monitor.start_run(data, len(run.trainable))
-    resuming = resume and run.state.exists(out)
-    if run.state.exists(out) and not resuming:
-        raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
-    distributed.barrier(run.world)  # every rank has looked before rank 0 writes
     if resuming:
         history, best_epoch, best_recall = run.state.restore(out)
     else:
