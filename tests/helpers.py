@@ -40,3 +40,19 @@ def write_route_files(folder, n_frames: int, dim: int, seed: int):
     save_traversal_npz(folder / "ref.npz", reference)
     save_traversal_npz(folder / "qry.npz", query)
     return folder
+
+
+def spawn_ranks(function, args: tuple, ranks: int = 2, timeout: float = 120.0) -> None:
+    """``torch.multiprocessing.spawn`` of ``ranks`` processes, failing (and stopping them) after ``timeout`` seconds
+    rather than waiting forever on a rank that hangs."""
+    import time
+
+    import torch.multiprocessing as mp
+
+    context = mp.spawn(function, args=args, nprocs=ranks, join=False)
+    deadline = time.monotonic() + timeout
+    while not context.join(timeout=1.0):
+        if time.monotonic() > deadline:
+            for process in context.processes:
+                process.kill()
+            raise AssertionError(f"{ranks} ranks of {function.__name__} still running after {timeout:.0f} s")

@@ -8,11 +8,10 @@ import socket
 from pathlib import Path
 
 import pytest
-import torch.multiprocessing as mp
 
 from seqvpr import distributed
 from seqvpr.errors import SeqvprError
-from tests.helpers import raises_one_line
+from tests.helpers import raises_one_line, spawn_ranks
 
 
 def test_the_world_is_torchruns_environment_or_one_process(monkeypatch):
@@ -57,7 +56,7 @@ def free_port() -> int:
 
 @pytest.mark.parametrize("fail_rank", [-1, 1])
 def test_gather_reaches_rank_0_in_order_or_fails_every_rank_with_the_failing_ranks_error(tmp_path, fail_rank):
-    mp.spawn(_rank, args=(free_port(), fail_rank, str(tmp_path)), nprocs=2, join=True)
+    spawn_ranks(_rank, (free_port(), fail_rank, str(tmp_path)))
     outcomes = [json.loads((tmp_path / f"rank{rank}.json").read_text()) for rank in range(2)]
     if fail_rank < 0:
         assert outcomes == [{"gathered": [{"rank": 0}, {"rank": 1}]}, {"gathered": None}]

@@ -6,6 +6,7 @@ Run without torchrun, the world is one process and nothing here touches torch.di
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 from collections.abc import Callable, Iterator
@@ -52,25 +53,31 @@ def current() -> World:
 
 @contextlib.contextmanager
 def process_group(device: str = "cpu") -> Iterator[World]:
-    """Join torchrun's process group for the duration (gloo on CPU, NCCL on CUDA), and leave it after."""
+    """Be in torchrun's process group for the duration (gloo on CPU, NCCL on CUDA). The group is joined once per
+    process and left when the process exits: a second command or training run in the same process reuses it, as a
+    group torn down and joined again on the same port can wait forever for its rendezvous."""
     global _current
     world = from_environment()
-    if world.size == 1 or _current.size > 1:  # alone, or already joined by the command that called this
-        yield _current if _current.size > 1 else world
+    if world.size == 1:
+        yield world
         return
     import torch.distributed as dist
 
-    backend = "nccl" if str(device).startswith("cuda") else "gloo"
-    if str(device).startswith("cuda"):
-        import torch
+    if not dist.is_initialized():
+        if str(device).startswith("cuda"):
+            import torch
 
-        torch.cuda.set_device(world.local_rank)
-    dist.init_process_group(backend)
+            torch.cuda.set_device(world.local_rank)
+        dist.init_process_group("nccl" if str(device).startswith("cuda") else "gloo")
+        atexit.register(_leave)
     _current = world
-    try:
-        yield world
-    finally:
-        _current = World()
+    yield world
+
+
+def _leave() -> None:
+    import torch.distributed as dist
+
+    if dist.is_initialized():
         dist.destroy_process_group()
 
 

@@ -21,6 +21,7 @@ from torch import nn
 
 from seqvpr.models import files as ckpt
 from seqvpr.training.state import STATE_JSON
+from tests.helpers import spawn_ranks
 from tests.training.test_seqmatchnet_training import SMALL as SMN, small_data
 from tests.training.test_seqnet_training import SMALL as SEQNET, route_data
 
@@ -65,8 +66,8 @@ def test_two_ranks_train_the_single_process_model_and_resume(tmp_path, kind):
 
     torch.set_num_threads(1)
     alone = train(kind, tmp_path / "alone", 3)
-    mp.spawn(_rank, args=(free_port(), kind, str(tmp_path / "two"), [(3, False)]), nprocs=2, join=True)
-    mp.spawn(_rank, args=(free_port(), kind, str(tmp_path / "resumed"), [(1, False), (3, True)]), nprocs=2, join=True)
+    spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "two"), [(3, False)]))
+    spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "resumed"), [(1, False), (3, True)]))
     expected = state_weights(tmp_path / "alone")
     for run in ("two", "resumed"):
         got = state_weights(tmp_path / run)
@@ -131,7 +132,7 @@ def test_two_ranks_train_jist_as_one_process(tmp_path):
     torch.set_num_threads(1)
     write_demo_world(tmp_path / "world", frames=40, width=W, height=H, seed=0, query_condition="dusk")
     train_jist_run(tmp_path / "world", tmp_path / "alone")
-    mp.spawn(_jist_rank, args=(free_port(), str(tmp_path / "world"), str(tmp_path / "two")), nprocs=2, join=True)
+    spawn_ranks(_jist_rank, (free_port(), str(tmp_path / "world"), str(tmp_path / "two")))
     expected, got = state_weights(tmp_path / "alone"), state_weights(tmp_path / "two")
     assert got.keys() == expected.keys()
     for key in expected:
@@ -159,5 +160,5 @@ def _failing_rank(rank: int, port: int, out: str) -> None:
 
 def test_a_rank_that_fails_fails_the_run_before_rank_0_writes_anything(tmp_path):
     with pytest.raises(mp.ProcessRaisedException, match="rank 1 of 2 failed: .*longer than every segment"):
-        mp.spawn(_failing_rank, args=(free_port(), str(tmp_path / "run")), nprocs=2, join=True)
+        spawn_ranks(_failing_rank, (free_port(), str(tmp_path / "run")))
     assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
