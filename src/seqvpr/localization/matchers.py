@@ -106,6 +106,8 @@ class ShardedExactMatcher:
 
     def push(self, query: torch.Tensor) -> Scored | None:
         from seqvpr import distributed
+        from seqvpr.maps.shards import merge_topks
+        from seqvpr.sequences.matching import TopK
 
         found, warming, distance_ms = [], False, 0.0
         for full, sums, owned, first in self.parts:
@@ -123,25 +125,17 @@ class ShardedExactMatcher:
         gathered = distributed.gather_to_root(lambda: found, self.world)
         if gathered is None:
             return None
-        rows = np.concatenate([r for part in gathered for r, _ in part] or [np.zeros(0, np.int64)])
-        values = np.concatenate([v for part in gathered for _, v in part] or [np.zeros(0)])
-        order = np.lexsort((np.where(rows >= 0, rows, np.iinfo(np.int64).max), values))
-        rows, values = rows[order], values[order]
-        indices, distances = _padded(rows[: self.k], values[: self.k], self.k)
-        score = _candidate_uniqueness(rows, values, self.exclusion) if len(rows) and rows[0] >= 0 else 0.0
-        return Scored(indices, distances, score, distance_ms, _ms(started))  # sequence: sums, gather and merge
+        found = [part for rank_parts in gathered for part in rank_parts]
+        merged = merge_topks([TopK(r[None], v[None], np.ones(1, bool)) for r, v in found], len(found) * self.keep)
+        rows, values = merged.indices[0], merged.distances[0]
+        score = _candidate_uniqueness(rows, values, self.exclusion) if rows[0] >= 0 else 0.0
+        return Scored(rows[: self.k], values[: self.k], score, distance_ms, _ms(started))  # sequence: sums, gather and merge
 
     def state(self) -> dict[str, np.ndarray]:
         raise SeqvprError("a localiser over a sharded map under torchrun keeps no state to save")
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         raise SeqvprError("a localiser over a sharded map under torchrun takes no saved state")
-
-
-def _padded(rows: np.ndarray, values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    missing = k - len(rows)
-    return (np.concatenate([rows, np.full(missing, -1)]), np.concatenate([values, np.full(missing, np.inf)])) \
-        if missing > 0 else (rows, values)
 
 
 class ShortlistMatcher:

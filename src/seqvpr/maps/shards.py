@@ -181,10 +181,13 @@ def merge_shard_matches(sharded: ShardedMap, parts: Sequence[ShardMatch], query:
     parts = sorted(parts, key=lambda part: part.number)
     top = merge_topks([p.topk for p in parts], settings.k)
     pairs = None
-    if all(p.pairs is not None for p in parts):
+    made = [p.pairs for p in parts if p.pairs is not None]  # a shard too short for any window made none
+    if made:
+        none = np.full_like(made[0][0], -1)
+        q_stack = np.stack([none if p.pairs is None else p.pairs[0] for p in parts])
+        r_stack = np.stack([none if p.pairs is None else p.pairs[1] for p in parts])
         owner = np.searchsorted([r.own_last for r in sharded.shards], np.maximum(top.indices[:, 0], 0), side="right")
-        q_rows = np.stack([p.pairs[0] for p in parts])[owner, np.arange(len(owner))]
-        r_rows = np.stack([p.pairs[1] for p in parts])[owner, np.arange(len(owner))]
+        q_rows, r_rows = q_stack[owner, np.arange(len(owner))], r_stack[owner, np.arange(len(owner))]
         matched = (top.indices[:, 0] >= 0)[:, None]
         pairs = (np.where(matched, q_rows, -1), np.where(matched, r_rows, -1))
     return MatchResult(map_table(sharded), query, top, settings, correspondences=pairs)
