@@ -136,26 +136,6 @@ def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
     return message[0]
 
 
-def average_gradients(parameters, world: World | None = None) -> None:
-    """Replace every parameter's gradient by its mean over the ranks (one all-reduce of them all, flattened), as
-    DistributedDataParallel does. A parameter without a gradient keeps none, so the optimiser skips it as it would
-    alone (JIST's classifier heads of other groups); every rank runs the same graph, so the same ones have none."""
-    world = world or current()
-    if world.size == 1:
-        return
-    import torch
-    import torch.distributed as dist
-
-    params = [p for p in parameters if p.grad is not None]
-    flat = torch.cat([p.grad.reshape(-1) for p in params])
-    dist.all_reduce(flat)
-    flat /= world.size
-    offset = 0
-    for p in params:
-        p.grad.copy_(flat[offset : offset + p.numel()].view_as(p))
-        offset += p.numel()
-
-
 def sum_over_ranks(values: list[float], world: World | None = None) -> list[float]:
     """Each value summed over the ranks (float64)."""
     world = world or current()

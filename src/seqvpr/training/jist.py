@@ -256,6 +256,7 @@ class JistLearner(SequenceLearner):
     """JIST as a learner of the one training loop: image windows, mined in its own sequence-descriptor space."""
 
     config_key = "jist"
+    unused_parameters = True  # a step trains one group's CosFace head
 
     def __init__(
         self, config: JistConfig, settings: JistTrainSettings,

@@ -34,6 +34,7 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
 from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
+from seqvpr.training.parallel import StepLoss, data_parallel_step, single_process_step
 from seqvpr.training.resume import RunState
 
 __all__ = [
@@ -174,6 +175,8 @@ class SequenceLearner:
     spec: SequenceSpec = SequenceSpec(1)
     #: seconds of the current epoch's mining spent computing features with the model (the loop resets it)
     features_seconds: float = 0.0
+    #: whether some trainable parameters take no part in a step (JIST's heads of the other groups)
+    unused_parameters: bool = False
 
     def config(self) -> dict[str, Any]:
         """The model config that must match when a run is resumed (JSON-able)."""
@@ -391,6 +394,7 @@ class _Run:
         self.optimizer, self.scheduler = learner.build_optimizer(self.model, self.loss, settings)
         self.scaler = torch.amp.GradScaler("cuda") if learner.mixed_precision(settings) else None
         self.state = RunState(self)
+        self._stepper: StepLoss | None = None
 
     def train_epoch(self, epoch: int, first_step: int, monitor: TrainingMonitor) -> EpochRecord:
         started = time.perf_counter()
@@ -431,8 +435,8 @@ class _Run:
 
     def _step(self, batch: Sequence[Triplet], step: Step, rng: np.random.Generator, totals: _Epoch) -> None:
         """One optimiser step on a batch of mined triplets (under autocast with a scaler when asked). With several
-        ranks each takes its share of the batch, weighted by its share of the loss's terms, and the gradients are
-        averaged over the ranks before the step: the whole batch's step (``_share``)."""
+        ranks each takes its share of the batch, weighted by its share of the loss's terms, and DistributedDataParallel
+        averages the gradients over the ranks in backward: the whole batch's step (``_share``, ``_step_loss``)."""
         self.model.train()
         if self.loss is not None:
             self.loss.train()
@@ -440,16 +444,14 @@ class _Run:
         autocast = torch.autocast("cuda", dtype=torch.float16) if self.scaler else contextlib.nullcontext()
         self.optimizer.zero_grad(set_to_none=True)
         with autocast:
-            parts = self.learner.batch_loss(self.model, self.loss, part, step, rng, self.settings)
-        total = parts["total"] * (weight * self.world.size)
+            parts = self._step_loss()(part, step, rng)
+        total = parts["total"] * (weight * self.world.size)  # DistributedDataParallel averages over the ranks
         if self.scaler is not None:
             self.scaler.scale(total).backward()
-            distributed.average_gradients(self._trainable(), self.world)
             self.scaler.step(self.optimizer)
             self.scaler.update()
         else:
             total.backward()
-            distributed.average_gradients(self._trainable(), self.world)
             self.optimizer.step()
         names = [name for name in parts if name != "total"]  # the learner's order, the same on every rank
         values = distributed.sum_over_ranks([float(parts[name].detach()) * weight for name in ["total", *names]],
@@ -458,6 +460,14 @@ class _Run:
         for name, value in zip(names, values[1:]):
             totals.parts.setdefault(name, []).append(value)
         totals.steps += 1
+
+    def _step_loss(self) -> StepLoss:
+        """The batch loss of a step: the learner's own alone, through DistributedDataParallel with several ranks
+        (built at the first step, once every rank holds its resumed weights)."""
+        if self._stepper is None:
+            parts = (self.learner, self.model, self.loss, self.settings)
+            self._stepper = single_process_step(*parts) if self.world.size == 1 else data_parallel_step(*parts, self.device)
+        return self._stepper
 
     def _share(self, batch: Sequence[Triplet]) -> tuple[Sequence[Triplet], float]:
         """This rank's triplets of a batch and their share of its loss terms (alone: all of it, 1); a batch with
