@@ -167,3 +167,67 @@ def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single
                        tmp_path)
     assert refused.returncode != 0 and "exact sequence matching" in refused.stderr
     assert not (tmp_path / "f").exists()
+
+
+@pytest.fixture(scope="module")
+def indexed(whole, tmp_path_factory):
+    """The whole map with a flat index over its frames (a copy: the module's map stays index-free)."""
+    from seqvpr.maps.index import add_index, parse_index_spec
+
+    folder = tmp_path_factory.mktemp("indexed") / "map"
+    shutil.copytree(whole / "map", folder)
+    add_index(load_map_of(folder.parent), parse_index_spec("flat"))
+    return folder
+
+
+@pytest.mark.parametrize("method, length, history, over, shards", [
+    ("matching", 5, 0, "frames", 3),
+    ("matching", 7, 3, "frames", 4),   # history: the frames before each window place candidates too
+    ("single", 1, 0, "frames", 5),
+    ("matching", 5, 0, "smoothing:5", 3),  # an index over windows: each query window finds its candidates
+])
+def test_a_shortlisted_sharded_match_is_the_whole_maps_with_flat_indexes(whole, indexed, tmp_path, method, length,
+                                                                         history, over, shards):
+    from seqvpr.maps import load_map
+    from seqvpr.maps.index import add_index, parse_index_spec
+
+    source = indexed
+    if over != "frames":
+        source = tmp_path / "windows"
+        shutil.copytree(indexed, source)
+        add_index(load_map(source), parse_index_spec("flat"), windows=5, method="smoothing")
+    sharded = shard_map(source, tmp_path / "s", shards, 8)  # each shard gets an index like the map's
+    assert {sharded.open_shard(n).info.index["over"] for n in range(shards)} == {over}
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    settings_ = MatchSettings(SequenceSpec(length), k=10)
+    options = {"shortlist": 4, "history": history}
+    expected = match_map(load_map(source), query, method, settings_, **options)
+    got = match_sharded_map(sharded, query, method, settings_, **options)
+    np.testing.assert_array_equal(got.shortlist.indices, expected.shortlist.indices)
+    np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
+    np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-6)
+    np.testing.assert_array_equal(got.topk.has_window, expected.topk.has_window)
+    exact = match_sharded_map(sharded, query, method, settings_)
+    assert (got.topk.indices[:, 0] != exact.topk.indices[:, 0]).any() or length == 1  # a shortlist, not exact
+
+
+def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(whole, tmp_path, monkeypatch, capsys):
+    code, out, err = run_cli(monkeypatch, capsys, "map", "shard", whole / "map", "--shards", "3", "--overlap", "9",
+                             "--out", tmp_path / "s")
+    assert code == 0, err
+    common = ("-q", whole / "qry.npz", "-L", "5", "--radius", "10m", "--shortlist", "3")
+    code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "s", *common, "--out", tmp_path / "no")
+    assert code == 2 and err.count("\n") == 1 and "shard-000 has no index: add one with seqvpr map index" in err
+    assert not (tmp_path / "no").exists()
+    code, out, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "s", "--index", "flat")
+    assert code == 0, err
+    assert [line.split(":")[0] for line in out.splitlines()] == ["shard-000", "shard-001", "shard-002"]
+    shutil.copytree(whole / "map", tmp_path / "m")
+    code, _, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
+    assert code == 0, err
+    code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", *common, "--out", tmp_path / "a")
+    assert code == 0, err
+    done = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (tmp_path / "two" / "predictions.csv").read_text() == (tmp_path / "a" / "predictions.csv").read_text()
+    assert '"recall"' in (tmp_path / "two" / "run.json").read_text()  # the shortlist's recall, as for one map

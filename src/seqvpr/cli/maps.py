@@ -104,12 +104,31 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 def index_command(map_dir: str, index_spec: str, windows: int, window_method: str, seed: int,
                   index_model: str | None) -> None:
-    """Build (or rebuild) MAP's faiss index over its frames, for seqvpr match --map MAP --shortlist S."""
+    """Build (or rebuild) MAP's faiss index over its frames, for seqvpr match --map MAP --shortlist S. A sharded
+    MAP gets one index a shard (under torchrun, each rank builds its shards')."""
     from seqvpr.maps import open_map
+    from seqvpr.maps.files import is_sharded_map
     from seqvpr.maps.index import add_index, parse_index_spec
 
     spec = parse_index_spec(index_spec)
+    if is_sharded_map(map_dir):
+        _index_sharded(map_dir, spec, seed, windows, window_method, index_model)
+        return
     _echo_index(add_index(open_map(map_dir), spec, seed, tqdm_progress, windows, window_method, index_model))
+
+
+def _index_sharded(map_dir: str, spec, seed: int, windows: int, window_method: str, index_model: str | None) -> None:
+    from seqvpr import distributed
+    from seqvpr.maps.files import open_sharded_map
+    from seqvpr.maps.shards import index_shards
+
+    sharded = open_sharded_map(map_dir)
+    with distributed.process_group() as world:
+        records = index_shards(sharded, spec, seed, tqdm_progress if world.is_root else None, windows,
+                               window_method, index_model)
+    for shard, record in zip(sharded.shards, records or []):
+        click.echo(f"{shard.folder}: ", nl=False)
+        _echo_index(record)
 
 
 def _echo_index(record: dict) -> None:

@@ -209,8 +209,6 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
     from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
     sharded = open_sharded_map(o["map_dir"])
-    if o["shortlist"]:
-        raise SeqvprError("--shortlist searches one map's index; a sharded map is matched exactly, shard by shard")
     descriptor = sharded.open_shard(0).info.description["descriptor"]
     _check_map_options(o, descriptor)
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
@@ -220,7 +218,8 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
                              budget, parse_steps(o["steps"]), o["contrast_window"])
     with distributed.process_group(o["device"]) as world:
         result = match_sharded_map(sharded, query, method, settings, models,
-                                   progress=tqdm_progress if world.is_root else None, cache_dir=o["cache_dir"],
+                                   progress=tqdm_progress if world.is_root else None, shortlist=o["shortlist"],
+                                   history=o["history"], nprobe=o["nprobe"], cache_dir=o["cache_dir"],
                                    skip_bad=o["skip_bad"])
     if result is None:  # another rank: rank 0 scores and writes
         return
@@ -228,6 +227,8 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, descriptor, gt.description,
                         settings.as_dict())
     run["map"], run["shards"], run["ranks"] = o["map_dir"], len(sharded.shards), world.size
+    if o["shortlist"]:
+        run["shortlist"] = _shortlist_record(o, result, gt, sharded.open_shard(0).info.index["spec"])
     _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (result.reference, query))
 
 
@@ -255,14 +256,19 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
                         gt.description, settings.as_dict())
     run["map"] = o["map_dir"]
     if o["shortlist"]:
-        from seqvpr.maps.match import shortlist_recall
-
-        run["shortlist"] = {"per_frame": o["shortlist"], "history": o["history"], "index": saved.info.index["spec"],
-                            "nprobe": o["nprobe"],
-                            "recall": shortlist_recall(result, gt)}
-        click.echo(f"shortlist: {run['shortlist']['recall']:.3f} of the scored queries have a true place among "
-                   f"their candidates", err=True)
+        run["shortlist"] = _shortlist_record(o, result, gt, saved.info.index["spec"])
     _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (saved.frames, result.query))
+
+
+def _shortlist_record(o: dict[str, Any], result, gt, index_spec: str) -> dict[str, Any]:
+    """run.json's shortlist entry (its settings and recall), the recall printed."""
+    from seqvpr.maps.match import shortlist_recall
+
+    record = {"per_frame": o["shortlist"], "history": o["history"], "index": index_spec, "nprobe": o["nprobe"],
+              "recall": shortlist_recall(result, gt)}
+    click.echo(f"shortlist: {record['recall']:.3f} of the scored queries have a true place among their candidates",
+               err=True)
+    return record
 
 
 def _check_map_options(o: dict[str, Any], built: str) -> None:

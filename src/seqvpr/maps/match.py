@@ -5,8 +5,8 @@ chunk; sequence-descriptor methods pool its frames)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import replace
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -16,6 +16,9 @@ from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, check_run, run_method, transformed_frames
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
+
+if TYPE_CHECKING:
+    from seqvpr.sequences.matching import TopK
 
 
 def check_map_models(info: MapInfo, folder: str, method: str, models: Mapping[str, TrainedModel]) -> None:
@@ -60,6 +63,37 @@ def describe_query(
     return frames
 
 
+@dataclass(frozen=True)
+class PreparedQuery:
+    """A query ready to match against a map: its frames described as the map's, and the method and models left
+    to apply (a map of SeqMatchNet-transformed frames has already had the transform: it matches plainly)."""
+
+    frames: Traversal
+    method: str
+    models: dict[str, TrainedModel]
+
+
+def prepare_query(
+    saved: SavedMap, query: Traversal, method: str, settings: MatchSettings,
+    models: Mapping[str, TrainedModel] | None = None, rerank: int = 0, progress: ProgressFactory | None = None,
+    **extraction: Any,
+) -> PreparedQuery:
+    """The query described as ``saved``'s frames, after checking the method, the models and the normalisation
+    against the map's (once for a sharded map: its shards share one description)."""
+    models = dict(models or {})
+    check_run(method, models, rerank)
+    check_map_models(saved.info, str(saved.folder), method, models)
+    if saved.info.normalized != settings.normalize:
+        built = "normalised" if saved.info.normalized else "not normalised"
+        raise SeqvprError(f"{saved.folder} holds {built} descriptors: match it with normalisation "
+                          f"{'on' if saved.info.normalized else 'off (--no-normalize)'}")
+    frames = describe_query(query, saved, models, settings.device, progress, **extraction)
+    if "seqmatchnet" in (saved.info.model or {}):  # the map holds transformed frames and so does the query now
+        models.pop("seqmatchnet")
+        method = "matching" if method == "seqmatchnet" else method
+    return PreparedQuery(frames, method, models)
+
+
 def match_map(
     saved: SavedMap,
     query: Traversal,
@@ -78,17 +112,17 @@ def match_map(
     """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives; with
     ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame; the
     ``history`` query frames before each window place candidates too)."""
-    models = dict(models or {})
-    check_run(method, models, rerank)
-    check_map_models(saved.info, str(saved.folder), method, models)
-    if saved.info.normalized != settings.normalize:
-        built = "normalised" if saved.info.normalized else "not normalised"
-        raise SeqvprError(f"{saved.folder} holds {built} descriptors: match it with normalisation "
-                          f"{'on' if saved.info.normalized else 'off (--no-normalize)'}")
-    frames = describe_query(query, saved, models, settings.device, progress, **extraction)
-    if "seqmatchnet" in (saved.info.model or {}):  # the map holds transformed frames and so does the query now
-        models.pop("seqmatchnet")
-        method = "matching" if method == "seqmatchnet" else method
+    prepared = prepare_query(saved, query, method, settings, models, rerank, progress, **extraction)
+    return match_prepared(saved, prepared, settings, index=index, rerank=rerank, shortlist=shortlist,
+                          history=history, nprobe=nprobe, progress=progress)
+
+
+def match_prepared(
+    saved: SavedMap, prepared: PreparedQuery, settings: MatchSettings, *, index: str = "flat", rerank: int = 0,
+    shortlist: int = 0, history: int = 0, nprobe: int = 16, progress: ProgressFactory | None = None,
+) -> MatchResult:
+    """``match_map`` on a query already described as the map's frames (``prepare_query``)."""
+    frames, method, models = prepared.frames, prepared.method, prepared.models
     if shortlist:
         check_shortlist(saved, method, models)
         return shortlist_match(saved, frames, method, settings, shortlist, nprobe, history)
@@ -142,34 +176,77 @@ def shortlist_match(
     """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
     (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
     (``frame_shortlist``, up to (L + history) x S); over windows: each query window's ``shortlist`` nearest ones."""
+    query, settings = shortlist_query(frames, method, settings)
+    over = index_over(saved, history)
+    found = index_neighbours(saved, query, frames.segment_ids, shortlist, nprobe)
+    candidates = shortlist_candidates(found, over, frames.segment_ids, settings.sequence, saved.info.count, history)
+    top = rerank_candidates(saved, query, candidates, settings, frames.segment_ids)
+    return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
+
+
+def shortlist_query(frames: Traversal, method: str, settings: MatchSettings):
+    """The query's frame descriptors as a tensor (normalised if asked) and the settings a shortlisted match uses
+    (one-frame windows for ``single``)."""
     import numpy as np
     import torch
 
-    from seqvpr.maps.index import open_frame_index, search_frames, window_search
-    from seqvpr.sequences.matching import TopK, unit_rows
-    from seqvpr.sequences.hierarchical import frame_shortlist, rerank
-    from seqvpr.sequences.windows import SequenceSpec, window_starts
+    from seqvpr.sequences.matching import unit_rows
+    from seqvpr.sequences.windows import SequenceSpec
 
     spec = SequenceSpec(1) if METHODS[method].length == 1 else settings.sequence
-    settings = replace(settings, sequence=spec)
     query = torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32))
-    if settings.normalize:
-        query = unit_rows(query)
-    starts = window_starts(frames.segment_ids, spec.length, spec.offset, spec.boundary)
-    index, over = open_frame_index(saved, nprobe), saved.info.index["over"]
+    return (unit_rows(query) if settings.normalize else query), replace(settings, sequence=spec)
+
+
+def index_over(saved: SavedMap, history: int = 0) -> str:
+    """What the map's index holds vectors of (``frames``, or ``METHOD:L`` windows); history needs frames."""
+    if not saved.info.index:
+        raise SeqvprError(f"{saved.folder} has no index: add one with seqvpr map index {saved.folder} --index SPEC")
+    over = saved.info.index["over"]
     if history and over != "frames":
         raise SeqvprError(f"--shortlist-history needs an index over frames; {saved.folder}'s is over {over}")
+    return over
+
+
+def index_neighbours(saved: SavedMap, query, segments, width: int, nprobe: int) -> TopK:
+    """The ``width`` nearest map rows of each query frame (an index over frames) or window (over windows), by the
+    map's index: rows and Euclidean distances, -1 / +inf where none."""
+    from seqvpr.maps.index import open_frame_index, search_frames, window_search
+    from seqvpr.sequences.matching import TopK
+
+    index = open_frame_index(saved, nprobe)
+    if saved.info.index["over"] == "frames":
+        rows, distances = search_frames(index, query.numpy(), width)
+    else:  # each query window's sequence descriptor finds its candidate frames directly
+        rows, distances = window_search(saved, index, query, segments, width)
+    return TopK(rows, distances, rows[:, 0] >= 0)
+
+
+def shortlist_candidates(found: TopK, over: str, segments, spec, count: int, history: int = 0) -> TopK:
+    """The candidate windows of each query: from its frames' neighbours (``frame_shortlist``, an index over frames)
+    or its window's own (over windows)."""
+    from seqvpr.sequences.hierarchical import frame_shortlist
+    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.windows import window_starts
+
+    starts = window_starts(segments, spec.length, spec.offset, spec.boundary)
     if over == "frames":
-        neighbours, _ = search_frames(index, query.numpy(), shortlist)
-        candidates = frame_shortlist(neighbours, starts, spec, saved.info.count, history=history,
-                                     query_segments=frames.segment_ids)
-    else:  # an index over windows: each query window's sequence descriptor finds its candidate frames directly
-        neighbours, distances = window_search(saved, index, query, frames.segment_ids, shortlist)
-        candidates = TopK(neighbours, distances, starts >= 0)
-    stored = saved.descriptors  # only candidate rows are read: a view of the memory map, or coded rows decoded
+        return frame_shortlist(found.indices, starts, spec, count, history=history, query_segments=segments)
+    return TopK(found.indices, found.distances, starts >= 0)
+
+
+def rerank_candidates(saved: SavedMap, query, candidates: TopK, settings: MatchSettings, segments) -> TopK:
+    """The candidates re-ordered by exact sequence distance over the map's rows (only candidate rows are read: a
+    view of the memory map, or coded rows decoded), the best K kept."""
+    import numpy as np
+    import torch
+
+    from seqvpr.sequences.hierarchical import rerank
+
+    stored = saved.descriptors
     reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
-    top = rerank(query, reference, candidates, spec, frames.segment_ids, saved.frames.segment_ids, k=settings.k)
-    return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
+    return rerank(query, reference, candidates, settings.sequence, segments, saved.frames.segment_ids,
+                  k=settings.k)
 
 
 def shortlist_recall(result: MatchResult, gt) -> float | None:

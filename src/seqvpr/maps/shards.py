@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +34,8 @@ from seqvpr.maps.files import (
 from seqvpr.sequences.matching import TopK
 
 if TYPE_CHECKING:
+    from seqvpr.maps.files import SavedMap
+    from seqvpr.maps.match import PreparedQuery
     from seqvpr.pipeline import MatchResult
 
 DEFAULT_OVERLAP = 63  # windows of up to 64 frames (any velocity) are never cut
@@ -62,7 +64,7 @@ def shard_ranges(count: int, shards: int, overlap: int) -> list[tuple[int, int, 
 
 def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = DEFAULT_OVERLAP) -> ShardedMap:
     """Split the map at ``source`` into ``shards`` shard maps under ``out`` (written atomically: ``shards.json``
-    last, inside a temporary folder renamed when complete)."""
+    last, inside a temporary folder renamed when complete). A map with an index gives each shard one like it."""
     if overlap < 0:
         raise SeqvprError(f"--overlap must be 0 or more frames, got {overlap}")
     saved = open_map(source)
@@ -72,12 +74,40 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
             folder = f"shard-{number:03d}"
             write_map_rows(saved, lo, hi, tmp / folder, {"number": number, "of": shards, "first": lo,
                                                          "own": [a, b], "count": saved.info.count})
+            _index_like(saved, tmp / folder)
             records.append(ShardRecord(folder, lo, a, b))
         description = {"format": SHARDS_FORMAT, "version": SHARDS_VERSION, "count": saved.info.count,
                        "overlap": overlap, "source": str(source), "shards": [r.__dict__ for r in records],
                        "map": saved.info.to_json()}
         (tmp / SHARDS_FILE).write_text(json.dumps(description, indent=2))
     return open_sharded_map(out)
+
+
+def index_shards(sharded: ShardedMap, spec, seed: int = 0, progress=None, windows: int = 0,
+                 method: str = "smoothing", model_folder: str | Path | None = None) -> list[dict[str, Any]] | None:
+    """Each shard's own faiss index (``add_index``, as for one map), for shortlisted matching of the sharded map;
+    under ``torchrun`` each rank builds its shards'. The records of all, in shard order, on rank 0 (None elsewhere)."""
+    from seqvpr import distributed
+    from seqvpr.maps.index import add_index
+
+    world = distributed.current()
+    numbers = shard_numbers(len(sharded.shards), world.rank, world.size)
+    built = distributed.gather_to_root(lambda: [(n, add_index(sharded.open_shard(n), spec, seed, progress, windows,
+                                                              method, model_folder)) for n in numbers], world)
+    return None if built is None else [record for _, record in sorted(p for part in built for p in part)]
+
+
+def _index_like(source: SavedMap, shard_folder: Path) -> None:
+    """Give a new shard an index like its source map's (same spec, vectors, seed and SeqNet), over its own rows."""
+    from seqvpr.maps.index import add_index, parse_index_spec
+
+    record = source.info.index
+    if not record:
+        return
+    over = record["over"]
+    method, windows = ("smoothing", 0) if over == "frames" else (over.split(":")[0], int(over.split(":")[1]))
+    add_index(open_map(shard_folder), parse_index_spec(record["spec"]), int(record.get("seed", 0)), None, windows,
+              method, (record.get("model") or {}).get("folder"))
 
 
 def check_shardable(method: str, span: int, sharded: ShardedMap) -> None:
@@ -132,46 +162,122 @@ def shard_numbers(shards: int, rank: int, world: int) -> list[int]:
 
 
 def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settings,
-                      models: Mapping[str, Any] | None = None, progress=None, **extraction: Any) -> MatchResult | None:
+                      models: Mapping[str, Any] | None = None, progress=None, *, shortlist: int = 0,
+                      history: int = 0, nprobe: int = 16, **extraction: Any) -> MatchResult | None:
     """Match ``query`` against every shard: under ``torchrun`` each rank its own shards, merged on rank 0 (other
-    ranks get None); alone, all shards in turn. The result equals matching the unsharded map."""
+    ranks get None); alone, all shards in turn. The result equals matching the unsharded map (shortlisted: with
+    flat indexes; each shard's own approximate index otherwise)."""
     from seqvpr import distributed
+    from seqvpr.maps.match import prepare_query
+    from seqvpr.sequences.matching import max_span
 
+    check_shardable(method, max_span(settings.sequence), sharded)
     world = distributed.current()
     numbers = shard_numbers(len(sharded.shards), world.rank, world.size)
-    parts = distributed.gather_to_root(
-        lambda: match_shards(sharded, numbers, query, method, settings, models, progress, **extraction), world)
+    prepared = distributed.everywhere(  # described once a rank, as the shards' (shared) description says
+        lambda: prepare_query(sharded.open_shard(0), query, method, settings, models, 0, progress, **extraction))
+    if shortlist:
+        return shortlist_sharded_map(sharded, numbers, prepared, settings, shortlist, history, nprobe)
+    parts = distributed.gather_to_root(lambda: match_shards(sharded, numbers, prepared, settings, progress), world)
     if parts is None:
         return None
-    return merge_shard_matches(sharded, [p for rank_parts in parts for p in rank_parts], query, settings)
+    return merge_shard_matches(sharded, [p for rank_parts in parts for p in rank_parts], prepared.frames, settings)
 
 
-def match_shards(sharded: ShardedMap, numbers: Sequence[int], query: Traversal, method: str, settings,
-                 models: Mapping[str, Any] | None = None, progress=None, **extraction: Any) -> list[ShardMatch]:
-    """The top-K, in whole-map rows over owned frames, of each shard in ``numbers`` against ``query``, with the
-    per-frame pairs of its top-1 matches where the method makes its own; a shard whose segments are all shorter
-    than a window contributes nothing."""
-    from seqvpr.maps.match import match_map
+def match_shards(sharded: ShardedMap, numbers: Sequence[int], prepared: PreparedQuery, settings,
+                 progress=None) -> list[ShardMatch]:
+    """The top-K, in whole-map rows over owned frames, of each shard in ``numbers`` against the prepared query (a
+    row in the whole map's top-K is in its shard's, which has fewer rivals), with the per-frame pairs of its top-1 matches where the method makes its own; a shard whose segments are all
+    shorter than a window contributes nothing."""
+    from seqvpr.maps.match import match_prepared
     from seqvpr.sequences.matching import max_span
     from seqvpr.sequences.windows import window_starts
 
-    spec = settings.sequence
-    check_shardable(method, max_span(spec), sharded)
+    spec, query = settings.sequence, prepared.frames
     parts = []
     for number in numbers:
         record, shard = sharded.shards[number], sharded.open_shard(number)
         if not (window_starts(shard.frames.segment_ids, max_span(spec), 0, spec.boundary) >= 0).any():
-            has_window = window_starts(query.segment_ids, spec.length, spec.offset, spec.boundary) >= 0
-            parts.append(ShardMatch(number, TopK(np.full((len(query), settings.k), -1),
-                                         np.full((len(query), settings.k), np.inf), has_window), None))
+            parts.append(ShardMatch(number, _no_match(query, settings), None))
             continue
-        extra = shard.info.count - (record.own_last - record.own_first)  # overlap rows that may fill the top-K
-        result = match_map(shard, query, method, replace(settings, k=settings.k + extra), models,
-                           progress=progress, **extraction)
+        result = match_prepared(shard, prepared, settings, progress=progress)
         pairs = None if result.correspondences is None else (
             result.correspondences[0], np.where(result.correspondences[1] >= 0, result.correspondences[1] + record.first, -1))
         parts.append(ShardMatch(number, owned_topk(result.topk, record, settings.k), pairs))
     return parts
+
+
+def _no_match(query: Traversal, settings) -> TopK:
+    from seqvpr.sequences.windows import window_starts
+
+    spec = settings.sequence
+    has_window = window_starts(query.segment_ids, spec.length, spec.offset, spec.boundary) >= 0
+    return TopK(np.full((len(query), settings.k), -1), np.full((len(query), settings.k), np.inf), has_window)
+
+
+def shortlist_sharded_map(sharded: ShardedMap, numbers: Sequence[int], prepared: PreparedQuery, settings,
+                          shortlist: int, history: int, nprobe: int) -> MatchResult | None:
+    """Shortlisted matching of a sharded map: each rank searches its shards' indexes, rank 0 merges the nearest
+    ``shortlist`` rows a query frame (or window) into the candidates and sends them out, each rank re-ranks the
+    candidates its shards own, and rank 0 merges the top-K. With flat indexes this is the unsharded shortlist."""
+    from seqvpr import distributed
+    from seqvpr.maps.match import shortlist_candidates, shortlist_query
+    from seqvpr.pipeline import MatchResult
+
+    frames = prepared.frames
+    query, settings = shortlist_query(frames, prepared.method, settings)
+    over = distributed.everywhere(lambda: _shards_index(sharded, prepared, history))  # every shard checked
+    shards = {n: sharded.open_shard(n) for n in numbers}
+    found = distributed.gather_to_root(
+        lambda: [_shard_neighbours(shards[n], sharded.shards[n], query, frames, shortlist, nprobe) for n in numbers])
+
+    def candidates() -> TopK:
+        merged = merge_topks([part for rank_parts in found for part in rank_parts], shortlist)  # type: ignore[union-attr]
+        return shortlist_candidates(merged, over, frames.segment_ids, settings.sequence, sharded.count, history)
+
+    shortlisted = distributed.broadcast_from_root(candidates)
+    tops = distributed.gather_to_root(
+        lambda: [_shard_rerank(shards[n], sharded.shards[n], query, shortlisted, settings, frames) for n in numbers])
+    if tops is None:
+        return None
+    width = min(settings.k, shortlisted.indices.shape[1])  # as re-ranking keeps: no more than the candidates
+    top = merge_topks([part for rank_parts in tops for part in rank_parts], width)
+    return MatchResult(map_table(sharded), frames, top, settings, shortlist=shortlisted)
+
+
+def _shards_index(sharded: ShardedMap, prepared: PreparedQuery, history: int) -> str:
+    """What every shard's index holds (the same for all, checked); a shard without one is a one-line error."""
+    from seqvpr.maps.match import check_shortlist, index_over
+
+    over = set()
+    for number in range(len(sharded.shards)):
+        shard = sharded.open_shard(number)
+        check_shortlist(shard, prepared.method, prepared.models)
+        over.add(index_over(shard, history))
+    if len(over) > 1:
+        raise SeqvprError(f"{sharded.folder}: its shards' indexes hold different vectors ({', '.join(sorted(over))}): "
+                          f"seqvpr map index {sharded.folder} --index SPEC indexes them all alike")
+    return over.pop()
+
+
+def _shard_neighbours(shard: SavedMap, record: ShardRecord, query, frames: Traversal, width: int,
+                      nprobe: int) -> TopK:
+    """A shard's ``width`` nearest owned rows of each query frame or window, in whole-map rows (a row among the
+    whole map's nearest is among its shard's, which are fewer)."""
+    from seqvpr.maps.match import index_neighbours
+
+    found = index_neighbours(shard, query, frames.segment_ids, width, nprobe)
+    return owned_topk(found, record, width)
+
+
+def _shard_rerank(shard: SavedMap, record: ShardRecord, query, candidates: TopK, settings, frames: Traversal) -> TopK:
+    """The candidates a shard owns re-ranked over its rows: their top-K in whole-map rows."""
+    from seqvpr.maps.match import rerank_candidates
+
+    rows = candidates.indices
+    owned = (rows >= record.own_first) & (rows < record.own_last)
+    local = TopK(np.where(owned, rows - record.first, -1), candidates.distances, candidates.has_window)
+    return owned_topk(rerank_candidates(shard, query, local, settings, frames.segment_ids), record, settings.k)
 
 
 def merge_shard_matches(sharded: ShardedMap, parts: Sequence[ShardMatch], query: Traversal, settings) -> MatchResult:
