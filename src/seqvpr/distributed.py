@@ -117,6 +117,20 @@ def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T]
     return values
 
 
+def gather_everywhere(work: Callable[[], T], world: World | None = None) -> list[T]:
+    """Every rank's ``work()``, in rank order, on every rank; a rank whose work raises makes every rank raise one
+    line naming it."""
+    world = world or current()
+    if world.size == 1:
+        return [work()]
+    import torch.distributed as dist
+
+    value = everywhere(work, world)
+    values: list = [None] * world.size
+    dist.all_gather_object(values, value)
+    return values
+
+
 def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
     """Rank 0's ``work()`` on every rank (the others do not run it); if it raises, every rank raises one line."""
     world = world or current()

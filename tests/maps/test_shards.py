@@ -165,7 +165,7 @@ def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single
     assert columns("two") == columns("one")  # status, score, estimate, best map frame: every frame the same
     refused = torchrun(["localize", "--map", tmp_path / "s", *common, "--method", "hmm", "--out", tmp_path / "f"],
                        tmp_path)
-    assert refused.returncode != 0 and "exact sequence matching" in refused.stderr
+    assert refused.returncode != 0 and "the filter needs the whole map" in refused.stderr
     assert not (tmp_path / "f").exists()
 
 
@@ -231,3 +231,28 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
     assert done.returncode == 0, done.stderr[-2000:]
     assert (tmp_path / "two" / "predictions.csv").read_text() == (tmp_path / "a" / "predictions.csv").read_text()
     assert '"recall"' in (tmp_path / "two" / "run.json").read_text()  # the shortlist's recall, as for one map
+
+
+def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs_a_window_in_the_overlap(
+        whole, indexed, tmp_path, monkeypatch, capsys):
+    from seqvpr.localization import Localizer
+    from seqvpr.localization.replay import replay
+    from seqvpr.maps import load_map
+
+    shard_map(indexed, tmp_path / "s", 4, 6)  # indexed like the map: flat, over frames
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    for options in ({"seq_len": 5, "k": 5, "shortlist": 3}, {"seq_len": 7, "k": 3, "shortlist": 2, "history": 4}):
+        a = replay(Localizer.open(load_map(indexed), **options), query)
+        b = replay(Localizer.open(load_map(tmp_path / "s"), **options), query)
+        np.testing.assert_array_equal(a.indices, b.indices)
+        np.testing.assert_array_equal(a.score, b.score)
+        np.testing.assert_array_equal(a.distances, b.distances)
+    raises_one_line("overlap by 6 frames, so windows may span at most 7; this localiser needs 8",
+                    Localizer.open, load_map(tmp_path / "s"), seq_len=8, shortlist=3)
+    common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5", "--shortlist", "3"]
+    done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    alone = torchrun(["localize", "--map", indexed, *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
+    assert alone.returncode == 0, alone.stderr
+    columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
+    assert columns("two") == columns("one")

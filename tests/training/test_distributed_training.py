@@ -5,8 +5,8 @@ Tolerance: the ranks' gradients are summed in another order than one process sum
 the all-reduce), so weights agree to float32 rounding, not bit for bit: about 1e-6 relative after a few SGD epochs,
 and up to about 2e-5 absolute for JIST, whose Adam steps divide by small second moments early on. Mining and every
 random draw are rank 0's, shared, so the triplets are the same exactly. A trainable BatchNorm normalises each
-rank's part of a batch, not the whole batch (as DistributedDataParallel without SyncBatchNorm): the JIST test uses a
-backbone without one, and BENCHMARKS.md gives the difference one makes."""
+rank's part of a batch, not the whole batch (on CPU: gloo has no SyncBatchNorm): the JIST test uses a backbone
+without one, and BENCHMARKS.md gives the difference one makes."""
 
 from __future__ import annotations
 
@@ -162,3 +162,37 @@ def test_a_rank_that_fails_fails_the_run_before_rank_0_writes_anything(tmp_path)
     with pytest.raises(mp.ProcessRaisedException, match="rank 1 of 2 failed: .*longer than every segment"):
         spawn_ranks(_failing_rank, (free_port(), str(tmp_path / "run")))
     assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
+
+
+def _rank_failing_in_epoch_2(rank: int, port: int, out: str) -> None:
+    """A rank of a 3-epoch SeqMatchNet run whose rank 1 fails in a step of epoch 2 (after epoch 1 is saved)."""
+    from seqvpr.training.seqmatchnet import SeqMatchNetLearner
+
+    if rank == 1:
+        real = SeqMatchNetLearner.batch_loss
+
+        def failing(self, model, loss, batch, step, rng, settings):
+            if step.epoch == 2:
+                raise RuntimeError("rank 1 lost its data disk")
+            return real(self, model, loss, batch, step, rng, settings)
+
+        SeqMatchNetLearner.batch_loss = failing  # type: ignore[method-assign]
+    _rank(rank, port, "seqmatchnet", out, [(3, False)])
+
+
+def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whole_epoch_to_resume(tmp_path):
+    import torch
+
+    torch.set_num_threads(1)
+    with pytest.raises(mp.ProcessRaisedException, match="rank 1 lost its data disk"):
+        spawn_ranks(_rank_failing_in_epoch_2, (free_port(), str(tmp_path / "run")))
+    state = ckpt.read_json(tmp_path / "run" / STATE_JSON)
+    assert [h["epoch"] for h in state["history"]] == [0, 1]  # epoch 1 whole (after the untrained 0), none of 2
+    assert not list((tmp_path / "run").rglob("*.part"))
+    spawn_ranks(_rank, (free_port(), "seqmatchnet", str(tmp_path / "run"), [(3, True)]))
+    alone = train("seqmatchnet", tmp_path / "alone", 3)
+    expected, got = state_weights(tmp_path / "alone"), state_weights(tmp_path / "run")
+    for key in expected:
+        np.testing.assert_allclose(got[key].numpy(), expected[key].numpy(), rtol=1e-5, atol=1e-6, err_msg=key)
+    assert [h["triplets"] for h in ckpt.read_json(tmp_path / "run" / STATE_JSON)["history"]] == [
+        r.triplets for r in alone.history]

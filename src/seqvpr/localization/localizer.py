@@ -26,7 +26,7 @@ import torch
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.encoder import FrameEncoder, describes_images
-from seqvpr.localization.matchers import ShardedExactMatcher, ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
+from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
 from seqvpr.maps.build import FrameDescription
 from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.maps.match import check_map_models
@@ -254,12 +254,8 @@ def _matcher(saved: SavedMap, settings: LocalizerSettings):
     from seqvpr.maps.files import is_sharded_map, open_sharded_map
 
     world = distributed.current()
-    if world.size > 1 and is_sharded_map(saved.folder):
-        if settings.method == "hmm" or settings.shortlist:
-            raise SeqvprError("a sharded map under torchrun is localised by exact sequence matching; the filter and "
-                              "the shortlist need the whole map (localise it in one process)")
-        return ShardedExactMatcher(open_sharded_map(saved.folder), world, settings.window, settings.k,
-                                   settings.exclusion)
+    if is_sharded_map(saved.folder) and (world.size > 1 or settings.shortlist):  # one process: via its shards' indexes
+        return _sharded_matcher(open_sharded_map(saved.folder), world, settings)
     segments = saved.frames.segment_ids
     if settings.method == "hmm":
         return FilterMatcher(saved.descriptors, segments, settings.k, settings.filter, settings.seed)
@@ -272,6 +268,23 @@ def _matcher(saved: SavedMap, settings: LocalizerSettings):
         return ShortlistMatcher(saved, open_frame_index(saved, settings.nprobe), settings.window, settings.k,
                                 settings.exclusion, settings.shortlist, settings.history)
     return ExactMatcher(saved.descriptors, segments, settings.window, settings.k, settings.exclusion)
+
+
+def _sharded_matcher(sharded, world, settings: LocalizerSettings):
+    """The per-frame step over a sharded map under torchrun: exact or shortlisted sequence matching, each rank its
+    shards (whose overlap must hold a window)."""
+    from seqvpr.localization.sharded import ShardedExactMatcher, ShardedShortlistMatcher
+
+    if settings.method == "hmm":
+        raise SeqvprError("a sharded map under torchrun is localised by exact or shortlisted sequence matching; the "
+                          "filter needs the whole map (localise it in one process)")
+    if settings.window - 1 > sharded.overlap:
+        raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
+                          f"at most {sharded.overlap + 1}; this localiser needs {settings.window}")
+    if settings.shortlist:
+        return ShardedShortlistMatcher(sharded, world, settings.window, settings.k, settings.exclusion,
+                                       settings.shortlist, settings.history, settings.nprobe)
+    return ShardedExactMatcher(sharded, world, settings.window, settings.k, settings.exclusion)
 
 
 def _map_identity(saved: SavedMap) -> dict[str, Any]:

@@ -5,7 +5,6 @@ distances and a score out (None while warming up), with the time spent measuring
 - ``ShortlistMatcher``: the map's faiss index gives candidates (the window's and the H frames before it, carried
   forward), re-ranked by exact sequence distance; cost independent of the map's size.
 - ``FilterMatcher``: one distance pass, then the topological filter.
-- ``ShardedExactMatcher``: ``ExactMatcher`` over a sharded map under torchrun: each rank its shards, rank 0 merges.
 """
 
 from __future__ import annotations
@@ -36,7 +35,7 @@ class Scored:
     sequence_ms: float
 
 
-def _ms(since: float) -> float:
+def elapsed_ms(since: float) -> float:
     return (time.perf_counter() - since) * 1e3
 
 
@@ -50,7 +49,7 @@ class FullMapPass:
     def measure(self, query: torch.Tensor) -> tuple[np.ndarray, float]:
         """The frame's distances to every map frame [N], and the milliseconds they took."""
         started = time.perf_counter()
-        return distances_to_reference(query[None], self.rows, self.norms)[0], _ms(started)
+        return distances_to_reference(query[None], self.rows, self.norms)[0], elapsed_ms(started)
 
 
 class ExactMatcher(FullMapPass):
@@ -72,70 +71,13 @@ class ExactMatcher(FullMapPass):
             return None
         indices, values = best_k(means, self.k)
         score = uniqueness(means, int(indices[0]), self.exclusion)
-        return Scored(indices, values, score, distance_ms, _ms(measured))
+        return Scored(indices, values, score, distance_ms, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.sums.state()
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         self.sums.load_state(state)
-
-
-class ShardedExactMatcher:
-    """Exact causal sequence matching over a sharded map, one rank per shard (or several): each rank keeps, over the
-    frames its shards own, the best ``max(k, 2 * exclusion + 2)`` windows, and rank 0 merges them. That is the
-    unsharded matcher's answer: the best window outside the exclusion zone of the best, which the score needs, is
-    among each shard's first 2 * exclusion + 2. Other ranks get None for every frame (rank 0 reports)."""
-
-    def __init__(self, sharded, world, length: int, k: int, exclusion: int) -> None:
-        from seqvpr.maps.shards import shard_numbers
-
-        self.world, self.k, self.exclusion = world, k, exclusion
-        self.keep = max(k, 2 * exclusion + 2)
-        self.parts = []
-        for number in shard_numbers(len(sharded.shards), world.rank, world.size):
-            shard, record = sharded.open_shard(number), sharded.shards[number]
-            owned = np.zeros(shard.info.count, dtype=bool)
-            owned[record.own_first - record.first : record.own_last - record.first] = True
-            self.parts.append((FullMapPass(shard.descriptors), DiagonalSums(shard.frames.segment_ids, length), owned,
-                               record.first))
-
-    def reset(self) -> None:
-        for _, sums, _, _ in self.parts:
-            sums.reset()
-
-    def push(self, query: torch.Tensor) -> Scored | None:
-        from seqvpr import distributed
-        from seqvpr.maps.shards import merge_topks
-        from seqvpr.sequences.matching import TopK
-
-        found, warming, distance_ms = [], False, 0.0
-        for full, sums, owned, first in self.parts:
-            distances, spent = full.measure(query)
-            distance_ms += spent
-            means = sums.push(distances)
-            if means is None:
-                warming = True
-                continue
-            rows, values = best_k(np.where(owned, means, np.inf), self.keep)
-            found.append((np.where(rows >= 0, rows + first, -1), values))
-        if warming:  # every rank has seen the same frames: all warm up together, no message needed
-            return None
-        started = time.perf_counter()
-        gathered = distributed.gather_to_root(lambda: found, self.world)
-        if gathered is None:
-            return None
-        found = [part for rank_parts in gathered for part in rank_parts]
-        merged = merge_topks([TopK(r[None], v[None], np.ones(1, bool)) for r, v in found], len(found) * self.keep)
-        rows, values = merged.indices[0], merged.distances[0]
-        score = _candidate_uniqueness(rows, values, self.exclusion) if rows[0] >= 0 else 0.0
-        return Scored(rows[: self.k], values[: self.k], score, distance_ms, _ms(started))  # sequence: sums, gather and merge
-
-    def state(self) -> dict[str, np.ndarray]:
-        raise SeqvprError("a localiser over a sharded map under torchrun keeps no state to save")
-
-    def load_state(self, state: dict[str, np.ndarray]) -> None:
-        raise SeqvprError("a localiser over a sharded map under torchrun takes no saved state")
 
 
 class ShortlistMatcher:
@@ -166,30 +108,18 @@ class ShortlistMatcher:
         indices, values = self._rerank(self._candidates())
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
-        score = _candidate_uniqueness(indices, values, self.exclusion)
-        return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, _ms(measured))
+        score = candidate_uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def _candidates(self) -> np.ndarray:
-        """Map frames ending a candidate window: each neighbour of the frame ``lag`` frames ago, ``lag`` ahead."""
-        found = [rows[rows >= 0] + lag for lag, rows in enumerate(self.found)]
-        candidates = np.unique(np.concatenate(found))
-        return candidates[candidates < self.saved.info.count]
+        return found_candidates(self.found, self.saved.info.count)
 
     def _rerank(self, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidates with a window, ascending by exact causal sequence distance (ties: lower row)."""
         candidates = candidates[self.window_exists[candidates]]
-        values = self._window_distances(candidates - (self.length - 1))
+        values = window_distances(self.saved.descriptors, self.frames, candidates - (self.length - 1))
         order = np.lexsort((candidates, values))
         return candidates[order], values[order]
-
-    def _window_distances(self, starts: np.ndarray) -> np.ndarray:
-        """Mean order-aligned distances between the last L query frames and the map windows from ``starts``: a
-        gather of (L + H) S x L rows at most, too few for a parallel kernel (whose threads would only contend with
-        faiss's)."""
-        window = torch.stack(list(self.frames)).numpy()
-        frames = starts[:, None] + np.arange(self.length)[None, :]
-        rows = np.asarray(self.saved.descriptors[frames.ravel()], np.float32).reshape(len(starts), self.length, -1)
-        return np.linalg.norm(rows - window[None], axis=2).mean(axis=1).astype(np.float64)
 
     def state(self) -> dict[str, np.ndarray]:
         width = self.shortlist
@@ -205,7 +135,28 @@ class ShortlistMatcher:
         self.frames.extend(torch.from_numpy(row) for row in state["frames"])
 
 
-def _candidate_uniqueness(indices: np.ndarray, values: np.ndarray, exclusion: int) -> float:
+def found_candidates(found, count: int) -> np.ndarray:
+    """Map frames ending a candidate window: each neighbour of the frame ``lag`` frames ago (``found[lag]``),
+    ``lag`` ahead, once each, on the map."""
+    rows = [neighbours[neighbours >= 0] + lag for lag, neighbours in enumerate(found)]
+    candidates = np.unique(np.concatenate(rows))
+    return candidates[candidates < count]
+
+
+def window_distances(descriptors, frames, starts: np.ndarray) -> np.ndarray:
+    """Mean order-aligned distances between the query ``frames`` (the last L, oldest first) and the map windows
+    from ``starts``: a gather of (L + H) S x L rows at most, too few for a parallel kernel (whose threads would only
+    contend with faiss's)."""
+    if not len(starts):  # no candidate window (here): nothing to read
+        return np.zeros(0)
+    window = torch.stack(list(frames)).numpy()
+    length = len(window)
+    rows = starts[:, None] + np.arange(length)[None, :]
+    gathered = np.asarray(descriptors[rows.ravel()], np.float32).reshape(len(starts), length, -1)
+    return np.linalg.norm(gathered - window[None], axis=2).mean(axis=1).astype(np.float64)
+
+
+def candidate_uniqueness(indices: np.ndarray, values: np.ndarray, exclusion: int) -> float:
     """``uniqueness`` over re-ranked candidates (ascending): the best against the first candidate outside its
     neighbourhood (1 when no other place was shortlisted)."""
     if not len(indices) or indices[0] < 0:
@@ -233,7 +184,7 @@ class FilterMatcher(FullMapPass):
         self.filter.step(distances.astype(np.float64))
         mass = self.filter.mass()
         indices, values = best_k(1.0 - mass, self.k)
-        return Scored(indices, values, float(mass[indices[0]]), distance_ms, _ms(measured))
+        return Scored(indices, values, float(mass[indices[0]]), distance_ms, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.filter.state()
