@@ -219,9 +219,9 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
     code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "s", *common, "--out", tmp_path / "no")
     assert code == 2 and err.count("\n") == 1 and "shard-000 has no index: add one with seqvpr map index" in err
     assert not (tmp_path / "no").exists()
-    code, out, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "s", "--index", "flat")
-    assert code == 0, err
-    assert [line.split(":")[0] for line in out.splitlines()] == ["shard-000", "shard-001", "shard-002"]
+    indexed = torchrun(["map", "index", tmp_path / "s", "--index", "flat"], tmp_path)  # each rank its shards'
+    assert indexed.returncode == 0, indexed.stderr[-2000:]
+    assert [line.split(":")[0] for line in indexed.stdout.splitlines()] == ["shard-000", "shard-001", "shard-002"]
     shutil.copytree(whole / "map", tmp_path / "m")
     code, _, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
     assert code == 0, err
@@ -256,3 +256,23 @@ def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs
     assert alone.returncode == 0, alone.stderr
     columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
     assert columns("two") == columns("one")
+
+
+def test_map_build_shards_writes_what_map_shard_of_the_built_map_writes_and_no_whole_map(whole, tmp_path, monkeypatch,
+                                                                                        capsys):
+    sources = (whole / "ref.npz", whole / "a" / "ref.npz")
+    code, out, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--index", "flat", "--shards", "3",
+                             "--overlap", "9", "--out", tmp_path / "built")
+    assert code == 0, err
+    assert out.splitlines()[-1] == "sharded map: " + str(tmp_path / "built") + " (330 frames in 3 shards, overlap 9)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["built"]  # the whole map was temporary
+    expected = shard_map(whole / "map", tmp_path / "split", 3, 9)
+    built = open_sharded_map(tmp_path / "built")
+    assert built.shards == expected.shards and built.count == expected.count
+    for number in range(3):
+        a, b = built.open_shard(number), expected.open_shard(number)
+        np.testing.assert_array_equal(np.asarray(a.descriptors), np.asarray(b.descriptors))
+        assert a.info.index["spec"] == "flat" and a.info.index["ntotal"] == a.info.count
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--shards", "400", "--out", tmp_path / "x")
+    assert code == 2 and "--shards must be between 1 and the map's 330 frames" in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["built", "split"]

@@ -61,28 +61,52 @@ def map_group() -> None:
 @click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the index's training sample and k-means.")
 @click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@click.option("--shards", type=COUNT, help="Write the map as this many shards (as seqvpr map shard does) for "
+                                           "matching under torchrun.")
+@click.option("--overlap", type=NONNEGATIVE, default=63, show_default=True,
+              help="With --shards: frames each shard shares with each neighbour (windows of up to OVERLAP + 1).")
 @bag_topic_options("sources")
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,
-          seed: int, device: str, **o: Any) -> None:
-    """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map."""
+          seed: int, device: str, shards: int | None, overlap: int, **o: Any) -> None:
+    """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map (or as
+    --shards shard maps)."""
     from seqvpr.io import check_replaceable
-    from seqvpr.maps import build_map
-    from seqvpr.maps.files import INFO_FILE
+    from seqvpr.maps.files import INFO_FILE, SHARDS_FILE
     from seqvpr.maps.codes import parse_storage
-    from seqvpr.maps.index import add_index, parse_index_spec
+    from seqvpr.maps.index import parse_index_spec
 
     spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec or storage fails before any work
     parse_storage(dtype)
-    check_replaceable(Path(out_dir), INFO_FILE)
+    check_replaceable(Path(out_dir), SHARDS_FILE if shards else INFO_FILE)
     description, extraction = _description(o, device)
     models = _models(model_dirs, device)
-    saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=not no_normalize,
-                      device=device, progress=tqdm_progress, frames=frames, **extraction)
+
+    def build_into(folder) -> None:
+        _build_map(sources, folder, description, models, extraction, dtype=dtype, normalize=not no_normalize,
+                   device=device, frames=frames, index=(spec, seed, windows, window_method, index_model))
+
+    if not shards:
+        build_into(out_dir)
+        return
+    from seqvpr.maps.shards import build_sharded
+
+    sharded = build_sharded(build_into, out_dir, shards, overlap)
+    click.echo(f"sharded map: {out_dir} ({sharded.count} frames in {len(sharded.shards)} shards, overlap {overlap})")
+
+
+def _build_map(sources, out_dir, description, models, extraction, *, dtype, normalize, device, frames, index) -> None:
+    """Build one map (and its index, if one is asked for) and print what it holds."""
+    from seqvpr.maps import build_map
+    from seqvpr.maps.index import add_index
+
+    saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
+                      progress=tqdm_progress, frames=frames, **extraction)
     info = saved.info
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
+    spec, seed, windows, window_method, index_model = index
     if spec is not None:
         try:
             record = add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)

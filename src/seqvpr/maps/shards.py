@@ -17,7 +17,7 @@ the localiser and every other map command take one in a single process.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -81,6 +81,24 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
                        "map": saved.info.to_json()}
         (tmp / SHARDS_FILE).write_text(json.dumps(description, indent=2))
     return open_sharded_map(out)
+
+
+def build_sharded(build: Callable[[Path], object], out: str | Path, shards: int,
+                  overlap: int = DEFAULT_OVERLAP) -> ShardedMap:
+    """A map made by ``build(folder)`` (and indexed there, if it does) written straight as ``shards`` shards under
+    ``out``: built in a temporary folder beside ``out``, sharded, then removed, failed or not."""
+    import shutil
+    import tempfile
+
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    whole = Path(tempfile.mkdtemp(prefix=f".{target.name}.whole-", dir=target.parent))
+    try:
+        shutil.rmtree(whole)  # the map writer makes its own folder
+        build(whole)
+        return shard_map(whole, target, shards, overlap)
+    finally:
+        shutil.rmtree(whole, ignore_errors=True)
 
 
 def index_shards(sharded: ShardedMap, spec, seed: int = 0, progress=None, windows: int = 0,
