@@ -51,7 +51,9 @@ def test_shards_own_equal_runs_that_tile_the_map_and_store_overlap_beyond_them(c
     ("matching", 5, (1.0,), 3, 4),          # the minimum overlap for L = 5
     ("matching", 9, (0.8, 1.0, 1.2), 4, 10),  # a velocity sweep spans 11 frames
     ("adaptive", 6, (1.0,), 5, 10),
+    ("adaptive", 5, (1.0,), 3, 8),          # the minimum for paths of steps up to 2: 2 (L - 1) + 1 frames
     ("seqslam", 7, (1.0,), 2, 30),
+    ("seqslam", 5, (1.0,), 4, 10),          # the minimum with the contrast neighbourhood: 5 + 10 // 2 + 1 frames
     ("single", 1, (1.0,), 7, 0),
     ("smoothing", 5, (1.0,), 3, 4),
 ])
@@ -91,6 +93,9 @@ def test_methods_a_shard_cannot_score_and_windows_longer_than_the_overlap_are_on
                         MatchSettings(SequenceSpec(5), k=5))
     raises_one_line("overlap by 4 frames, so windows may span at most 5; this match needs 6",
                     match_sharded_map, sharded, query, "matching", MatchSettings(SequenceSpec(6), k=5))
+    for method, needs in (("adaptive", 9), ("seqslam", 11)):  # the frames their scores read, not only L
+        raises_one_line(f"this match needs {needs} (shard it again with --overlap {needs - 1})",
+                        match_sharded_map, sharded, query, method, MatchSettings(SequenceSpec(5), k=5))
     (tmp_path / "sharded" / "shards.json").write_text('{"format": "seqvpr-sharded-map", "version": 1}')
     raises_one_line("malformed sharded map description", open_sharded_map, tmp_path / "sharded")
 
@@ -118,6 +123,11 @@ def torchrun(args, cwd: Path, ranks: int = 2) -> subprocess.CompletedProcess:
     launcher = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", str(ranks)] if ranks else []
     command = [*launcher, shutil.which("seqvpr", path=env["PATH"]), *map(str, args)]
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def stream_columns(run: Path) -> list[list[str]]:
+    """A localize run's stream.csv without its latency columns: what must be the same frame by frame."""
+    return [line.split(",")[:11] for line in (run / "stream.csv").read_text().splitlines()]
 
 
 def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_rank_fails_the_run(whole, tmp_path):
@@ -161,8 +171,7 @@ def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single
     assert done.returncode == 0, done.stderr[-2000:]
     alone = torchrun(["localize", "--map", whole / "map", *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
     assert alone.returncode == 0, alone.stderr
-    columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
-    assert columns("two") == columns("one")  # status, score, estimate, best map frame: every frame the same
+    assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")  # status, score, estimate, best frame
     refused = torchrun(["localize", "--map", tmp_path / "s", *common, "--method", "hmm", "--out", tmp_path / "f"],
                        tmp_path)
     assert refused.returncode != 0 and "the filter needs the whole map" in refused.stderr
@@ -254,8 +263,7 @@ def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs
     assert done.returncode == 0, done.stderr[-2000:]
     alone = torchrun(["localize", "--map", indexed, *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
     assert alone.returncode == 0, alone.stderr
-    columns = lambda run: [line.split(",")[:11] for line in (tmp_path / run / "stream.csv").read_text().splitlines()]  # noqa: E731
-    assert columns("two") == columns("one")
+    assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")
 
 
 def test_map_build_shards_writes_what_map_shard_of_the_built_map_writes_and_no_whole_map(whole, tmp_path, monkeypatch,

@@ -128,9 +128,11 @@ def _index_like(source: SavedMap, shard_folder: Path) -> None:
               method, (record.get("model") or {}).get("folder"))
 
 
-def check_shardable(method: str, span: int, sharded: ShardedMap) -> None:
-    """A method whose per-window scores a shard can compute, on windows no longer than the shards overlap."""
-    from seqvpr.methods import get_method
+def check_shardable(method: str, settings, sharded: ShardedMap) -> None:
+    """A method whose per-window scores a shard can compute from the rows it holds: the frames its windows cover
+    (its scorer's span: adaptive paths, SeqSLAM's contrast neighbourhood) fit in the shards' overlap."""
+    from seqvpr.methods import get_method, window_scorer
+    from seqvpr.sequences.matching import max_span
 
     record = get_method(method)
     if record.scorer in WHOLE_MAP_SCORERS:
@@ -141,6 +143,8 @@ def check_shardable(method: str, span: int, sharded: ShardedMap) -> None:
         raise SeqvprError(f"--method {method} scores whole paths or shortlists over the whole map; a sharded map "
                           f"is matched by sequence matching or sequence descriptors "
                           f"({', '.join(SHARDABLE_FAMILIES)} methods)")
+    scorer = window_scorer(record, settings)
+    span = scorer.span(settings.sequence) if scorer is not None else max_span(settings.sequence)
     if span - 1 > sharded.overlap:
         raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
                           f"at most {sharded.overlap + 1}; this match needs {span} (shard it again with "
@@ -187,9 +191,8 @@ def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settin
     flat indexes; each shard's own approximate index otherwise)."""
     from seqvpr import distributed
     from seqvpr.maps.match import prepare_query
-    from seqvpr.sequences.matching import max_span
 
-    check_shardable(method, max_span(settings.sequence), sharded)
+    check_shardable(method, settings, sharded)
     world = distributed.current()
     numbers = shard_numbers(len(sharded.shards), world.rank, world.size)
     prepared = distributed.everywhere(  # described once a rank, as the shards' (shared) description says
