@@ -114,10 +114,13 @@ class ShardedShortlistMatcher(_Stateless):
 
     def push(self, query: torch.Tensor) -> Scored | None:
         from seqvpr import distributed
+        from seqvpr.maps.shards import merge_topks
+        from seqvpr.sequences.matching import TopK
 
         started = time.perf_counter()
         nearest = distributed.gather_everywhere(lambda: self._nearest(query.numpy()[None]), self.world)
-        self.found.appendleft(_merged_rows([part for rank_parts in nearest for part in rank_parts], self.shortlist))
+        parts = [TopK(rows[None], values[None], np.ones(1, bool)) for rank_parts in nearest for rows, values in rank_parts]
+        self.found.appendleft(merge_topks(parts, self.shortlist).indices[0])  # the whole map's nearest
         self.frames.append(query)
         measured = time.perf_counter()
         if len(self.frames) < self.length:  # every rank has seen the same frames: all warm up together
@@ -156,11 +159,3 @@ class ShardedShortlistMatcher(_Stateless):
             rows.append(mine)
             values.append(window_distances(shard.descriptors, self.frames, mine - record.first - (self.length - 1)))
         return np.concatenate(rows), np.concatenate(values)
-
-
-def _merged_rows(parts: list[tuple[np.ndarray, np.ndarray]], width: int) -> np.ndarray:
-    """The ``width`` nearest rows over every shard's (by distance, ties to the lower row), -1 padded."""
-    rows = np.concatenate([r for r, _ in parts]) if parts else np.zeros(0, np.int64)
-    distances = np.concatenate([d for _, d in parts]) if parts else np.zeros(0)
-    order = np.lexsort((rows, distances))[:width]
-    return np.concatenate([rows[order], np.full(width - len(order), -1, np.int64)])
