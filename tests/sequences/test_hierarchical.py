@@ -74,3 +74,15 @@ def test_bad_input_is_one_line():
     query, reference = unit_rows(rng, 5, 3), unit_rows(rng, 6, 3)
     raises_one_line("velocities 1", rerank, query, reference, whole_reference(5, 6), SequenceSpec(3, velocities=(0.8, 1.0)))
     raises_one_line("query has 5 frames", rerank, query, reference, whole_reference(4, 6), SequenceSpec(3))
+
+
+def test_equal_distances_rank_the_lower_reference_row_first_whatever_the_candidate_order():
+    rng = np.random.default_rng(3)
+    query, reference = unit_rows(rng, 6, 4), unit_rows(rng, 12, 4)
+    reference[7:10] = reference[2:5]  # the windows at rows 3 and 8 are the same frames: equal distances
+    spec = SequenceSpec(3)
+    for candidates in ([8, 3, 5], [3, 8, 5], [5, 8, 3]):
+        shortlist = TopK(np.tile(candidates, (6, 1)), np.zeros((6, 3)), np.ones(6, dtype=bool))
+        top = rerank(query, reference, shortlist, spec)
+        for row in top.indices[1:-1]:  # queries with a window
+            assert list(row).index(3) < list(row).index(8)  # as the kernel, and a sharded map's merge, order ties

@@ -56,7 +56,8 @@ def rerank(
         valid = starts >= 0
         d = _candidate_distances(query, reference, q_starts[batch], starts, spec.length)
         d[~valid] = np.inf
-        order = np.argsort(d, axis=1, kind="stable")[:, :keep]
+        lower_first = np.where(picked >= 0, picked, np.iinfo(np.int64).max)
+        order = np.lexsort((lower_first, d), axis=1)[:, :keep]  # ties to the lower row, as the kernel (and shards) break them
         best = np.take_along_axis(d, order, axis=1)
         indices[batch] = np.where(np.isfinite(best), np.take_along_axis(picked, order, axis=1), -1)
         distances[batch] = best
