@@ -226,7 +226,7 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
     assert code == 0, err
     common = ("-q", whole / "qry.npz", "-L", "5", "--radius", "10m", "--shortlist", "3")
     code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "s", *common, "--out", tmp_path / "no")
-    assert code == 2 and err.count("\n") == 1 and "shard-000 has no index: add one with seqvpr map index" in err
+    assert code == 2 and err.count("\n") == 1 and f"shard-000 has no index: index every shard with seqvpr map index {tmp_path / 's'} --index SPEC" in err
     assert not (tmp_path / "no").exists()
     indexed = torchrun(["map", "index", tmp_path / "s", "--index", "flat"], tmp_path)  # each rank its shards'
     assert indexed.returncode == 0, indexed.stderr[-2000:]
@@ -258,6 +258,9 @@ def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs
         np.testing.assert_array_equal(a.distances, b.distances)
     raises_one_line("overlap by 6 frames, so windows may span at most 7; this localiser needs 8",
                     Localizer.open, load_map(tmp_path / "s"), seq_len=8, shortlist=3)
+    shard_map(whole / "map", tmp_path / "bare", 2, 6)  # shards of a map without an index have none
+    raises_one_line("shard-000 has no index: index every shard with seqvpr map index", Localizer.open,
+                    load_map(tmp_path / "bare"), seq_len=5, shortlist=3)
     common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5", "--shortlist", "3"]
     done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -91,15 +91,14 @@ class ShardedShortlistMatcher(_Stateless):
     def __init__(self, sharded, world, length: int, k: int, exclusion: int, shortlist: int, history: int,
                  nprobe: int) -> None:
         from seqvpr.maps.index import open_frame_index
-        from seqvpr.maps.match import index_over
-        from seqvpr.maps.shards import shard_numbers
+        from seqvpr.maps.shards import shard_index_over, shard_numbers
 
         self.world, self.length, self.k, self.exclusion = world, length, k, exclusion
         self.shortlist, self.count = shortlist, sharded.count
         self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
         for number in range(len(sharded.shards)):  # all, on every rank: each fails alike, none waits for another
-            if index_over(shard := sharded.open_shard(number)) != "frames":
+            if shard_index_over(sharded, shard := sharded.open_shard(number)) != "frames":
                 raise SeqvprError(f"--shortlist needs an index over {shard.folder}'s frames: seqvpr map index "
                                   f"{sharded.folder} --index SPEC")
         self.parts = []

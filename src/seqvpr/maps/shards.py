@@ -268,17 +268,28 @@ def shortlist_sharded_map(sharded: ShardedMap, numbers: Sequence[int], prepared:
 
 def _shards_index(sharded: ShardedMap, prepared: PreparedQuery, history: int) -> str:
     """What every shard's index holds (the same for all, checked); a shard without one is a one-line error."""
-    from seqvpr.maps.match import check_shortlist, index_over
+    from seqvpr.maps.match import check_shortlist
 
     over = set()
     for number in range(len(sharded.shards)):
         shard = sharded.open_shard(number)
         check_shortlist(shard, prepared.method, prepared.models)
-        over.add(index_over(shard, history))
+        over.add(shard_index_over(sharded, shard, history))
     if len(over) > 1:
         raise SeqvprError(f"{sharded.folder}: its shards' indexes hold different vectors ({', '.join(sorted(over))}): "
                           f"seqvpr map index {sharded.folder} --index SPEC indexes them all alike")
     return over.pop()
+
+
+def shard_index_over(sharded: ShardedMap, shard: SavedMap, history: int = 0) -> str:
+    """What a shard's index holds (``index_over``); a shard without one is a one-line error naming the command
+    that indexes every shard."""
+    from seqvpr.maps.match import index_over
+
+    if not shard.info.index:
+        raise SeqvprError(f"{shard.folder} has no index: index every shard with seqvpr map index {sharded.folder} "
+                          "--index SPEC")
+    return index_over(shard, history)
 
 
 def _shard_neighbours(shard: SavedMap, record: ShardRecord, query, frames: Traversal, width: int,
