@@ -231,6 +231,10 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
     indexed = torchrun(["map", "index", tmp_path / "s", "--index", "flat"], tmp_path)  # each rank its shards'
     assert indexed.returncode == 0, indexed.stderr[-2000:]
     assert [line.split(":")[0] for line in indexed.stdout.splitlines()] == ["shard-000", "shard-001", "shard-002"]
+    code, out, err = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "s")
+    assert code == 0, err
+    assert "shards:          3, overlap 9" in out
+    assert "  shard-001: rows 110..219 (stored from 101), index flat over frames" in out
     shutil.copytree(whole / "map", tmp_path / "m")
     code, _, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", "flat")
     assert code == 0, err

@@ -209,6 +209,21 @@ def info(map_dir: str, as_json: bool) -> None:
     for source in values["sources"]:
         click.echo(f"  source {source['source']} ({source['name']}): rows {source['first']}.."
                    f"{source['first'] + source['frames'] - 1}")
+    _echo_shards(map_dir)
+
+
+def _echo_shards(map_dir: str) -> None:
+    """A sharded map's shards: the rows each owns, where it starts, and its own index."""
+    from seqvpr.maps.files import is_sharded_map, open_sharded_map
+
+    if not is_sharded_map(map_dir):
+        return
+    sharded = open_sharded_map(map_dir)
+    click.echo(f"{'shards:':17}{len(sharded.shards)}, overlap {sharded.overlap}")
+    for number, record in enumerate(sharded.shards):
+        index = sharded.open_shard(number).info.index
+        click.echo(f"  {record.folder}: rows {record.own_first}..{record.own_last - 1} (stored from {record.first}), "
+                   f"index {'-' if not index else index['spec'] + ' over ' + index['over']}")
 
 
 def _description(o: dict[str, Any], device: str):
