@@ -115,12 +115,12 @@ def test_map_shard_and_match_on_the_command_line_give_the_whole_maps_predictions
         assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
 
 
-def torchrun(args, cwd: Path, ranks: int = 2) -> subprocess.CompletedProcess:
-    """``torchrun --standalone --nproc-per-node 2 seqvpr ARGS`` as a user launches it; with ``ranks=0`` the same
-    command alone."""
+def torchrun(args, cwd: Path) -> subprocess.CompletedProcess:
+    """``torchrun --standalone --nproc-per-node 2 seqvpr ARGS`` as a user launches it (the same command alone runs
+    in-process, by ``run_cli``)."""
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
-    launcher = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", str(ranks)] if ranks else []
+    launcher = [str(bin_dir / "torchrun"), "--standalone", "--nproc-per-node", "2"]
     command = [*launcher, shutil.which("seqvpr", path=env["PATH"]), *map(str, args)]
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
 
@@ -130,13 +130,14 @@ def stream_columns(run: Path) -> list[list[str]]:
     return [line.split(",")[:11] for line in (run / "stream.csv").read_text().splitlines()]
 
 
-def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_rank_fails_the_run(whole, tmp_path):
+def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_rank_fails_the_run(whole, tmp_path,
+                                                                                                monkeypatch, capsys):
     shard_map(whole / "map", tmp_path / "s", 3, 9)
     common = ["-q", whole / "qry.npz", "-L", "5", "--radius", "10m"]
     done = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    alone = torchrun(["match", "--map", tmp_path / "s", *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
-    assert alone.returncode == 0, alone.stderr
+    code, _, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "s", *common, "--out", tmp_path / "one")
+    assert code == 0, err
     assert (tmp_path / "two" / "predictions.csv").read_text() == (tmp_path / "one" / "predictions.csv").read_text()
     assert '"ranks": 2' in (tmp_path / "two" / "run.json").read_text()
     shard = tmp_path / "s" / "shard-002" / "descriptors.npy"
@@ -164,13 +165,14 @@ def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_o
     assert code == 0 and f"count:           {one.info.count}" in out, err
 
 
-def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path):
+def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path,
+                                                                                                   monkeypatch, capsys):
     shard_map(whole / "map", tmp_path / "s", 2, 9)
     common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5"]
     done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    alone = torchrun(["localize", "--map", whole / "map", *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
-    assert alone.returncode == 0, alone.stderr
+    code, _, err = run_cli(monkeypatch, capsys, "localize", "--map", whole / "map", *common, "--out", tmp_path / "one")
+    assert code == 0, err
     assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")  # status, score, estimate, best frame
     refused = torchrun(["localize", "--map", tmp_path / "s", *common, "--method", "hmm", "--out", tmp_path / "f"],
                        tmp_path)
@@ -268,8 +270,8 @@ def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs
     common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5", "--shortlist", "3"]
     done = torchrun(["localize", "--map", tmp_path / "s", *common, "--out", tmp_path / "two"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    alone = torchrun(["localize", "--map", indexed, *common, "--out", tmp_path / "one"], tmp_path, ranks=0)
-    assert alone.returncode == 0, alone.stderr
+    code, _, err = run_cli(monkeypatch, capsys, "localize", "--map", indexed, *common, "--out", tmp_path / "one")
+    assert code == 0, err
     assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")
 
 
