@@ -36,6 +36,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from seqvpr.threads import use_threads
 from seqvpr.features.extraction import ExtractorConfig, build_extractor, extract_descriptors, load_image
 
 
@@ -65,7 +66,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=os.cpu_count())
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    use_threads(args.threads)  # the one policy: the library re-asserts it, so a bare torch count would not hold
     width, height = (int(v) for v in args.size.split("x"))
     config = ExtractorConfig(width=width, height=height, batch_size=args.batch)
     model = build_extractor(config)

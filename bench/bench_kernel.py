@@ -39,6 +39,7 @@ except ImportError:  # running from a checkout without an installed package
 
 import numba
 
+from seqvpr.threads import use_threads
 from seqvpr.sequences.matching import frame_distances, sequence_distance_matrix
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -184,8 +185,7 @@ def print_ratios(per_length: dict[str, dict[int, list[float]]], lengths: list[in
 def main(argv: list[str] | None = None) -> int:
     """Time every operation for each window length and print the table and ratios; 1 if kernel and conv2d disagree."""
     args = parse_args(argv)
-    torch.set_num_threads(args.threads)
-    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    use_threads(args.threads)  # the one policy: the library re-asserts it, so a bare torch count would not hold
     d = make_matrix(args.size, args.seed)
     buf = torch.empty_like(d)
     print_setup(d, args.repeats)

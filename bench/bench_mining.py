@@ -62,6 +62,7 @@ except ImportError:  # running from a checkout without an installed package
 
 import numba
 
+from seqvpr.threads import use_threads
 from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
@@ -240,8 +241,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def set_threads(threads: int) -> None:
     """Use ``threads`` torch and numba threads and print the machine and library versions."""
-    torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    use_threads(threads)  # the one policy: the library re-asserts it, so a bare torch count would not hold
     print(f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs); torch {torch.__version__} threads={torch.get_num_threads()}; "
           f"numba {numba.__version__} threads={numba.get_num_threads()}")
 

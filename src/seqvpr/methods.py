@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Literal
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
     from seqvpr.models.registry import TrainedModel
@@ -176,6 +177,7 @@ def run_method(
     ``rerank`` N > 0 re-ranks the top N of a retrieval method by exact sequence distance (HVPR; ``hvpr`` itself
     defaults to N = 20 and to the ``shortlist`` method ``seqnet`` when a SeqNet model is given, else ``seqgem``).
     """
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     from seqvpr.pipeline import match_traversals, rerank_match, retrieve_traversals
 
     models = dict(models or {})

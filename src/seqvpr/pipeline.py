@@ -43,6 +43,7 @@ from seqvpr.sequences.matching import (
     sequence_topk,
 )
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
     from seqvpr.sequences.graph import GraphSettings
@@ -103,6 +104,7 @@ def describe(
     from ``netvlad_extractor``) or ``torchscript:PATH``, a user's exported encoder (``extractor``'s input size,
     mean and std). With ``skip_bad`` unreadable images are dropped from the traversal.
     """
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     if traversal.descriptors is not None:
         return traversal
     if descriptor != "patchnorm":
@@ -266,6 +268,7 @@ def match_traversals(
     """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments).
     A memory-mapped reference (a saved map's) is read chunk by chunk, as stored: ``seqvpr.maps`` checks that it
     was normalised as ``settings`` ask. ``scorer``: another window distance on the same blocks (adaptive)."""
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
     qry = _as_tensor(query, settings)
     if ref.shape[1] != qry.shape[1]:

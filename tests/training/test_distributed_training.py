@@ -40,9 +40,9 @@ def train(kind: str, out: Path, epochs: int, resume: bool = False):
 def _rank(rank: int, port: int, kind: str, out: str, epochs: list[tuple[int, bool]]) -> None:
     import os
 
-    import torch
+    from seqvpr.threads import use_threads
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
                       LOCAL_RANK=str(rank))
     for count, resume in epochs:
@@ -62,9 +62,9 @@ def state_weights(folder: Path) -> dict:
 
 @pytest.mark.parametrize("kind", ["seqmatchnet", "seqnet"])
 def test_two_ranks_train_the_single_process_model_and_resume(tmp_path, kind):
-    import torch
+    from seqvpr.threads import use_threads
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     alone = train(kind, tmp_path / "alone", 3)
     spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "two"), [(3, False)]))
     spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "resumed"), [(1, False), (3, True)]))
@@ -115,21 +115,22 @@ def train_jist_run(root: Path, out: Path) -> None:
 def _jist_rank(rank: int, port: int, root: str, out: str) -> None:
     import os
 
-    import torch
+    from seqvpr.threads import use_threads
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
                       LOCAL_RANK=str(rank))
     train_jist_run(Path(root), Path(out))
 
 
 def test_two_ranks_train_jist_as_one_process(tmp_path):
-    import torch
 
     from seqvpr.synthetic.world import write_demo_world
     from tests.training.test_jist_training import H, W
 
-    torch.set_num_threads(1)
+    from seqvpr.threads import use_threads
+
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     write_demo_world(tmp_path / "world", frames=40, width=W, height=H, seed=0, query_condition="dusk")
     train_jist_run(tmp_path / "world", tmp_path / "alone")
     spawn_ranks(_jist_rank, (free_port(), str(tmp_path / "world"), str(tmp_path / "two")))
@@ -142,9 +143,9 @@ def test_two_ranks_train_jist_as_one_process(tmp_path):
 def _failing_rank(rank: int, port: int, out: str) -> None:
     import os
 
-    import torch
+    from seqvpr.threads import use_threads
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
                       LOCAL_RANK=str(rank))
     from seqvpr.models.seqmatchnet import TransformConfig
@@ -181,9 +182,9 @@ def _rank_failing_in_epoch_2(rank: int, port: int, out: str) -> None:
 
 
 def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whole_epoch_to_resume(tmp_path):
-    import torch
+    from seqvpr.threads import use_threads
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     with pytest.raises(mp.ProcessRaisedException, match="rank 1 lost its data disk"):
         spawn_ranks(_rank_failing_in_epoch_2, (free_port(), str(tmp_path / "run")))
     state = ckpt.read_json(tmp_path / "run" / STATE_JSON)

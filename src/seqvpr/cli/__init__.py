@@ -35,7 +35,31 @@ class LazyGroup(click.Group):
         if name not in COMMANDS:
             return None
         module, attribute = COMMANDS[name].split(":")
-        return getattr(importlib.import_module(module), attribute)
+        return with_threads_option(getattr(importlib.import_module(module), attribute))
+
+
+def _apply_threads(ctx: click.Context, param: click.Parameter, value: int | None) -> None:
+    """The thread policy, applied before any other option is read and before any library starts a pool."""
+    from seqvpr.threads import use_threads
+
+    if not ctx.resilient_parsing:
+        use_threads(value)
+
+
+THREADS_OPTION = click.Option(
+    ["--threads"], type=click.IntRange(min=1), is_eager=True, expose_value=False, callback=_apply_threads,
+    help="Threads for torch, numba and faiss together [default: $SEQVPR_THREADS, else $OMP_NUM_THREADS, else the "
+         "cores no other process is busy on at start].")
+
+
+def with_threads_option(command: click.Command) -> click.Command:
+    """``command`` (and every command of a group) taking ``--threads``: every command applies the one policy."""
+    if isinstance(command, click.Group):
+        for sub in command.commands.values():
+            with_threads_option(sub)
+    elif THREADS_OPTION not in command.params:
+        command.params.append(THREADS_OPTION)
+    return command
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})

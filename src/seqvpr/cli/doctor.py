@@ -37,8 +37,10 @@ def environment_report(cache_dir: str | None = None) -> dict[str, dict[str, Any]
     import torch
 
     from seqvpr.sequences._fused import squared_norms
+    from seqvpr.threads import ensure_policy
 
     squared_norms(np.ones((4, 2), np.float32))  # starts numba's pool, so its threading layer is known
+    policy = ensure_policy()  # re-asserted after that launch, as every entry point does
     versions = {"python": platform.python_version(), "platform": platform.platform()}
     for name in PACKAGES:
         try:
@@ -48,9 +50,9 @@ def environment_report(cache_dir: str | None = None) -> dict[str, dict[str, Any]
     devices = {"torch threads": torch.get_num_threads(), "cuda available": torch.cuda.is_available(),
                "cuda devices": ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
                or "none", "mps available": bool(getattr(torch.backends, "mps", None) and torch.backends.mps.is_available())}
-    compute = {"faiss SIMD": faiss.get_compile_options().strip() or "generic", "faiss threads": faiss.omp_get_max_threads(),
-               "numba threading layer": numba.threading_layer(), "numba threads": numba.get_num_threads(),
-               "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "unset")}
+    compute = {"thread policy": policy.describe(), "faiss SIMD": faiss.get_compile_options().strip() or "generic",
+               "faiss threads": faiss.omp_get_max_threads(), "numba threading layer": numba.threading_layer(),
+               "numba threads": numba.get_num_threads(), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "unset")}
     from seqvpr.data.loaders.rosbag import _frames_root
 
     caches = {"bag frames": _folder_line(_frames_root())}

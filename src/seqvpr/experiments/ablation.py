@@ -29,6 +29,7 @@ from seqvpr.training.seqmatchnet import (
     evaluate_transform,
     train_seqmatchnet,
 )
+from seqvpr.threads import ensure_policy
 
 VARIANTS: tuple[tuple[str, str], ...] = (
     ("single", "single"),
@@ -65,6 +66,7 @@ def run_ablation(
 
     A variant whose folder already holds a run with the same settings is resumed (finished runs are reused).
     """
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     out = Path(out_dir)
     spec = settings.sequence
     baseline = evaluate_match(

@@ -54,6 +54,7 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.methods import METHODS
 from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.threads import ensure_policy
 
 DEFAULT_METHODS = ("single", "matching", "seqmatchnet", "smoothing", "delta", "seqnet", "seqgem", "jist", "hvpr")
 SHORTLISTS = ("seqnet", "seqgem")
@@ -360,6 +361,7 @@ def run_benchmark(
 ) -> list[Row]:
     """Every method on every dataset (main length, then the length table); failures become rows, not exceptions.
     ``monitors(method)`` gives each training run its progress monitor."""
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     rows: list[Row] = []
     for spec in config.datasets:
         try:

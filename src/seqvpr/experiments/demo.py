@@ -26,6 +26,7 @@ from seqvpr.pipeline import (
 )
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
     from seqvpr.models.registry import TrainedModel
@@ -192,6 +193,7 @@ def run_demo(
     echo: Callable[[str], None] = lambda text: None,
 ) -> DemoResult:
     """Render, describe, match at every L, train and apply SeqMatchNet, and write ``out/report``."""
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     seconds: dict[str, float] = {}
     clock = time.perf_counter()
 

@@ -27,6 +27,7 @@ from seqvpr.data.images import read_image
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write
+from seqvpr.threads import ensure_policy
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -257,6 +258,7 @@ def extract_descriptors(
     ``extractor`` (optional) replaces the model built from ``config``; it must be what ``config`` describes, since
     the cache key is computed from ``config``.
     """
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     paths = [Path(p) for p in paths]
     if not paths:
         raise SeqvprError("no images to extract descriptors from")

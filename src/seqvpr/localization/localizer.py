@@ -33,6 +33,7 @@ from seqvpr.maps.match import check_map_models
 from seqvpr.models.registry import TrainedModel, load_trained_model
 from seqvpr.sequences.filter import FilterSettings
 from seqvpr.sequences.matching import unit_rows
+from seqvpr.threads import ensure_policy
 
 Status = Literal["warming up", "localised", "uncertain", "lost"]
 LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
@@ -129,6 +130,7 @@ class Localizer:
              device: str = "cpu", **settings: Any) -> Localizer:
         """A localiser over the map in ``map_folder`` with ``LocalizerSettings(**settings)``; ``model`` the folder(s)
         the map was built through (checked by sha256), or a SeqMatchNet model applied to both sides."""
+        ensure_policy()  # the one thread policy (seqvpr.threads)
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
         chosen = LocalizerSettings(**settings)
         folders = [] if model is None else [model] if isinstance(model, (str, Path)) else list(model)
@@ -141,7 +143,9 @@ class Localizer:
         if chosen.method == "seqmatchnet" and "seqmatchnet" not in models:
             raise SeqvprError("--method seqmatchnet needs its SeqMatchNet --model (the one the map was built through)")
         threshold = chosen.threshold if chosen.threshold is not None else stored_threshold(saved.folder, chosen)
-        return cls(saved, chosen, models, threshold, device)
+        localizer = cls(saved, chosen, models, threshold, device)
+        ensure_policy()  # again after building the matcher: numba's launch must not have changed a count
+        return localizer
 
     def reset(self) -> None:
         """Start over: a new drive, a kidnapping, a restart with no trusted state."""

@@ -36,6 +36,7 @@ from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
 from seqvpr.training.parallel import StepLoss, data_parallel_step, single_process_step
 from seqvpr.training.resume import RunState
+from seqvpr.threads import ensure_policy
 
 __all__ = [
     "EpochRecord", "LoopSettings", "SequenceLearner", "SilentMonitor", "Step", "TrainingContext", "TrainingData",
@@ -269,6 +270,7 @@ def train_sequence_model(
     ``resume=True`` is always safe to pass). Epoch 0 is the untrained model: validated and recorded, but kept only
     when ``settings.select_untrained`` is set or no epoch is trained; ties keep the earlier epoch.
     """
+    ensure_policy()  # the one thread policy (seqvpr.threads)
     with deterministic_algorithms(), distributed.process_group(settings.device):
         return _train(data, learner, settings, Path(out_dir), resume, monitor or SilentMonitor())
 
