@@ -115,7 +115,7 @@ def shortlist(work: Path, data: Path) -> list[str]:
         started = time.perf_counter()
         run = replay(localizer, query)
         per_frame = (time.perf_counter() - started) / len(query) * 1e3
-        scores = score_replay(run, gt, localizer.threshold)
+        scores = score_replay(run, gt)
         stage = np.median(run.latency[run.scored], axis=0)
         lines.append(f"| {label} | {per_frame:.2f} ms | {stage[1]:.2f} / {stage[2]:.2f} ms | "
                      f"{scores.evaluation.recall[1]:.3f} | {scores.evaluation.recall[20]:.3f} |")
@@ -128,7 +128,7 @@ def filter_rows(name: str, saved, query: Traversal, gt) -> list[str]:
     for label, options in (("causal matching, L = 5", {"seq_len": 5}), ("causal matching, L = 10", {"seq_len": 10}),
                            ("filter (hmm)", {"method": "hmm"})):
         localizer = Localizer.open(saved, **options)
-        scores = score_replay(replay(localizer, query), gt, localizer.threshold)
+        scores = score_replay(replay(localizer, query), gt)
         e = scores.evaluation
         lines.append(f"| {name} | {label} | {e.recall[1]:.3f} | {e.recall[5]:.3f} | {e.pr.auc:.3f} | "
                      f"{e.pr.recall_at_100_precision:.3f} |")

@@ -18,22 +18,47 @@ def route(tmp_path_factory):
 def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, monkeypatch, capsys):
     assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
     common = ("--map", tmp_path / "m", "-q", route / "qry.npz", "--radius", "10m")
-    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--calibrate", "--target-precision", "0.9")
+    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--frames", "0:100", "--calibrate",
+                             "--target-precision", "0.9", "--out", tmp_path / "c")
     assert code == 0, err
-    assert "for precision >= 0.9: reached" in out and "localizer.json" in out
+    assert "for precision >= 0.9: reached" in err and "localizer.json" in err and "R@1 " in out
     stored = json.loads((tmp_path / "m" / "localizer.json").read_text())["calibrations"][0]
     assert stored["settings"]["method"] == "matching" and stored["precision"] >= 0.9
+    assert stored["query_frames"] == "0:100" and stored["ground_truth"] == "radius 10m"
+    calibration_run = json.loads((tmp_path / "c" / "run.json").read_text())  # --calibrate writes its run as any
+    assert calibration_run["threshold"] == stored["threshold"] and calibration_run["query_frames"] == "0:100"
+    assert calibration_run["threshold_source"].startswith(f"calibrated on {route / 'qry.npz'} frames 0:100")
+    assert calibration_run["precision_of_localised"] == stored["precision"]  # reported at the threshold it chose
+    assert (tmp_path / "c" / "stream.csv").exists() and (tmp_path / "c" / "report" / "index.html").exists()
+
     code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--out", tmp_path / "o", "--json")
-    assert code == 0, err
+    assert code == 0 and "warning" not in err, err
     summary = json.loads(out)
     assert summary["threshold"] == stored["threshold"] and summary["target_precision"] == 0.9
-    assert summary["precision_at_threshold"] >= 0.9  # the same traversal: the calibrated precision holds
+    assert summary["threshold_source"] == calibration_run["threshold_source"]
+    assert summary["ground_truth"] == "radius 10m" and summary["query_frames"] is None
+    localised = summary["status"]["localised"]
+    assert summary["localised_correct"] + summary["localised_wrong"] == localised > 0
+    assert summary["precision_of_localised"] == pytest.approx(summary["localised_correct"] / localised)
     assert set(summary["latency_ms"]) == {"describe", "distance", "sequence", "total"}
     rows = list(csv.DictReader(open(tmp_path / "o" / "stream.csv")))
     assert len(rows) == 120 and rows[0]["status"] == "warming up" and rows[-1]["correct"] in ("0", "1")
-    assert rows[0]["best_row"] == "-1" and rows[-1]["best_frame"] == rows[-1]["best_row"]  # one source, from 0
-    assert rows[-1]["x"] != ""  # the route has positions
-    assert (tmp_path / "o" / "report" / "index.html").exists() and (tmp_path / "o" / "report" / "localisation.png").exists()
+    warming, trusted = rows[0], [r for r in rows if r["status"] == "localised"]
+    assert (warming["score"], warming["best_row"], warming["localised_row"], warming["x"]) == ("", "", "", "")
+    assert len(trusted) == localised and all(r["localised_row"] == r["best_row"] != "" and r["x"] for r in trusted)
+    assert all(r["localised_row"] == r["x"] == r["y"] == "" and r["best_row"] != "" for r in rows
+               if r["status"] in ("uncertain", "lost"))
+    assert trusted[0]["best_frame"] == trusted[0]["best_row"]  # one source, numbered from 0
+    assert (tmp_path / "o" / "report" / "index.html").exists()
+
+
+def test_an_uncalibrated_threshold_says_so(route, tmp_path, monkeypatch, capsys):
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    code, out, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", route / "qry.npz",
+                             "--method", "hmm", "--out", tmp_path / "o")
+    assert code == 0 and "threshold 0.5 is the default for hmm, not calibrated on this map" in err
+    assert "threshold 0.5000: the default for hmm" in out
+    assert json.loads((tmp_path / "o" / "run.json").read_text())["threshold_source"].startswith("the default for hmm")
 
 
 def test_the_filter_and_a_saved_state_from_the_command_line(route, tmp_path, monkeypatch, capsys):

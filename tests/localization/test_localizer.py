@@ -116,7 +116,7 @@ def test_lost_is_a_state_and_the_route_is_found_again(route):
     statuses = [localizer.update(row).status for row in query[:40]]
     assert statuses[:4] == ["warming up"] * 4 and "localised" in statuses
     lost = [localizer.update(row) for row in off_map]
-    assert lost[-1].status == "lost" and lost[-1].index == -1 and lost[-1].best >= 0
+    assert lost[-1].status == "lost" and lost[-1].index is None and lost[-1].best >= 0
     back = [localizer.update(row) for row in query[60:100]]
     assert any(e.status == "localised" for e in back[10:])
 
@@ -159,3 +159,66 @@ def test_camera_frames_are_described_as_the_map_was(tmp_path):
     array = np.asarray(Image.open(tmp_path / "qry" / "000.png"))
     localizer = Localizer.open(saved, seq_len=1)
     assert localizer.update(array).best == localizer.update(tmp_path / "qry" / "000.png").best
+
+
+def test_only_a_localised_estimate_names_a_map_frame_a_position_and_a_name(tmp_path):
+    rng = np.random.default_rng(3)
+    folder = tmp_path / "map_images"
+    folder.mkdir()
+    images = [rng.integers(0, 255, (24, 32, 3), dtype=np.uint8) for _ in range(30)]
+    for i, image in enumerate(images):
+        Image.fromarray(image).save(folder / f"{i:03d}.png")
+    (folder / "positions.csv").write_text("name,easting,northing\n" + "".join(f"{i:03d}.png,{5.0 * i},1.0\n"
+                                                                             for i in range(30)))
+    saved = build_map([str(folder)], tmp_path / "map")
+    localizer = Localizer.open(saved, seq_len=3, threshold=0.3, lost_after=3)
+    noise = [rng.integers(0, 255, (24, 32, 3), dtype=np.uint8) for _ in range(8)]
+    estimates = [localizer.update(image) for image in images[:12] + noise]
+    statuses = {e.status for e in estimates}
+    assert statuses == {"warming up", "localised", "uncertain", "lost"}
+    for e in estimates:
+        if e.status == "localised":
+            assert e.localised and e.index == e.best and e.position == (5.0 * e.index, 1.0)
+            assert e.name.endswith(f"{e.index:03d}.png")
+        else:
+            assert not e.localised and (e.index, e.position, e.name, e.latlon) == (None, None, None, None)
+    assert all(e.best is None and np.isnan(e.score) for e in estimates if e.status == "warming up")
+    assert all(e.best is not None for e in estimates if e.status in ("uncertain", "lost"))
+
+
+@pytest.mark.parametrize("gate", [0.0, 0.05])
+def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
+    from seqvpr.localization.replay import restatus
+
+    saved = load_map(route / "map")
+    query = load_traversal(route / "qry.npz", "query")
+    query = query.select(np.r_[0:50, 70:120])  # a segment break: the localiser restarts there
+    run = replay(Localizer.open(saved, threshold=0.02, lost_after=3, keyframe_distance=gate), query)
+    again = replay(Localizer.open(saved, threshold=0.2, lost_after=3, keyframe_distance=gate), query)
+    moved = restatus(run, 0.2, 3, "another")
+    assert len(set(again.status)) >= 3 and moved.threshold == 0.2 and moved.threshold_source == "another"
+    np.testing.assert_array_equal(moved.status, again.status)
+    np.testing.assert_array_equal(moved.index, again.index)
+
+
+def test_a_localiser_over_a_descriptor_map_imports_only_what_it_runs(route):
+    code = f"""
+import sys
+import numpy as np
+from seqvpr.localization import Localizer
+localizer = Localizer.open({str(route / "map")!r})
+for row in np.load({str(route / "ref.npz")!r})["descriptors"][:8]:
+    localizer.update(row.astype(np.float32))
+loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("matplotlib", "faiss", "PIL", "rosbags")
+                or m.startswith(("scipy.io", "scipy.spatial", "scipy.sparse"))  # numba imports bare scipy
+                or m.startswith(("seqvpr.models", "seqvpr.features", "seqvpr.pipeline", "seqvpr.methods",
+                                 "seqvpr.training", "seqvpr.evaluation", "seqvpr.maps.build", "seqvpr.maps.match",
+                                 "seqvpr.data.sources", "seqvpr.data.loaders")))
+print(sorted({{m.split(".")[0] for m in loaded}} | {{m for m in loaded if m.startswith("seqvpr")}}))
+"""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"

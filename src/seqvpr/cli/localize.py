@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,7 @@ from seqvpr.cli.options import (
     bag_topic_options, locks_output
 )
 from seqvpr.cli.progress import tqdm_progress
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SeqvprWarning
 
 
 @click.command("localize", epilog="""\b
@@ -91,7 +92,9 @@ def localize(**o: Any) -> None:
     if o["save_state"]:
         localizer.save_state(o["save_state"])
     if o["calibrate"]:
-        return _calibrate(o, localizer, run, gt)
+        run = _calibrate(o, localizer, run, gt)
+    elif localizer.threshold_source.startswith("the default"):
+        warnings.warn(f"threshold {localizer.threshold:g} is {localizer.threshold_source}", SeqvprWarning)
     _report(o, localizer, run, gt, k_values)
 
 
@@ -129,27 +132,34 @@ def _has_seqmatchnet(folders) -> bool:
     return any(model_kind(f).name == "seqmatchnet" for f in folders)
 
 
-def _calibrate(o: dict[str, Any], localizer, run, gt) -> None:
-    """Choose the threshold on this replay, store it in the map's localizer.json and say what it reaches."""
+def _calibrate(o: dict[str, Any], localizer, run, gt):
+    """Choose the threshold on this replay, store it in the map's localizer.json with what it was chosen on, and
+    return the replay as it goes at that threshold (reported like any run)."""
     from datetime import datetime, timezone
 
     from seqvpr.localization.calibration import find_threshold
-    from seqvpr.localization.localizer import store_calibration
-    from seqvpr.localization.replay import correct_best
+    from seqvpr.localization.localizer import calibration_source, store_calibration
+    from seqvpr.localization.replay import correct_best, restatus
 
-    usable = run.scored & gt.has_positive()
-    found = find_threshold(run.score[usable], correct_best(run, gt)[usable], o["target_precision"])
+    positives = int((run.scored & gt.has_positive()).sum())
+    found = find_threshold(run.score[run.scored], correct_best(run, gt)[run.scored], o["target_precision"], positives)
     record = {"threshold": found.threshold, "target_precision": o["target_precision"], "precision": found.precision,
               "recall": found.recall, "reached": found.reached, "calibration": str(o["query"]),
-              "frames": int(usable.sum()), "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+              "query_frames": o["frames"], "ground_truth": _truth_text(o), "frames": int(run.scored.sum()),
+              "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     store_calibration(o["map_dir"], localizer.settings, record)
-    if o["as_json"]:
-        click.echo(json.dumps(record))
-        return
-    reached = "reached" if found.reached else "NOT reachable on this traversal (the threshold accepts nothing)"
-    click.echo(f"threshold {found.threshold:.4f} for precision >= {o['target_precision']}: {reached}; on "
-               f"{usable.sum()} calibration frames precision {found.precision:.3f}, recall {found.recall:.3f}\n"
-               f"stored in {Path(o['map_dir']) / 'localizer.json'} for {localizer.settings.key()}")
+    localizer.threshold, localizer.threshold_source = found.threshold, calibration_source(record)
+    if not o["as_json"]:
+        reached = "reached" if found.reached else "NOT reachable on this traversal (the threshold accepts nothing)"
+        click.echo(f"calibrated: threshold {found.threshold:.4f} for precision >= {o['target_precision']}: {reached}; "
+                   f"stored in {Path(o['map_dir']) / 'localizer.json'} for {localizer.settings.key()}\n"
+                   "the figures below are on the frames it was chosen on", err=True)
+    return restatus(run, found.threshold, localizer.settings.lost_after, localizer.threshold_source)
+
+
+def _truth_text(o: dict[str, Any]) -> str | None:
+    """The ground truth as given: ``radius R`` or the file."""
+    return f"radius {o['radius']}" if o["radius"] else (str(o["gt_file"]) if o["gt_file"] else None)
 
 
 def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
@@ -158,33 +168,35 @@ def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
     from seqvpr.localization.replay import correct_best, score_replay, write_stream
 
     out = Path(o["out_dir"])
-    scores = score_replay(run, gt, localizer.threshold, k_values) if gt is not None else None
+    scores = score_replay(run, gt, k_values) if gt is not None else None
     write_stream(out / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
     summary = _summary(o, localizer, run, scores)
     with atomic_write(out / "run.json") as handle:
         json.dump(summary, handle, indent=2)
     if scores is not None:
-        _write_page(out / "report", summary, run, gt, localizer.threshold)
+        _write_page(out / "report", summary, run, gt)
     click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
 
 
 def _summary(o: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
     """What the replay did and, with ground truth, how well: everything run.json holds."""
-    from seqvpr.localization.localizer import read_calibrations
+    from seqvpr.localization.localizer import stored_calibration
 
     statuses = {s: int((run.status == s).sum()) for s in ("warming up", "localised", "uncertain", "lost")}
-    target = next((c.get("target_precision") for c in read_calibrations(o["map_dir"])
-                   if c.get("settings") == localizer.settings.key() and o["threshold"] is None), None)
-    summary: dict[str, Any] = {"map": o["map_dir"], "query": o["query"], "frames": len(run.best),
-                               "settings": localizer.settings.key(), "threshold": localizer.threshold,
-                               "target_precision": target, "status": statuses,
-                               "skipped_by_gating": int((~run.kept).sum())}
+    calibration = stored_calibration(o["map_dir"], localizer.settings) if o["threshold"] is None else None
+    summary: dict[str, Any] = {"map": o["map_dir"], "query": o["query"], "query_frames": o["frames"],
+                               "ground_truth": _truth_text(o), "frames": len(run.best),
+                               "settings": localizer.settings.key(), "threshold": run.threshold,
+                               "threshold_source": run.threshold_source, "calibration": calibration,
+                               "target_precision": None if calibration is None else calibration["target_precision"],
+                               "status": statuses, "skipped_by_gating": int((~run.kept).sum())}
     if scores is None:
         return summary
     e = scores.evaluation
     summary.update({"recall": {str(k): v for k, v in e.recall.items()}, "pr_auc": e.pr.auc,
                     "recall_at_100_precision": e.pr.recall_at_100_precision, "queries_evaluated": e.queries_evaluated,
-                    "precision_at_threshold": scores.precision, "recall_at_threshold": scores.recall,
+                    "localised_correct": scores.localised_correct, "localised_wrong": scores.localised_wrong,
+                    "precision_of_localised": scores.precision, "recall_of_localised": scores.recall,
                     "time_to_correct": [{"frames": f, "seconds": s} for f, s in scores.time_to_correct],
                     "latency_ms": scores.latency})
     return summary
@@ -192,15 +204,15 @@ def _summary(o: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
 
 def _summary_text(s: dict[str, Any]) -> str:
     status = ", ".join(f"{k} {v}" for k, v in s["status"].items())
-    lines = [f"{s['frames']} frames: {status}"]
+    lines = [f"{s['frames']} frames: {status}", f"threshold {s['threshold']:.4f}: {s['threshold_source']}"]
     if "recall" in s:
         recall = "  ".join(f"R@{k} {v:.3f}" for k, v in s["recall"].items())
         lines.append(f"{recall}  PR-AUC {s['pr_auc']:.3f}  R@100P {s['recall_at_100_precision']:.3f}")
         target = "" if s["target_precision"] is None else f" (target {s['target_precision']})"
-        lines.append(f"threshold {s['threshold']:.4f}: precision {s['precision_at_threshold']:.3f}{target}, "
-                     f"recall {s['recall_at_threshold']:.3f}")
+        lines.append(f"localised: {s['localised_correct']} correct, {s['localised_wrong']} wrong: precision "
+                     f"{s['precision_of_localised']:.3f}{target}, recall {s['recall_of_localised']:.3f}")
         first = s["time_to_correct"][0]
-        lines.append("first correct confident estimate: " + ("never" if first["frames"] is None else
+        lines.append("first correct localised estimate: " + ("never" if first["frames"] is None else
                      f"after {first['frames']} frames" + ("" if first["seconds"] is None else
                                                           f" ({first['seconds']:.1f} s)")))
         total = s["latency_ms"].get("total", {})
@@ -208,7 +220,7 @@ def _summary_text(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _write_page(folder: Path, summary: dict[str, Any], run, gt, threshold: float) -> None:
+def _write_page(folder: Path, summary: dict[str, Any], run, gt) -> None:
     import numpy as np
 
     from seqvpr.evaluation.plots import plot_localisation
@@ -218,9 +230,9 @@ def _write_page(folder: Path, summary: dict[str, Any], run, gt, threshold: float
     right = correct_best(run, gt)
     truth = np.array([p[len(p) // 2] if len(p) else -1 for p in (gt.positives_of(i) for i in range(len(run.best)))])
     rows = [(k, f"{v:.3f}" if isinstance(v, float) else str(v)) for k, v in summary.items()
-            if k in ("frames", "threshold", "pr_auc", "recall_at_100_precision", "precision_at_threshold",
-                     "recall_at_threshold")]
+            if k in ("frames", "threshold", "pr_auc", "recall_at_100_precision", "precision_of_localised",
+                     "recall_of_localised")]
     rows += [(f"R@{k}", f"{v:.3f}") for k, v in summary["recall"].items()]
     write_localisation_report(folder, title="seqvpr localisation", summary=_summary_text(summary), rows=rows,
-                              draw=lambda path: plot_localisation(run.best, truth, right, run.index >= 0, run.score,
-                                                                  threshold, path))
+                              draw=lambda path: plot_localisation(run.best, truth, right, run.localised, run.score,
+                                                                  run.threshold, path))

@@ -21,9 +21,10 @@ class Threshold:
     reached: bool
 
 
-def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float) -> Threshold:
+def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float, positives: int | None = None) -> Threshold:
     """Over the scored frames' ``scores`` and whether their best match was right, the smallest threshold whose
-    accepted frames (score >= threshold) are right at least ``target`` of the time."""
+    accepted frames (score >= threshold) are right at least ``target`` of the time. Recall is over ``positives``
+    frames (those with a true place; default: every frame given), since accepting a frame with none is wrong."""
     if not 0.0 < target <= 1.0:
         raise SeqvprError(f"--target-precision must be in (0, 1], got {target}")
     scores, correct = np.asarray(scores, np.float64), np.asarray(correct, bool)
@@ -34,7 +35,7 @@ def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float) -> Th
     last_of_tie = np.append(ranked[1:] != ranked[:-1], True)
     accepted = np.arange(1, len(ranked) + 1)[last_of_tie]
     hits = np.cumsum(right)[last_of_tie]
-    precision, recall = hits / accepted, hits / len(ranked)
+    precision, recall = hits / accepted, hits / max(len(ranked) if positives is None else positives, 1)
     meets = np.flatnonzero(precision >= target - 1e-12)
     if not len(meets):
         return Threshold(float(np.nextafter(ranked[0], np.inf)), 0.0, 0.0, False)
@@ -42,9 +43,15 @@ def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float) -> Th
     return Threshold(float(ranked[last_of_tie][best]), float(precision[best]), float(recall[best]), True)
 
 
-def precision_at(scores: np.ndarray, correct: np.ndarray, threshold: float) -> tuple[float, float]:
-    """Precision and recall of accepting the frames whose score reaches ``threshold`` (precision 1 if none is)."""
+def precision_at(scores: np.ndarray, correct: np.ndarray, threshold: float,
+                 positives: int | None = None) -> tuple[float, float]:
+    """Precision and recall (over ``positives`` frames, default all) of accepting the frames whose score reaches
+    ``threshold`` (precision 1 if none is)."""
     accepted = np.asarray(scores) >= threshold
-    n = int(accepted.sum())
-    right = int(np.asarray(correct)[accepted].sum())
-    return (right / n if n else 1.0), (right / len(accepted) if len(accepted) else 0.0)
+    return precision_recall(accepted, np.asarray(correct), len(accepted) if positives is None else positives)
+
+
+def precision_recall(accepted: np.ndarray, correct: np.ndarray, positives: int) -> tuple[float, float]:
+    """Precision of the accepted frames (1 if none is) and their correct share of ``positives``."""
+    n, right = int(accepted.sum()), int((accepted & correct).sum())
+    return (right / n if n else 1.0), (right / positives if positives else 0.0)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +71,3 @@ class FrameEncoder:
             vector = self.transform.module(vector[None].to(self.device))[0].float().cpu()
         return vector.numpy()
 
-
-def describes_images(description: dict[str, Any]) -> bool:
-    """Whether a map's frames came from images (so a localiser can take camera frames), not descriptor files."""
-    return description.get("descriptor") != "file"

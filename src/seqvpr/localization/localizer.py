@@ -18,22 +18,21 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
-from seqvpr.localization.encoder import FrameEncoder, describes_images
 from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
-from seqvpr.maps.build import FrameDescription
 from seqvpr.maps.files import SavedMap, open_map
-from seqvpr.maps.match import check_map_models
-from seqvpr.models.registry import TrainedModel, load_trained_model
 from seqvpr.sequences.filter import FilterSettings
 from seqvpr.sequences.matching import unit_rows
 from seqvpr.threads import ensure_policy
+
+if TYPE_CHECKING:
+    from seqvpr.models.registry import TrainedModel
 
 Status = Literal["warming up", "localised", "uncertain", "lost"]
 LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
@@ -92,14 +91,16 @@ class LocalizerSettings:
 class Estimate:
     """Where the localiser places one query frame.
 
-    ``index`` is the map frame it trusts (-1 while warming up or lost); ``best`` the best-scoring map frame even
-    then; ``indices``/``distances`` the top-K (sequence distances; 1 - belief mass for the filter); ``latency``
-    milliseconds per stage (describe, distance, sequence, total); ``kept`` False for a frame keyframe gating
-    skipped (the previous estimate is repeated)."""
+    ``index``, ``position``, ``latlon`` and ``name`` are the map frame the localiser stands behind: set only when
+    ``status`` is ``localised`` (None while warming up, uncertain or lost, so nothing untrusted can be acted on).
+    ``best`` is the best-scoring map frame whatever the status (None while warming up): a diagnostic, not an
+    estimate. ``indices``/``distances`` the top-K (sequence distances; 1 - belief mass for the filter);
+    ``latency`` milliseconds per stage (describe, distance, sequence, total); ``kept`` False for a frame keyframe
+    gating skipped (the previous estimate is repeated)."""
 
     frame: int
-    index: int
-    best: int
+    index: int | None
+    best: int | None
     score: float
     status: Status
     indices: np.ndarray
@@ -109,16 +110,22 @@ class Estimate:
     timestamp: float | None
     latency: dict[str, float]
     kept: bool = True
+    latlon: tuple[float, float] | None = None
+
+    @property
+    def localised(self) -> bool:
+        """Whether the localiser stands behind this estimate (the one word for it: ``localised``)."""
+        return self.status == "localised"
 
 
 class Localizer:
     """A streaming localiser over a saved map (``Localizer.open``); ``update`` per frame, ``reset`` on a restart."""
 
     def __init__(self, saved: SavedMap, settings: LocalizerSettings, models: Mapping[str, TrainedModel],
-                 threshold: float, device: str = "cpu") -> None:
+                 threshold: float, device: str = "cpu", threshold_source: str = "given") -> None:
         self.saved, self.settings, self.models, self.threshold = saved, settings, dict(models), threshold
-        self.encoder = (FrameEncoder(FrameDescription.from_json(saved.info.description), self.models, device)
-                        if describes_images(saved.info.description) else None)
+        self.threshold_source = threshold_source  # where the threshold came from: given, calibrated on what, default
+        self.encoder = _frame_encoder(saved, self.models, device)
         self.transform = self.models.get("seqmatchnet")  # the map holds transformed frames; raw descriptors get it
         self.matcher = _matcher(saved, settings)
         self.frame, self.misses, self.since_reset = 0, 0, 0
@@ -133,17 +140,15 @@ class Localizer:
         ensure_policy()  # the one thread policy (seqvpr.threads)
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
         chosen = LocalizerSettings(**settings)
-        folders = [] if model is None else [model] if isinstance(model, (str, Path)) else list(model)
-        models = {m.kind: m for m in (load_trained_model(f, device) for f in folders)}
-        method = "matching" if chosen.method in ("hmm", "single") else chosen.method
-        check_map_models(saved.info, str(saved.folder), method, models)
+        models = _load_models(saved, model, device)
         if "seqmatchnet" in models and "seqmatchnet" not in (saved.info.model or {}):
             raise SeqvprError(f"a localiser compares frames as {saved.folder} stores them: build the map through the "
                               "SeqMatchNet model (seqvpr map build --model) to localise with it")
         if chosen.method == "seqmatchnet" and "seqmatchnet" not in models:
             raise SeqvprError("--method seqmatchnet needs its SeqMatchNet --model (the one the map was built through)")
-        threshold = chosen.threshold if chosen.threshold is not None else stored_threshold(saved.folder, chosen)
-        localizer = cls(saved, chosen, models, threshold, device)
+        threshold, source = ((chosen.threshold, "given") if chosen.threshold is not None
+                             else stored_threshold(saved.folder, chosen))
+        localizer = cls(saved, chosen, models, threshold, device, source)
         ensure_policy()  # again after building the matcher: numba's launch must not have changed a count
         return localizer
 
@@ -192,25 +197,27 @@ class Localizer:
         return unit_rows(vector, dim=0) if self.saved.info.normalized else vector
 
     def _estimate(self, scored: Scored | None, timestamp: float | None, describe_ms: float, started: float) -> Estimate:
-        status, self.misses = next_status(scored, self.threshold, self.misses, self.settings.lost_after)
+        status, self.misses = next_status(None if scored is None else scored.score, self.threshold, self.misses,
+                                          self.settings.lost_after)
         if scored is None:
             empty = np.zeros(0, np.int64)
             latency = {"describe": describe_ms, "distance": 0.0, "sequence": 0.0}
-            return Estimate(self.frame, -1, -1, 0.0, status, empty, empty.astype(float), None, None, timestamp,
-                            {**latency, "total": (time.perf_counter() - started) * 1e3})
+            return Estimate(self.frame, None, None, float("nan"), status, empty, empty.astype(float), None, None,
+                            timestamp, {**latency, "total": (time.perf_counter() - started) * 1e3})
         best = int(scored.indices[0])
-        index = best if status in ("localised", "uncertain") else -1
         latency = {"describe": describe_ms, "distance": scored.distance_ms, "sequence": scored.sequence_ms,
                    "total": (time.perf_counter() - started) * 1e3}
+        index = best if status == "localised" else None
         return Estimate(self.frame, index, best, scored.score, status, scored.indices, scored.distances,
-                        *self._place(best), timestamp, latency)
+                        *self._place(index), timestamp, latency)
 
-    def _place(self, row: int) -> tuple[tuple[float, ...] | None, str | None]:
-        """The map frame's position and name, where the map has them."""
+    def _place(self, row: int | None) -> tuple[tuple[float, ...] | None, str | None]:
+        """The map frame's position and name, where the map has them (none for no frame)."""
         frames = self.saved.frames
+        if row is None:
+            return None, None
         position = None if frames.positions is None else tuple(float(v) for v in frames.positions[row])
-        name = None if frames.image_paths is None else str(frames.image_paths[row])
-        return position, name
+        return position, None if frames.image_paths is None else str(frames.image_paths[row])
 
     def save_state(self, path: str | Path) -> None:
         """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``)."""
@@ -242,11 +249,35 @@ class Localizer:
             self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
 
 
-def next_status(scored: Scored | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:
-    """The status of a frame and the run of frames below the threshold so far."""
-    if scored is None:
+def _load_models(saved: SavedMap, model: str | Path | Sequence[str | Path] | None, device: str) -> dict[str, TrainedModel]:
+    """The models given (folders), checked against those the map was built through (none read when neither has
+    any, so a localiser over a descriptor map imports no model code)."""
+    folders = [] if model is None else [model] if isinstance(model, (str, Path)) else list(model)
+    if not folders and not saved.info.model:
+        return {}
+    from seqvpr.maps.match import check_map_models
+    from seqvpr.models.registry import load_trained_model
+
+    models = {m.kind: m for m in (load_trained_model(f, device) for f in folders)}
+    check_map_models(saved.info, str(saved.folder), "matching", models)
+    return models
+
+
+def _frame_encoder(saved: SavedMap, models: Mapping[str, TrainedModel], device: str):
+    """Camera frames to map frames when the map was described from images (None for descriptor-file maps)."""
+    if saved.info.description.get("descriptor") == "file":
+        return None
+    from seqvpr.localization.encoder import FrameEncoder
+    from seqvpr.maps.build import FrameDescription
+
+    return FrameEncoder(FrameDescription.from_json(saved.info.description), models, device)
+
+
+def next_status(score: float | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:
+    """The status of a frame with ``score`` (None: no window yet) and the run of frames below the threshold so far."""
+    if score is None:
         return "warming up", misses
-    if scored.score >= threshold:
+    if score >= threshold:
         return "localised", 0
     misses += 1
     return ("lost" if misses >= lost_after else "uncertain"), misses
@@ -300,12 +331,28 @@ def _map_identity(saved: SavedMap) -> dict[str, Any]:
 CALIBRATION_FILE = "localizer.json"
 
 
-def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> float:
-    """The threshold ``seqvpr localize --calibrate`` stored for these settings, else the method's default."""
-    for entry in read_calibrations(folder):
-        if entry.get("settings") == settings.key():
-            return float(entry["threshold"])
-    return DEFAULT_THRESHOLDS[settings.method]
+def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> tuple[float, str]:
+    """The threshold ``seqvpr localize --calibrate`` stored for these settings, else the method's default; with
+    where it came from, in words."""
+    entry = stored_calibration(folder, settings)
+    if entry is not None:
+        return float(entry["threshold"]), calibration_source(entry)
+    return (DEFAULT_THRESHOLDS[settings.method],
+            f"the default for {settings.method}, not calibrated on this map (seqvpr localize --calibrate)")
+
+
+def stored_calibration(folder: str | Path, settings: LocalizerSettings) -> dict[str, Any] | None:
+    """The calibration record ``localizer.json`` holds for these settings, if any."""
+    return next((e for e in read_calibrations(folder) if e.get("settings") == settings.key()), None)
+
+
+def calibration_source(entry: dict[str, Any]) -> str:
+    """Where a calibrated threshold came from: the traversal, frames and ground truth, and the precision reached."""
+    frames = entry.get("query_frames") or "all"
+    truth = entry.get("ground_truth") or "?"
+    reached = ("reached" if entry.get("reached") else "NOT reached") + f" ({entry.get('precision', float('nan')):.3f})"
+    return (f"calibrated on {entry.get('calibration', '?')} frames {frames}, ground truth {truth}, target precision "
+            f"{entry.get('target_precision')} {reached}, {entry.get('created', '')}").rstrip(", ")
 
 
 def read_calibrations(folder: str | Path) -> list[dict[str, Any]]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,16 +16,18 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation, evaluate
 from seqvpr.io import atomic_write
-from seqvpr.localization.calibration import precision_at
-from seqvpr.localization.localizer import Estimate, Localizer
+from seqvpr.localization.calibration import precision_recall
+from seqvpr.localization.localizer import Estimate, Localizer, next_status
 
 STAGES = ("describe", "distance", "sequence", "total")
 
 
 @dataclass(frozen=True)
 class Replay:
-    """Per query frame: the trusted estimate (-1: none), the best map frame, score, status, top-K, latency [n, 4]
-    in ms (``STAGES``), whether keyframe gating kept it, and the query traversal."""
+    """Per query frame: the localised map frame (-1: none, the frame is not ``localised``), the best map frame (-1
+    while warming up), score (NaN while warming up), status, top-K, latency [n, 4] in ms (``STAGES``), whether
+    keyframe gating kept it, and the query traversal; with the threshold the statuses were decided at and where
+    it came from."""
 
     query: Traversal
     index: np.ndarray
@@ -37,10 +39,17 @@ class Replay:
     latency: np.ndarray
     kept: np.ndarray
     starts: np.ndarray = field(repr=False)  # frames where the localiser (re)started: 0 and each segment break
+    threshold: float = float("nan")
+    threshold_source: str = ""
 
     @property
     def scored(self) -> np.ndarray:
         return self.status != "warming up"
+
+    @property
+    def localised(self) -> np.ndarray:
+        """The frames whose estimate the localiser stands behind."""
+        return self.status == "localised"
 
 
 def replay(localizer: Localizer, query: Traversal, progress: Callable[[int], None] | None = None) -> Replay:
@@ -56,7 +65,8 @@ def replay(localizer: Localizer, query: Traversal, progress: Callable[[int], Non
         estimates.append(localizer.update(frames[i], None if stamps is None else float(stamps[i])))
         if progress is not None:
             progress(1)
-    return _collect(query, estimates, localizer.settings.k)
+    run = _collect(query, estimates, localizer.settings.k)
+    return replace(run, threshold=localizer.threshold, threshold_source=localizer.threshold_source)
 
 
 def _collect(query: Traversal, estimates: Sequence[Estimate], k: int) -> Replay:
@@ -65,16 +75,36 @@ def _collect(query: Traversal, estimates: Sequence[Estimate], k: int) -> Replay:
     for i, e in enumerate(estimates):
         indices[i, : len(e.indices)], distances[i, : len(e.distances)] = e.indices, e.distances
     starts = np.flatnonzero(np.r_[True, np.diff(query.segment_ids) != 0])
-    return Replay(query, np.array([e.index for e in estimates]), np.array([e.best for e in estimates]),
-                  np.array([e.score for e in estimates]), np.array([e.status for e in estimates]), indices, distances,
-                  np.array([[e.latency.get(s, 0.0) for s in STAGES] for e in estimates]),
+    row = lambda value: -1 if value is None else value  # noqa: E731
+    return Replay(query, np.array([row(e.index) for e in estimates]), np.array([row(e.best) for e in estimates]),
+                  np.array([e.score for e in estimates], np.float64), np.array([e.status for e in estimates]),
+                  indices, distances, np.array([[e.latency.get(s, 0.0) for s in STAGES] for e in estimates]),
                   np.array([e.kept for e in estimates]), starts)
+
+
+def restatus(run: Replay, threshold: float, lost_after: int, source: str) -> Replay:
+    """The replay as it would have gone at another threshold (``--calibrate`` reports at the threshold it chose):
+    each frame's status from the scores, as the localiser decides it, and the localised frames with it."""
+    status, misses, starts = run.status.copy(), 0, set(run.starts.tolist())
+    for i in range(len(status)):
+        if i in starts:
+            misses = 0
+        if run.status[i] == "warming up":
+            continue
+        if not run.kept[i]:  # keyframe gating repeats the previous estimate
+            status[i] = status[i - 1]
+            continue
+        status[i], misses = next_status(float(run.score[i]), threshold, misses, lost_after)
+    index = np.where(status == "localised", run.best, -1)
+    return replace(run, status=status, index=index, threshold=threshold, threshold_source=source)
 
 
 @dataclass(frozen=True)
 class ReplayScores:
-    """Recall@K and PR (over the score) of the scored frames, precision and recall at the threshold, frames and
-    seconds to the first correct localised estimate after each start (None: never), latency percentiles (ms)."""
+    """Recall@K and PR (over the score) of the scored frames; the precision of the localised estimates (a frame
+    localised where the map holds no true place counts as wrong) and their recall (over the frames with a true
+    place); frames and seconds to the first correct localised estimate after each start (None: never); latency
+    percentiles (ms); the frames in each status."""
 
     evaluation: Evaluation
     threshold: float
@@ -82,17 +112,21 @@ class ReplayScores:
     recall: float
     time_to_correct: list[tuple[int | None, float | None]]
     latency: dict[str, dict[str, float]]
+    localised_correct: int
+    localised_wrong: int
 
 
-def score_replay(run: Replay, gt: GroundTruth, threshold: float, ks: Sequence[int] = (1, 5, 10, 20)) -> ReplayScores:
+def score_replay(run: Replay, gt: GroundTruth, ks: Sequence[int] = (1, 5, 10, 20)) -> ReplayScores:
     """What the replay got right, the score ranking the best matches for the PR curve."""
     ranked = run.distances.copy()
-    ranked[:, 0] = -run.score  # PR sweeps the score, highest first
+    ranked[:, 0] = -np.nan_to_num(run.score, nan=-np.inf)  # PR sweeps the score, highest first
     evaluation = evaluate(run.indices, ranked, run.scored, gt, ks)
-    usable = run.scored & gt.has_positive()
     right = correct_best(run, gt)
-    precision, recall = precision_at(run.score[usable], right[usable], threshold)
-    return ReplayScores(evaluation, threshold, precision, recall, time_to_correct(run, right), latency_percentiles(run))
+    positives = int((run.scored & gt.has_positive()).sum())
+    precision, recall = precision_recall(run.localised, right, positives)
+    correct = int((run.localised & right).sum())
+    return ReplayScores(evaluation, run.threshold, precision, recall, time_to_correct(run, right),
+                        latency_percentiles(run), correct, int(run.localised.sum()) - correct)
 
 
 def correct_best(run: Replay, gt: GroundTruth) -> np.ndarray:
@@ -126,22 +160,29 @@ def latency_percentiles(run: Replay) -> dict[str, dict[str, float]]:
             for i, stage in enumerate(STAGES)}
 
 
+STREAM_COLUMNS = ("frame", "query_frame", "timestamp", "status", "score", "localised_row", "localised_frame", "x", "y",
+                  "best_row", "best_frame", "kept", *(f"{s}_ms" for s in STAGES), "correct")
+
+
 def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.ndarray | None = None) -> None:
-    """One row per query frame: status and score, the trusted and the best map frame (as map rows and as frames of
-    their source, the numbering ``predictions.csv`` uses), the best one's position, latencies, and correctness."""
+    """One row per query frame: status and score; the localised map frame (as a map row and as a frame of its
+    source, the numbering ``predictions.csv`` uses) and its position, empty unless the frame is localised; the
+    best-scoring map frame whatever the status (empty while warming up); latencies; whether the best is right."""
     with atomic_write(path, newline="") as handle:
         out = csv.writer(handle)
-        out.writerow(["frame", "query_frame", "timestamp", "status", "score", "estimate_row", "estimate_frame",
-                      "best_row", "best_frame", "x", "y", "kept", *(f"{s}_ms" for s in STAGES), "correct"])
+        out.writerow(STREAM_COLUMNS)
         for i in range(len(run.best)):
             out.writerow(_stream_row(run, reference, right, i))
 
 
 def _stream_row(run: Replay, reference: Traversal, right: np.ndarray | None, i: int) -> list:
     stamp = "" if run.query.timestamps is None else f"{run.query.timestamps[i]:.6f}"
-    estimate, best = int(run.index[i]), int(run.best[i])
-    source = lambda row: int(reference.frame_index[row]) if row >= 0 else -1  # noqa: E731
-    where = ["", ""] if best < 0 or reference.positions is None else [f"{v:.3f}" for v in reference.positions[best][:2]]
+    localised, best = int(run.index[i]), int(run.best[i])
+    row = lambda r: "" if r < 0 else r  # noqa: E731
+    source = lambda r: "" if r < 0 else int(reference.frame_index[r])  # noqa: E731
+    where = ["", ""] if localised < 0 or reference.positions is None else \
+        [f"{v:.3f}" for v in reference.positions[localised][:2]]
+    score = "" if not run.scored[i] else f"{run.score[i]:.6f}"
     ok = "" if right is None or not run.scored[i] else int(right[i])
-    return [i, int(run.query.frame_index[i]), stamp, run.status[i], f"{run.score[i]:.6f}", estimate, source(estimate),
-            best, source(best), *where, int(run.kept[i]), *(f"{v:.3f}" for v in run.latency[i]), ok]
+    return [i, int(run.query.frame_index[i]), stamp, run.status[i], score, row(localised), source(localised), *where,
+            row(best), source(best), int(run.kept[i]), *(f"{v:.3f}" for v in run.latency[i]), ok]

@@ -5,11 +5,22 @@
     result = match_map(saved, load_traversal("winter.npy", "query"), "matching", MatchSettings(SequenceSpec(5)))
 """
 
-from seqvpr.maps.build import FrameDescription, build_map, describe_frames
-from seqvpr.maps.files import MapInfo, SavedMap, open_map, read_map_info
-from seqvpr.maps.match import match_map
+from __future__ import annotations
 
-load_map = open_map
+import importlib
+from typing import Any
 
-__all__ = ["FrameDescription", "MapInfo", "SavedMap", "build_map", "describe_frames", "load_map", "match_map",
-           "open_map", "read_map_info"]
+#: public name -> the module defining it; imported when first used, so ``seqvpr.maps.files`` (what a localiser
+#: needs) does not pull in the builder's loaders and descriptors
+EXPORTS = {"FrameDescription": "build", "build_map": "build", "describe_frames": "build", "MapInfo": "files",
+           "SavedMap": "files", "open_map": "files", "read_map_info": "files", "match_map": "match"}
+
+__all__ = [*EXPORTS, "load_map"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "load_map":
+        name = "open_map"
+    if name not in EXPORTS:
+        raise AttributeError(f"module 'seqvpr.maps' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"seqvpr.maps.{EXPORTS[name]}"), name)
