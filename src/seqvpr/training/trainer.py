@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from seqvpr import distributed
+from seqvpr import distributed, threads
 from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -36,12 +36,10 @@ from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
 from seqvpr.training.parallel import StepLoss, data_parallel_step, single_process_step
 from seqvpr.training.resume import RunState
-from seqvpr.threads import ensure_policy
 
 __all__ = [
     "EpochRecord", "LoopSettings", "SequenceLearner", "SilentMonitor", "Step", "TrainingContext", "TrainingData",
-    "TrainingMonitor", "TrainResult", "train_sequence_model",
-]
+    "TrainingMonitor", "TrainResult", "train_sequence_model"]
 
 
 @dataclass(frozen=True)
@@ -270,7 +268,7 @@ def train_sequence_model(
     ``resume=True`` is always safe to pass). Epoch 0 is the untrained model: validated and recorded, but kept only
     when ``settings.select_untrained`` is set or no epoch is trained; ties keep the earlier epoch.
     """
-    ensure_policy()  # the one thread policy (seqvpr.threads)
+    threads.ensure_policy()
     with deterministic_algorithms(), distributed.process_group(settings.device):
         return _train(data, learner, settings, Path(out_dir), resume, monitor or SilentMonitor())
 
