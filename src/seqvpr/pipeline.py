@@ -8,7 +8,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,13 +43,13 @@ from seqvpr.sequences.matching import (
     sequence_topk,
 )
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.progress import ProgressFactory
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
     from seqvpr.sequences.graph import GraphSettings
     from seqvpr.models.seqmatchnet import FrameTransform
 
-ProgressFactory = Callable[[int, str], Callable[[int], None]]
 DESCRIPTORS = ("patchnorm", *BACKBONES)
 TORCHSCRIPT_PREFIX = f"{TORCHSCRIPT}:"  # ``torchscript:PATH``: a user's exported encoder
 

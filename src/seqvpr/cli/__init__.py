@@ -6,6 +6,8 @@ loads no torch, numba, faiss or matplotlib: each command imports what it uses wh
 from __future__ import annotations
 
 import importlib
+import logging
+import os
 import signal
 import sys
 import warnings
@@ -96,9 +98,27 @@ def _terminated(signum, frame) -> None:
 INTERRUPTED = "nothing half-written is left under an output's name"
 
 
+class EchoHandler(logging.Handler):
+    """The ``seqvpr`` logger's lines on the current stderr as ``seqvpr: ...`` (what the library reports of long
+    work that no progress bar covers)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        click.echo(f"seqvpr: {record.getMessage()}", err=True)
+
+
+def show_library_log() -> None:
+    """Route the library's progress lines to stderr, once per process; only rank 0 of a torchrun run reports."""
+    logger = logging.getLogger("seqvpr")
+    if not any(isinstance(h, EchoHandler) for h in logger.handlers):
+        logger.addHandler(EchoHandler())
+        logger.propagate = False
+    logger.setLevel(logging.INFO if os.environ.get("RANK", "0") == "0" else logging.WARNING)
+
+
 def main() -> None:
     """Entry point: run the CLI; a SeqvprError becomes one line on stderr and exit status 2."""
     warnings.showwarning = _show_warning
+    show_library_log()
     signal.signal(signal.SIGTERM, _terminated)
     try:
         cli.main(standalone_mode=False)

@@ -4,42 +4,24 @@
 from __future__ import annotations
 
 import sys
-import time
 from collections.abc import Callable
 
 import click
 
+from seqvpr.progress import LINE_SECONDS, line_progress
 
-LINE_SECONDS = 10.0
+__all__ = ["LINE_SECONDS", "TqdmMonitor", "line_progress", "tqdm_progress"]
 
 
 def tqdm_progress(total: int, label: str) -> Callable[[int], None]:
     """Progress of ``total`` frames on stderr: a tqdm bar on a terminal, else ``line_progress``; returns its update
     function."""
     if not sys.stderr.isatty():
-        return line_progress(total, label)
+        return line_progress(total, label, echo=lambda text: click.echo(text, err=True))
     from tqdm import tqdm
 
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, leave=False)
     return bar.update
-
-
-def line_progress(total: int, label: str, every: float = LINE_SECONDS, clock=time.monotonic,
-                  echo: Callable[[str], None] | None = None, unit: str = "frames") -> Callable[[int], None]:
-    """An update function printing ``label: done/total UNIT (p %)`` when ``every`` seconds have passed since the
-    last line, and once at the end: long work never looks dead in a log."""
-    say = echo or (lambda text: click.echo(text, err=True))
-    state = {"done": 0, "last": clock()}
-
-    def update(n: int = 1) -> None:
-        state["done"] += n
-        now = clock()
-        finished = state["done"] >= total
-        if now - state["last"] >= every or (finished and state["done"] - n < total):
-            state["last"] = now
-            say(f"{label}: {state['done']}/{total} {unit} ({100 * state['done'] / max(total, 1):.0f} %)")
-
-    return update
 
 
 class TqdmMonitor:
@@ -68,7 +50,8 @@ class TqdmMonitor:
         if sys.stderr.isatty():
             self.bar, self.line = tqdm(total=queries, desc=label, unit="query", file=sys.stderr, leave=False), None
         else:
-            self.bar, self.line = None, line_progress(queries, label, unit="queries")
+            self.bar, self.line = None, line_progress(queries, label, unit="queries",
+                                                      echo=lambda text: click.echo(text, err=True))
 
     def advance(self, queries: int, loss: float | None) -> None:
         if loss is not None:

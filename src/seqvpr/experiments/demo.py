@@ -26,6 +26,7 @@ from seqvpr.pipeline import (
 )
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.progress import LOGGER, or_logged
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
@@ -190,10 +191,11 @@ def run_demo(
     *,
     progress: ProgressFactory | None = None,
     monitor=None,
-    echo: Callable[[str], None] = lambda text: None,
+    echo: Callable[[str], None] = LOGGER.info,
 ) -> DemoResult:
     """Render, describe, match at every L, train and apply SeqMatchNet, and write ``out/report``."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
+    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     seconds: dict[str, float] = {}
     clock = time.perf_counter()
 

@@ -29,6 +29,7 @@ from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, Sh
 from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.sequences.filter import FilterSettings
 from seqvpr.sequences.matching import unit_rows
+from seqvpr.progress import LOGGER
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
@@ -39,6 +40,7 @@ LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
 #: thresholds used when the map has no calibration for the settings (``seqvpr localize --calibrate`` sets one)
 DEFAULT_THRESHOLDS = {"matching": 0.1, "single": 0.1, "seqmatchnet": 0.1, "hmm": 0.5}
 STATE_FORMAT = "seqvpr-localizer-state"
+LONG_OPEN = 100_000  # maps from this many frames take seconds to open: say so
 
 
 @dataclass(frozen=True)
@@ -138,9 +140,14 @@ class Localizer:
         """A localiser over the map in ``map_folder`` with ``LocalizerSettings(**settings)``; ``model`` the folder(s)
         the map was built through (checked by sha256), or a SeqMatchNet model applied to both sides."""
         ensure_policy()  # the one thread policy (seqvpr.threads)
+        started = time.perf_counter()
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
         chosen = LocalizerSettings(**settings)
         models = _load_models(saved, model, device)
+        _check_index(saved, chosen)
+        if saved.info.count >= LONG_OPEN or models:  # seconds to read the map's norms or to build a network
+            LOGGER.info(f"localiser: opening {saved.folder} ({saved.info.count} frames, {saved.info.dim}-D), "
+                        f"{chosen.method}")
         if "seqmatchnet" in models and "seqmatchnet" not in (saved.info.model or {}):
             raise SeqvprError(f"a localiser compares frames as {saved.folder} stores them: build the map through the "
                               "SeqMatchNet model (seqvpr map build --model) to localise with it")
@@ -150,6 +157,8 @@ class Localizer:
                              else stored_threshold(saved.folder, chosen))
         localizer = cls(saved, chosen, models, threshold, device, source)
         ensure_policy()  # again after building the matcher: numba's launch must not have changed a count
+        if time.perf_counter() - started >= 1.0:
+            LOGGER.info(f"localiser: ready in {time.perf_counter() - started:.1f} s; threshold {threshold:g}, {source}")
         return localizer
 
     def reset(self) -> None:
@@ -297,12 +306,18 @@ def _matcher(saved: SavedMap, settings: LocalizerSettings):
     if settings.shortlist:
         from seqvpr.maps.index import open_frame_index
 
-        if (saved.info.index or {}).get("over") != "frames":
-            raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
-                              f"{saved.folder} --index SPEC")
         return ShortlistMatcher(saved, open_frame_index(saved, settings.nprobe), settings.window, settings.k,
                                 settings.exclusion, settings.shortlist, settings.history)
     return ExactMatcher(saved.descriptors, segments, settings.window, settings.k, settings.exclusion)
+
+
+def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
+    """A shortlist needs the map's index over frames (a sharded map's shards are checked as they open)."""
+    from seqvpr.maps.files import is_sharded_map
+
+    if settings.shortlist and not is_sharded_map(saved.folder) and (saved.info.index or {}).get("over") != "frames":
+        raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
+                          f"{saved.folder} --index SPEC")
 
 
 def _sharded_matcher(sharded, world, settings: LocalizerSettings):

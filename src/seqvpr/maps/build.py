@@ -31,6 +31,7 @@ from seqvpr.methods import image_model, transformed_frames
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import ProgressFactory, describe
 from seqvpr.sequences.matching import unit_rows
+from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy
 
 #: model kinds whose output a map stores: image encoders (the frames) and SeqMatchNet (the transformed frames)
@@ -112,6 +113,7 @@ def build_map(
     through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
     as one map (each source its own segments)."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
+    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
     unusable = [kind for kind in models if kind not in STORED_KINDS]
     if unusable:

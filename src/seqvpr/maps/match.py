@@ -16,6 +16,7 @@ from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, check_run, run_method, transformed_frames
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
+from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
@@ -114,6 +115,7 @@ def match_map(
     ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame; the
     ``history`` query frames before each window place candidates too)."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
+    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     prepared = prepare_query(saved, query, method, settings, models, rerank, progress, **extraction)
     return match_prepared(saved, prepared, settings, index=index, rerank=rerank, shortlist=shortlist,
                           history=history, nprobe=nprobe, progress=progress)
