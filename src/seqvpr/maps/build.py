@@ -6,7 +6,7 @@ The same ``FrameDescription`` describes a query later, so a query is always desc
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -105,11 +105,14 @@ def build_map(
     device: str = "cpu",
     progress: ProgressFactory | None = None,
     frames: str | None = None,
+    loaded: Callable[[str, Traversal], None] | None = None,
     **extraction: Any,
 ) -> SavedMap:
     """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames
     through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
-    as one map (each source its own segments)."""
+    as one map (each source its own segments; the positions' ``crs`` recorded). ``loaded`` is told each source and
+    its traversal as soon as it is read (before describing), for a command to report what was read (a bag's
+    topics: ``Traversal.bag``)."""
     models = dict(models or {})
     unusable = [kind for kind in models if kind not in STORED_KINDS]
     if unusable:
@@ -117,6 +120,8 @@ def build_map(
     described = []
     for source in sources:
         traversal = slice_frame_range(load_traversal(source, "reference"), frames)
+        if loaded is not None:
+            loaded(source, traversal)
         traversal = describe_frames(traversal, description, models, device, progress, **extraction)
         described.append(transformed_frames(traversal, traversal, models, device)[0])
     whole = concatenate_traversals(described, Path(out).name)
