@@ -21,6 +21,7 @@ def test_build_info_and_match_give_the_direct_predictions(route, tmp_path, monke
     assert "100 frames from 1 source(s), 16-D file descriptors, float32" in out
     code, out, _ = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "m")
     assert code == 0 and "count:           100" in out and "positions, timestamps" in out
+    assert "crs:             local" in out  # a traversal file's positions, without a zone
     code, out, _ = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "m", "--json")
     assert json.loads(out)["dim"] == 16
     for length in ("1", "5"):

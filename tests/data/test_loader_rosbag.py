@@ -1,5 +1,7 @@
 """Robot recordings: bags written here with ``rosbags`` itself (ROS 2 mcap and sqlite3, ROS 1), 30 frames of Gardens
-Point Walking plus NavSatFix fixes, give the same Recall@K as the image folders they were made from."""
+Point Walking plus NavSatFix fixes, give the same Recall@K as the image folders they were made from. Bags of small
+synthetic frames show that frames are read on demand (a one-frame replay decodes one frame), named by bag and
+stamp, and that a map built from a bag outlives the frame cache and gives its fixes back as latitude/longitude."""
 
 from __future__ import annotations
 
@@ -37,8 +39,9 @@ def image_folder(src, dst, lat, lon):
 
 def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compressed: bool = False,
               odometry: bool = False):
-    """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them; with
-    ``odometry``, also a second camera topic and an Odometry topic (x = 2 m a frame, y = -i)."""
+    """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them (the
+    first ``len(lat)`` frames have one); with ``odometry``, also a second camera topic and an Odometry topic
+    (x = 2 m a frame, y = -i)."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -73,6 +76,8 @@ def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compres
                               is_bigendian=0, step=pixels.shape[1] * 3, data=pixels.reshape(-1))
             writer.write(camera, int(t * 1e9), store.serialize_ros1(message, camera_type) if ros1
                          else store.serialize_cdr(message, camera_type))
+            if i >= len(lat):
+                continue
             fix = Fix(header=header(t + 0.1), status=Status(status=0, service=1), latitude=float(lat[i]),
                       longitude=float(lon[i]), altitude=30.0, position_covariance=np.zeros(9),
                       position_covariance_type=0)
@@ -205,3 +210,140 @@ def test_a_bag_source_text_reads_back_what_it_names(tmp_path):
         assert parse_bag_source(bag_source(bag, topics)) == (bag, topics)
     assert parse_bag_source(str(tmp_path / "run.npz")) is None
     raises_one_line("'speed' is not a bag option", parse_bag_source, f"{bag}?speed=2")
+
+
+def synthetic_jpegs(folder, n: int, seed: int = 0) -> list:
+    """``n`` small different JPEG frames (48 x 32, smooth random colours)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    files = []
+    for i in range(n):
+        coarse = rng.integers(0, 255, (4, 6, 3), dtype=np.uint8)
+        file = folder / f"{i:04d}.jpg"
+        Image.fromarray(coarse).resize((48, 32), Image.BILINEAR).save(file, quality=90)
+        files.append(file)
+    return files
+
+
+def counting_reads(monkeypatch) -> dict[str, int]:
+    """Count every image file read (``read_image``, wherever it was imported) and every PIL decode (``Image.open``)."""
+    import PIL.Image
+
+    import seqvpr.data.images
+    import seqvpr.features.extraction
+    import seqvpr.features.patchnorm
+    import seqvpr.localization.encoder
+
+    counts = {"read_image": 0, "open": 0}
+    read, open_ = seqvpr.data.images.read_image, PIL.Image.open
+
+    def counted_read(*args, **kwargs):
+        counts["read_image"] += 1
+        return read(*args, **kwargs)
+
+    def counted_open(*args, **kwargs):
+        counts["open"] += 1
+        return open_(*args, **kwargs)
+
+    for module in (seqvpr.data.images, seqvpr.features.extraction, seqvpr.features.patchnorm,
+                   seqvpr.localization.encoder):
+        monkeypatch.setattr(module, "read_image", counted_read)
+    monkeypatch.setattr(PIL.Image, "open", counted_open)
+    return counts
+
+
+def test_replaying_one_frame_of_a_200_frame_bag_decodes_one_frame(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = synthetic_jpegs(tmp_path / "jpg", 200)
+    lat, lon = fixes(200)
+    bag = write_bag(tmp_path / "long", images, lat, lon, ros1=False, compressed=True)
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", bag, "--out", tmp_path / "m")
+    assert code == 0, err
+    counts = counting_reads(monkeypatch)
+    code, _, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", bag, "--frames", "0:1",
+                           "--out", tmp_path / "o")
+    assert code == 0, err
+    assert counts == {"read_image": 1, "open": 1}, counts
+    stored = sorted((tmp_path / "cache" / "bag-frames").rglob("*.jpg"))  # each frame's JPEG bytes, as they are
+    assert len(stored) == 200 and {f.read_bytes() for f in stored} == {f.read_bytes() for f in images}
+
+
+def test_loading_a_bag_decodes_no_frame(tmp_path, monkeypatch):
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = synthetic_jpegs(tmp_path / "jpg", 20)
+    bag = write_bag(tmp_path / "b", images, *fixes(20), ros1=False, compressed=True)
+    counts = counting_reads(monkeypatch)
+    traversal = load_traversal(bag, "query")
+    assert counts == {"read_image": 0, "open": 0} and len(traversal) == 20
+    assert traversal.image_paths[0].read_bytes() == images[0].read_bytes()
+
+
+def test_raw_frames_are_stored_losslessly_and_named_by_bag_and_stamp(tmp_path, monkeypatch):
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = synthetic_jpegs(tmp_path / "jpg", 4)
+    bag = write_bag(tmp_path / "r.bag", images, *fixes(4), ros1=True)
+    traversal = load_traversal(f"{bag}:/camera/image_raw", "query")
+    assert traversal.frame_names() == [f"{bag}:/camera/image_raw@{100 + 0.5 * i:.9f}" for i in range(4)]
+    for file, image in zip(traversal.image_paths, images):
+        assert file.suffix == ".png" and (tmp_path / "cache" / "bag-frames") in file.parents
+        np.testing.assert_array_equal(np.asarray(Image.open(file)), np.asarray(Image.open(image).convert("RGB")))
+
+
+def test_a_bag_map_names_its_frames_by_stamp_reports_its_topics_and_outlives_the_cache(tmp_path, monkeypatch, capsys):
+    from seqvpr.localization import Localizer
+
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = synthetic_jpegs(tmp_path / "jpg", 12)
+    lat, lon = fixes(12)
+    bag = write_bag(tmp_path / "run", images, lat[:10], lon[:10], ros1=False, compressed=True)  # 2 frames: no fix
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", bag, "--stamp-tolerance", "0.2", "--out",
+                           tmp_path / "m")
+    assert code == 0, err
+    assert err.splitlines()[:3] == [f"{bag}?tolerance=0.2: camera topic /camera/image_raw",
+                                f"{bag}?tolerance=0.2: position topic /gps/fix",
+                                f"{bag}?tolerance=0.2: 2 frames without a position fix within 0.2 s (left out)"]
+    names = [f"{bag}:/camera/image_raw@{100 + 0.5 * i:.9f}" for i in range(10)]
+    assert (tmp_path / "m" / "names.txt").read_text().splitlines() == names
+    import shutil
+
+    shutil.rmtree(tmp_path / "cache")
+    code, out, err = run_cli(monkeypatch, capsys, "map", "info", tmp_path / "m")
+    assert code == 0 and "count:           10" in out and "crs:             utm:56S" in out, err
+    query = image_folder_with_fixes(tmp_path / "q", images[:10], lat, lon)
+    code, out, err = run_cli(monkeypatch, capsys, "match", "--map", tmp_path / "m", "-q", query, "-L", "3",
+                             "--radius", "2.5m", "--json", "--out", tmp_path / "o")
+    assert code == 0 and json.loads(out)["recall"]["1"] == 1.0, err
+    localizer = Localizer.open(tmp_path / "m", seq_len=1)
+    estimate = localizer.update(images[4])
+    assert estimate.name == names[4] and not (tmp_path / "cache").exists()
+
+
+def image_folder_with_fixes(folder, images, lat, lon):
+    """The images copied into ``folder`` with a positions.csv of latitude/longitude."""
+    folder.mkdir()
+    rows = ["name,lat,lon"]
+    for i, image in enumerate(images):
+        shutil.copy(image, folder / image.name)
+        rows.append(f"{image.name},{lat[i]:.10f},{lon[i]:.10f}")
+    (folder / "positions.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+@pytest.mark.parametrize("kind", ["bag", "image folder"])
+def test_a_maps_positions_go_back_to_the_latitudes_and_longitudes_it_was_built_from(tmp_path, monkeypatch, capsys,
+                                                                                     kind):
+    from seqvpr.data.geo import utm_to_latlon
+    from seqvpr.maps import open_map
+
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = synthetic_jpegs(tmp_path / "jpg", 8)
+    lat, lon = fixes(8)
+    lat, lon = np.round(lat, 10), np.round(lon, 10)  # what the positions.csv holds
+    source = (write_bag(tmp_path / "b", images, lat, lon, ros1=False, compressed=True) if kind == "bag"
+              else image_folder_with_fixes(tmp_path / "f", images, lat, lon))
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", source, "--out", tmp_path / "m")
+    assert code == 0, err
+    saved = open_map(tmp_path / "m")
+    assert saved.info.crs == saved.frames.crs == "utm:56S"
+    back = utm_to_latlon(saved.frames.positions, saved.info.crs)
+    np.testing.assert_allclose(back, np.c_[lat, lon], rtol=0, atol=1e-6)

@@ -145,3 +145,52 @@ def test_unknown_or_untrainable_storages_are_one_line(sources, tmp_path):
     raises_one_line("M = 5 must divide the dimension 12", build_map, [str(sources[0])], tmp_path / "b", dtype="pq:5")
     raises_one_line("needs at least 256 frames", build_map, [str(sources[0])], tmp_path / "c", dtype="pq:4")
     assert not any(tmp_path.iterdir())
+
+
+def test_a_map_records_its_coordinate_system_and_an_older_map_reads_local(sources, tmp_path):
+    from dataclasses import replace
+
+    from seqvpr.data.sources import save_traversal_npz
+
+    ref, _, reference = sources
+    assert build_map([str(ref)], tmp_path / "local").info.crs == "local"  # a file's positions without a zone
+    save_traversal_npz(tmp_path / "utm.npz", replace(reference, crs="utm:32N"))
+    saved = build_map([str(tmp_path / "utm.npz")], tmp_path / "utm")
+    assert saved.info.crs == saved.frames.crs == "utm:32N"
+    assert json.loads((tmp_path / "utm" / "map.json").read_text())["crs"] == "utm:32N"
+    values = json.loads((tmp_path / "utm" / "map.json").read_text())
+    del values["crs"]  # a map written before maps recorded their coordinate system
+    (tmp_path / "utm" / "map.json").write_text(json.dumps(values))
+    assert open_map(tmp_path / "utm").info.crs == open_map(tmp_path / "utm").frames.crs == "local"
+    save_traversal_npz(tmp_path / "none.npz", replace(reference, positions=None))
+    assert build_map([str(tmp_path / "none.npz")], tmp_path / "none").info.crs is None
+
+
+def test_sources_in_different_coordinate_systems_are_one_line(sources, tmp_path):
+    a = Traversal.from_descriptors(np.ones((4, 3)), positions=np.zeros((4, 2)), source="a.npz")
+    b = Traversal.from_descriptors(np.ones((3, 3)), positions=np.zeros((3, 2)), source="b.npz")
+    from dataclasses import replace
+
+    assert concatenate_traversals([replace(a, crs="utm:32N"), replace(b, crs="utm:32N")]).crs == "utm:32N"
+    raises_one_line("a.npz has positions in utm:32N and b.npz in local", concatenate_traversals,
+                    [replace(a, crs="utm:32N"), b])
+    raises_one_line("coordinate system 'utm:61N' is not", replace, a, crs="utm:61N")
+
+
+def test_shards_carry_the_coordinate_system_and_the_frame_names(tmp_path):
+    from pathlib import Path
+
+    from seqvpr.maps.files import MapInfo, map_sources, write_map
+    from seqvpr.maps.shards import shard_map
+
+    names = tuple(f"run.bag:/camera/image_raw@{100 + i}.000000000" for i in range(10))
+    frames = Traversal("run", np.arange(10), np.zeros(10, np.int64), np.eye(10, 4, dtype=np.float32) + 0.1,
+                       tuple(Path(f"/cache/{i}.jpg") for i in range(10)), np.c_[np.arange(10.0), np.zeros(10)],
+                       names=names, crs="utm:55S")
+    write_map(tmp_path / "m", frames, MapInfo(10, 4, "float32", True, {"descriptor": "patchnorm"},
+                                              map_sources([frames], ["run.bag"])))
+    assert (tmp_path / "m" / "names.txt").read_text().splitlines() == list(names)
+    shard_map(tmp_path / "m", tmp_path / "s", 3, overlap=1)
+    whole = open_map(tmp_path / "s")
+    assert whole.info.crs == whole.frames.crs == "utm:55S" and whole.frames.frame_names() == list(names)
+    assert open_map(tmp_path / "s" / "shard-001").info.crs == "utm:55S"

@@ -1,5 +1,6 @@
 """``seqvpr doctor``: what a bug report needs: versions, the torch devices seen, faiss's SIMD level, numba's
-threading layer and thread counts, and the cache folders with their sizes."""
+threading layer and thread counts, and the cache folders with their sizes (seqvpr's cache, ``seqvpr.cache``, and
+the bag frames in it unless ``$SEQVPR_BAG_FRAMES`` puts them elsewhere)."""
 
 from __future__ import annotations
 
@@ -53,9 +54,10 @@ def environment_report(cache_dir: str | None = None) -> dict[str, dict[str, Any]
     compute = {"thread policy": policy.describe(), "faiss SIMD": faiss.get_compile_options().strip() or "generic",
                "faiss threads": faiss.omp_get_max_threads(), "numba threading layer": numba.threading_layer(),
                "numba threads": numba.get_num_threads(), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "unset")}
-    from seqvpr.data.loaders.rosbag import _frames_root
+    from seqvpr.cache import cache_root
+    from seqvpr.data.loaders.rosbag import frames_root
 
-    caches = {"bag frames": _folder_line(_frames_root())}
+    caches = {"cache": _folder_line(cache_root()), "bag frames": _folder_line(frames_root())}
     if cache_dir:
         caches["descriptor cache"] = _folder_line(Path(cache_dir))
     return {"versions": versions, "devices": devices, "compute": compute, "caches": caches}

@@ -102,7 +102,7 @@ def _build_map(sources, out_dir, description, models, extraction, *, dtype, norm
     from seqvpr.maps.index import add_index
 
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
-                      progress=tqdm_progress, frames=frames, **extraction)
+                      progress=tqdm_progress, frames=frames, loaded=_echo_bag, **extraction)
     info = saved.info
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
@@ -116,6 +116,17 @@ def _build_map(sources, out_dir, description, models, extraction, *, dtype, norm
             shutil.rmtree(out_dir, ignore_errors=True)
             raise
         _echo_index(record)
+
+
+def _echo_bag(source: str, traversal) -> None:
+    """What a bag source gave (stderr, one line each): its camera topic, its position topic, frames left out."""
+    reading = traversal.bag
+    if reading is None:
+        return
+    click.echo(f"{source}: camera topic {reading.camera_topic}", err=True)
+    click.echo(f"{source}: position topic {reading.position_topic or 'none'}", err=True)
+    click.echo(f"{source}: {reading.without_fix} frames without a position fix within {reading.tolerance:g} s "
+               "(left out)", err=True)
 
 
 @map_group.command(name="index")
@@ -204,6 +215,7 @@ def info(map_dir: str, as_json: bool) -> None:
     click.echo(f"{'descriptor:':17}{json.dumps(values['description'])}")
     click.echo(f"{'model:':17}{json.dumps(values['model'])}")
     click.echo(f"{'columns:':17}{', '.join(values['columns']) or '-'}")
+    click.echo(f"{'crs:':17}{values['crs'] or '-'}")
     click.echo(f"{'index:':17}{json.dumps(values['index'])}")
     click.echo(f"{'descriptors:':17}{saved.descriptors.nbytes / 2**20:.1f} MiB, {saved.info.count} x {saved.info.dim}")
     for source in values["sources"]:

@@ -1,7 +1,8 @@
 """Resolve what a user names on the command line (a file, a folder, a description file) to a Traversal.
 
 - ``.npy`` / ``.npz`` / ``.mat`` (optionally ``FILE:VAR``): descriptor rows, frame-aligned. An ``.npz`` with a
-  ``descriptors`` array is a whole traversal file (optional ``positions`` [N,2], ``timestamps``, ``segments``).
+  ``descriptors`` array is a whole traversal file (optional ``positions`` [N,2] and their ``crs``, ``timestamps``,
+  ``segments``).
 - ``.db`` or a ``.mat`` holding ``dbStruct``: the reference (database) or query side, by role.
 - a folder of ``@east@north@...@.jpg`` images (or with ``database/`` and ``queries/``): UTM from the names.
 - a folder of images, with ``positions.csv`` inside when present.
@@ -148,7 +149,8 @@ def _is_traversal_npz(path: Path) -> bool:
 
 
 def load_traversal_npz(path: Path) -> Traversal:
-    """A traversal file: ``descriptors`` plus optional ``positions``, ``timestamps``, ``segments``."""
+    """A traversal file: ``descriptors`` plus optional ``positions`` (in ``crs``, else ``local``), ``timestamps``,
+    ``segments``."""
     with np.load(path, allow_pickle=False) as archive:
         arrays = {name: archive[name] for name in archive.files}
     descriptors = load_descriptor_array(f"{path}:descriptors")
@@ -160,6 +162,8 @@ def load_traversal_npz(path: Path) -> Traversal:
         timestamps=arrays.get("timestamps"),
         source=str(path),
     )
+    if "crs" in arrays:  # the coordinate system of the positions (seqvpr.data.geo), when the writer knew it
+        traversal = replace(traversal, crs=str(arrays["crs"]))
     if "frame_index" in arrays:  # source frame numbers survive extraction with skipped images
         frame_index = np.asarray(arrays["frame_index"], dtype=np.int64)
         if frame_index.shape != (len(descriptors),) or len(np.unique(frame_index)) != len(frame_index) \
@@ -184,6 +188,7 @@ def save_traversal_npz(path: Path, traversal: Traversal) -> None:
               "frame_index": traversal.frame_index}
     if traversal.positions is not None:
         arrays["positions"] = traversal.positions
+        arrays["crs"] = np.array(traversal.crs or "local")
     if traversal.timestamps is not None:
         arrays["timestamps"] = traversal.timestamps
     with atomic_write(path, "wb") as handle:
@@ -272,4 +277,4 @@ def _with_dbstruct_positions(traversal: Traversal, db_path: Path, role: Role) ->
     if len(side) != len(traversal):
         raise SeqvprError(f"{db_path}: its {role} side has {len(side)} frames, the descriptors "
                           f"{traversal.source or traversal.name} have {len(traversal)}")
-    return replace(traversal, positions=side.positions, timestamps=side.timestamps)
+    return replace(traversal, positions=side.positions, timestamps=side.timestamps, crs=side.crs)

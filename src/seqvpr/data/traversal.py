@@ -4,10 +4,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.errors import SeqvprError
+
+if TYPE_CHECKING:
+    from seqvpr.data.loaders.rosbag import BagReading
 
 
 @dataclass(frozen=True)
@@ -16,8 +21,11 @@ class Traversal:
 
     ``frame_index`` is each frame's index in its source (row of a descriptor file, position in an image list);
     it survives slicing, so frame-aligned ground truth and written predictions keep referring to the source.
-    ``positions`` are metres (easting, northing), absent for frame-aligned sets. ``segment_ids`` mark trajectory
-    breaks: a sequence window never spans two runs of different ids.
+    ``positions`` are metres (easting, northing), absent for frame-aligned sets; ``crs`` says in what
+    (``seqvpr.data.geo``: ``utm:32N``, ``local`` when not given, None without positions). ``segment_ids`` mark
+    trajectory breaks: a sequence window never spans two runs of different ids. ``names`` name the frames where
+    their image files do not (a bag's frames, read from cached files, are ``BAG:/topic@STAMP``); ``bag`` is what a
+    ROS bag's loading found (topics, frames left out).
     """
 
     name: str
@@ -29,6 +37,9 @@ class Traversal:
     timestamps: np.ndarray | None = None
     headings: np.ndarray | None = None
     source: str = field(default="", compare=False)
+    names: tuple[str, ...] | None = None
+    crs: str | None = None
+    bag: BagReading | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.frame_index)
@@ -39,6 +50,7 @@ class Traversal:
         _check_length(self, "timestamps", self.timestamps, n)
         _check_length(self, "headings", self.headings, n)
         _check_length(self, "image_paths", self.image_paths, n)
+        _check_length(self, "names", self.names, n)
         if self.descriptors is not None:
             _check_descriptors(self, self.descriptors)
         if self.positions is not None:
@@ -47,6 +59,7 @@ class Traversal:
             if not np.isfinite(self.positions).all():
                 bad = int(np.flatnonzero(~np.isfinite(self.positions).all(axis=1))[0])
                 raise SeqvprError(f"{self._label()}: position of frame {int(self.frame_index[bad])} is not finite")
+        _settle_crs(self)
         if self.descriptors is None and self.image_paths is None:
             raise SeqvprError(f"{self._label()}: a traversal needs descriptors or image paths")
         _check_indices(self, "frame_index", self.frame_index)
@@ -91,10 +104,19 @@ class Traversal:
         return int(np.count_nonzero(np.diff(self.segment_ids))) + 1
 
     def frame_names(self) -> list[str]:
-        """A printable name per frame: the image file name, or the frame index."""
+        """A printable name per frame: its recorded name, else the image file name, else the frame index."""
+        if self.names is not None:
+            return list(self.names)
         if self.image_paths is not None:
             return [p.name for p in self.image_paths]
         return [str(int(i)) for i in self.frame_index]
+
+    def image_names(self) -> list[str] | None:
+        """What a saved map records of each image frame (``names.txt``): its recorded name, else its image path;
+        None for frames without images."""
+        if self.image_paths is None:
+            return None
+        return list(self.names) if self.names is not None else [str(p) for p in self.image_paths]
 
     def with_descriptors(self, descriptors: np.ndarray) -> Traversal:
         """The same frames with new descriptor rows (for instance after a learned transform)."""
@@ -116,6 +138,7 @@ class Traversal:
             segment_ids=np.cumsum(new_run) - 1,
             descriptors=None if self.descriptors is None else self.descriptors[rows],
             image_paths=None if self.image_paths is None else tuple(self.image_paths[i] for i in rows),
+            names=None if self.names is None else tuple(self.names[i] for i in rows),
             positions=None if self.positions is None else self.positions[rows],
             timestamps=None if self.timestamps is None else self.timestamps[rows],
             headings=None if self.headings is None else self.headings[rows],
@@ -132,6 +155,14 @@ class Traversal:
 
     def _label(self) -> str:
         return self.source or self.name
+
+
+def _settle_crs(traversal: Traversal) -> None:
+    """Positions without a coordinate system are ``local``; without positions there is none; a ``crs`` text must
+    be one ``seqvpr.data.geo`` reads."""
+    crs = None if traversal.positions is None else (traversal.crs or LOCAL)
+    parse_crs(crs, traversal._label())
+    object.__setattr__(traversal, "crs", crs)  # frozen: settled once, here
 
 
 def _check_indices(traversal: Traversal, field_name: str, values: np.ndarray) -> None:

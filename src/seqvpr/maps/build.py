@@ -6,7 +6,7 @@ The same ``FrameDescription`` describes a query later, so a query is always desc
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,6 +88,17 @@ def describe_frames(
                     extractor=description.extractor, device=device, **extraction)
 
 
+def with_default_cache(description: FrameDescription, models: Mapping[str, TrainedModel],
+                       extraction: dict[str, Any]) -> dict[str, Any]:
+    """``extraction`` with the descriptor cache folder (``seqvpr.cache``) when none is given and a network describes
+    the frames: rebuilding a map, or building one from frames already described, reads them back."""
+    if extraction.get("cache_dir") is not None or description.descriptor == "patchnorm" or image_model(models):
+        return extraction
+    from seqvpr.cache import cache_folder
+
+    return {**extraction, "cache_dir": cache_folder("descriptors")}
+
+
 def model_records(models: Mapping[str, TrainedModel]) -> dict[str, Any] | None:
     """What ``map.json`` says of the models a map's frames went through: kind, folder and weights' sha256."""
     stored = {kind: models[kind] for kind in STORED_KINDS if kind in models}
@@ -107,20 +118,26 @@ def build_map(
     device: str = "cpu",
     progress: ProgressFactory | None = None,
     frames: str | None = None,
+    loaded: Callable[[str, Traversal], None] | None = None,
     **extraction: Any,
 ) -> SavedMap:
     """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames
     through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
-    as one map (each source its own segments)."""
+    as one map (each source its own segments; the positions' ``crs`` recorded). ``loaded`` is told each source and
+    its traversal as soon as it is read (before describing), for a command to report what was read (a bag's
+    topics: ``Traversal.bag``)."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
     unusable = [kind for kind in models if kind not in STORED_KINDS]
     if unusable:
         raise SeqvprError(f"a {unusable[0]} model does not describe or transform frames; give it to seqvpr match")
+    extraction = with_default_cache(description, models, extraction)
     described = []
     for source in sources:
         traversal = slice_frame_range(load_traversal(source, "reference"), frames)
+        if loaded is not None:
+            loaded(source, traversal)
         traversal = describe_frames(traversal, description, models, device, progress, **extraction)
         described.append(transformed_frames(traversal, traversal, models, device)[0])
     whole = concatenate_traversals(described, Path(out).name)

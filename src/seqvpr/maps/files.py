@@ -9,9 +9,11 @@
     MAP/segments.npy      [N] int64 segment id (a window never spans two; each source has its own)
     MAP/sources.npy       [N] int32 row of map.json's ``sources`` each frame came from
     MAP/frame_index.npy   [N] int64 the frame's index in its source (survives --frames slicing)
-    MAP/positions.npy     [N, 2] float64 easting, northing in metres (only when every source has positions)
+    MAP/positions.npy     [N, 2] float64 easting, northing in metres (only when every source has positions), in
+                          map.json's ``crs`` (``utm:32N``: they go back to latitude/longitude; ``local``)
     MAP/timestamps.npy    [N] float64 seconds (only when every source has them); likewise headings.npy (degrees)
-    MAP/names.txt         one image path per frame (only when every source is images)
+    MAP/names.txt         one name per frame: its image path, or a bag frame's ``BAG:TOPIC@STAMP`` (only when
+                          every source is images)
 
 ``map.json`` is written last, inside a temporary folder that is renamed to MAP when complete, so a half-built
 map never carries the name. A sharded map (``shards.json`` beside ``shard-000/`` ... maps; ``seqvpr.maps.shards``
@@ -29,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from seqvpr.data.geo import LOCAL, common_crs
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.io import atomic_folder
@@ -70,6 +73,7 @@ class MapInfo:
     index: dict[str, Any] | None = None
     columns: tuple[str, ...] = field(default=())
     shard: dict[str, Any] | None = None  # in a sharded map: its number, and its rows of the whole (``shards``)
+    crs: str | None = None  # the positions' coordinate system (``seqvpr.data.geo``); None: no positions
 
     def to_json(self) -> dict[str, Any]:
         values = asdict(self)
@@ -93,11 +97,14 @@ def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Tr
         offset = int(segments[-1].max()) + 1
     column = lambda attr: (np.concatenate([getattr(t, attr) for t in traversals])  # noqa: E731
                            if all(getattr(t, attr) is not None for t in traversals) else None)
-    paths = (tuple(p for t in traversals for p in t.image_paths)
-             if all(t.image_paths is not None for t in traversals) else None)
+    images = all(t.image_paths is not None for t in traversals)
+    paths = tuple(p for t in traversals for p in t.image_paths) if images else None
+    names = tuple(n for t in traversals for n in t.image_names()) if images else None
+    positioned = all(t.positions is not None for t in traversals)
+    crs = common_crs((t.source or t.name, t.crs) for t in traversals) if positioned else None
     return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
                      np.concatenate([t.descriptors for t in traversals]), paths, column("positions"),
-                     column("timestamps"), column("headings"), source=name)
+                     column("timestamps"), column("headings"), source=name, names=names, crs=crs)
 
 
 def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSource, ...]:
@@ -107,14 +114,16 @@ def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSou
 
 
 def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
-    """Write a map folder atomically: the descriptors in ``info.dtype``, the per-frame table, ``map.json`` last."""
+    """Write a map folder atomically: the descriptors in ``info.dtype``, the per-frame table (names as
+    ``Traversal.image_names``), ``map.json`` last (its ``crs`` the frames')."""
     from seqvpr import __version__
 
     assert frames.descriptors is not None
     stored, side = encode(frames.descriptors, info.dtype)  # an unknown storage fails before anything is written
     columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns})
+    info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns,
+                      "crs": frames.crs})
     with atomic_folder(folder, INFO_FILE) as tmp:
         np.save(tmp / DESCRIPTORS_FILE, stored)
         if side is not None:
@@ -125,8 +134,9 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
                                                [s.frames for s in info.sources]))
         for column in columns:
             np.save(tmp / f"{column}.npy", np.asarray(getattr(frames, column), dtype=np.float64))
-        if frames.image_paths is not None:
-            (tmp / "names.txt").write_text("".join(f"{p}\n" for p in frames.image_paths))
+        names = frames.image_names()
+        if names is not None:
+            (tmp / "names.txt").write_text("".join(f"{n}\n" for n in names))
         (tmp / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
     return Path(folder)
 
@@ -199,9 +209,17 @@ def read_map_info(folder: str | Path) -> MapInfo:
     try:
         values["sources"] = tuple(MapSource(**s) for s in values["sources"])
         values["columns"] = tuple(values.get("columns", ()))
-        return MapInfo(**values)
+        return MapInfo(**with_crs(values))
     except (TypeError, KeyError, AttributeError) as error:
         raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
+
+
+def with_crs(values: dict[str, Any]) -> dict[str, Any]:
+    """``map.json``'s values with a ``crs``: a map written before maps recorded one is ``local`` if it has
+    positions (UTM without a zone), else None."""
+    if "crs" in values:
+        return values
+    return {**values, "crs": LOCAL if "positions" in values.get("columns", ()) else None}
 
 
 def open_map(folder: str | Path) -> SavedMap:
@@ -214,12 +232,14 @@ def open_map(folder: str | Path) -> SavedMap:
     descriptors = _stored_rows(folder, info)
     column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
     optional = {c: column(c, (info.count, 2) if c == "positions" else (info.count,), "float64") for c in info.columns}
-    names = folder / "names.txt"
-    paths = tuple(Path(line) for line in names.read_text().splitlines()) if names.is_file() else None
-    if paths is not None and len(paths) != info.count:
-        raise SeqvprError(f"{names}: {len(paths)} names for {info.count} frames")
+    names_file = folder / "names.txt"
+    names = tuple(names_file.read_text().splitlines()) if names_file.is_file() else None
+    if names is not None and len(names) != info.count:
+        raise SeqvprError(f"{names_file}: {len(names)} names for {info.count} frames")
+    paths = None if names is None else tuple(Path(name) for name in names)
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
-                       column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder), **optional)
+                       column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder),
+                       names=names, crs=info.crs, **optional)
     return SavedMap(folder, info, frames)
 
 
@@ -286,7 +306,7 @@ class ShardedMap:
         map, so every command (match, localize, map info) takes one."""
         values = {**self.info, "sources": tuple(MapSource(**s) for s in self.info["sources"]),
                   "columns": tuple(self.info.get("columns", ())), "index": None, "shard": None}
-        return SavedMap(self.folder, MapInfo(**values), map_table(self))
+        return SavedMap(self.folder, MapInfo(**with_crs(values)), map_table(self))
 
 
 def is_sharded_map(folder: str | Path) -> bool:
@@ -350,7 +370,7 @@ def map_table(sharded: ShardedMap) -> Traversal:
     """The whole map's frames from each shard's own rows (frame index, segments as in the whole map, positions,
     ...), their descriptors read through the shards (``ShardedRows``): the reference a sharded match reports."""
     shards = [sharded.open_shard(number) for number in range(len(sharded.shards))]  # each checks its own files
-    parts: dict[str, list] = {"frame_index": [], "segment_ids": [], "image_paths": [],
+    parts: dict[str, list] = {"frame_index": [], "segment_ids": [], "image_paths": [], "names": [],
                               **{c: [] for c in OPTIONAL_COLUMNS}}
     for shard, record in zip(shards, sharded.shards):
         own = slice(record.own_first - record.first, record.own_last - record.first)
@@ -361,10 +381,11 @@ def map_table(sharded: ShardedMap) -> Traversal:
     for name, values in parts.items():
         if any(v is None for v in values):
             joined[name] = None
-        elif name == "image_paths":
+        elif name in ("image_paths", "names"):
             joined[name] = tuple(p for v in values for p in v)
         else:
             joined[name] = np.concatenate(values)
     return Traversal(sharded.folder.name, joined["frame_index"], joined["segment_ids"],
                      ShardedRows(sharded, shards), joined["image_paths"], joined["positions"],
-                     joined["timestamps"], joined["headings"], source=str(sharded.folder))
+                     joined["timestamps"], joined["headings"], source=str(sharded.folder), names=joined["names"],
+                     crs=shards[0].frames.crs)

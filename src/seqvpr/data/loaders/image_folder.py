@@ -7,9 +7,9 @@ With a CSV the CSV decides which images are frames and in what order (row order)
 (case-insensitive, surrounding spaces ignored):
 
 * the image: ``name``, ``image``, ``filename`` or ``file`` (the first of these present), relative to the folder;
-* the position: ``easting`` and ``northing`` in metres, or else ``lat``/``lon`` (``latitude``/``longitude``)
-  in degrees, converted to UTM metres in the zone of the first row (so a route crossing a zone line stays in
-  one planar frame);
+* the position: ``easting`` and ``northing`` in metres (``crs`` ``local``), or else ``lat``/``lon``
+  (``latitude``/``longitude``) in degrees, converted to UTM metres in the zone of the first row (so a route
+  crossing a zone line stays in one planar frame; ``crs`` that zone, e.g. ``utm:56S``);
 * optional ``timestamp`` (seconds), ``heading`` (degrees) and ``segment`` (integer id; a change of id between
   consecutive rows is a trajectory break).
 
@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import utm
 
+from seqvpr.data.geo import LOCAL, latlon_to_utm
 from seqvpr.data.traversal import Traversal, segments_from_gaps
 from seqvpr.errors import SeqvprError
 
@@ -92,6 +92,7 @@ class _CsvRows:
     path: Path
     names: list[str]
     positions: np.ndarray
+    crs: str
     timestamps: np.ndarray | None
     headings: np.ndarray | None
     segments: np.ndarray | None
@@ -193,13 +194,14 @@ def _checked_image(
 def _csv_rows(path: Path, cols: _Columns, values: _RowValues) -> _CsvRows:
     """The parsed columns as arrays, latitude/longitude converted to UTM metres."""
     if cols.latlon:
-        positions = latlon_to_utm(path, np.asarray(values.first), np.asarray(values.second))
+        positions, crs = latlon_to_utm(np.asarray(values.first), np.asarray(values.second), path)
     else:
-        positions = np.column_stack([values.first, values.second]).astype(np.float64)
+        positions, crs = np.column_stack([values.first, values.second]).astype(np.float64), LOCAL
     return _CsvRows(
         path=path,
         names=values.names,
         positions=positions,
+        crs=crs,
         timestamps=np.asarray(values.stamps, dtype=np.float64) if cols.timestamp is not None else None,
         headings=np.asarray(values.heads, dtype=np.float64) if cols.heading is not None else None,
         segments=np.asarray(values.segs, dtype=np.int64) if cols.segment is not None else None,
@@ -279,23 +281,6 @@ def _integer(row: list[str], col: int, header: list[str], where: str) -> int:
     return int(value)
 
 
-def latlon_to_utm(path: Path, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-    """UTM (easting, northing) in metres for all rows, in the zone of the first row."""
-    bad_lat = np.flatnonzero((lat < -80.0) | (lat > 84.0))
-    if len(bad_lat):
-        row = int(bad_lat[0]) + 1
-        raise SeqvprError(f"{path}: row {row}, latitude {lat[row - 1]:g} is outside the UTM range [-80, 84]")
-    bad_lon = np.flatnonzero((lon < -180.0) | (lon > 180.0))
-    if len(bad_lon):
-        row = int(bad_lon[0]) + 1
-        raise SeqvprError(f"{path}: row {row}, longitude {lon[row - 1]:g} is outside [-180, 180]")
-    _, _, zone_number, zone_letter = utm.from_latlon(float(lat[0]), float(lon[0]))
-    easting, northing, _, _ = utm.from_latlon(
-        lat, lon, force_zone_number=zone_number, force_zone_letter=zone_letter
-    )
-    return np.column_stack([easting, northing]).astype(np.float64)
-
-
 def _traversal_from_rows(
     rows: _CsvRows, folder: Path, label: str, max_time_gap: float | None, max_distance_gap: float | None
 ) -> Traversal:
@@ -324,6 +309,7 @@ def _traversal_from_rows(
         timestamps=rows.timestamps,
         headings=rows.headings,
         source=str(folder),
+        crs=rows.crs,
     )
 
 

@@ -4,29 +4,32 @@ files), read with the pure-Python ``rosbags`` package.
 A source is ``BAG[:/image/topic][?gps=/fix|odom=/odom][&tolerance=S]`` (the CLI's ``--topic``, ``--gps-topic``,
 ``--odom-topic`` and ``--stamp-tolerance`` write it): the frames of that ``sensor_msgs/Image`` or ``CompressedImage``
 topic (the bag's only image topic when none is named), stamped by their headers. Positions come from the named
-``NavSatFix`` topic (to UTM metres) or ``nav_msgs/Odometry`` topic (x, y), else the bag's NavSatFix topic, else its
-Odometry topic, matched to each frame by the nearest stamp within ``tolerance`` seconds (frames without one are left
-out). Segments break at time gaps. The frames are decoded once into a folder of PNGs (keyed by the bag's path, size and mtime) so every
-descriptor reads them as images.
-"""
+``NavSatFix`` topic (to UTM metres, ``crs`` its zone) or ``nav_msgs/Odometry`` topic (x, y, ``crs`` ``local``),
+else the bag's NavSatFix topic, else its Odometry topic, matched to each frame by the nearest stamp within
+``tolerance`` seconds (frames without one are left out). Segments break at time gaps.
 
+Loading scans the messages and decodes no pixels: each frame's bytes are stored as an image file in a
+content-keyed cache (``frames_root``: a CompressedImage's own bytes, a raw Image as a fast lossless PNG), so a
+descriptor decodes a frame only when it reads it (``seqvpr.data.images.read_image``). The frames are named by bag,
+topic and stamp (``run1.bag:/camera/image_raw@1700000000.123456789``), never by their cache files.
+"""
 from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
+from seqvpr.data.geo import LOCAL, latlon_to_utm
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 GPS_TYPE, ODOM_TYPE = "sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry"
 TOLERANCE = 0.5  # seconds between a frame and the position fix it takes
+FRAMES_KIND = "bag-frames"  # the cache folder (seqvpr.cache) of bags' frame files
 
 
 @dataclass(frozen=True)
@@ -45,13 +48,29 @@ def is_rosbag(path: Path) -> bool:
 
 
 @dataclass(frozen=True)
+class BagReading:
+    """What loading a bag found, for a command to report: the camera topic, the position topic (None: the bag
+    gave no positions) and how many frames had no fix within ``tolerance`` seconds (left out)."""
+
+    camera_topic: str
+    position_topic: str | None
+    without_fix: int
+    tolerance: float
+
+
+@dataclass(frozen=True)
 class Recording:
-    """What a bag's topics give: frame stamps (s) and decoded images, and position fixes (stamps, [n, 2] m)."""
+    """What a bag's topics give, in stamp order: frame stamps (s, and as ``SEC.NANOSEC`` texts) and the cached
+    file of each frame; position fixes (stamps, [n, 2] m) in ``crs``; and the topics read."""
 
     stamps: np.ndarray
-    images: list[np.ndarray]
+    stamp_texts: list[str]
+    files: list[Path]
     fix_stamps: np.ndarray | None
     fixes: np.ndarray | None
+    crs: str | None
+    camera_topic: str
+    position_topic: str | None
 
 
 def parse_bag_source(text: str) -> tuple[Path, BagTopics] | None:
@@ -92,27 +111,32 @@ def bag_source(path: str | Path, topics: BagTopics) -> str:
 
 
 def load_rosbag(path: str | Path, topics: BagTopics = BagTopics(), frames_dir: str | Path | None = None) -> Traversal:
-    """The bag's image topic as a traversal of PNG frames with header timestamps, positions and time-gap segments."""
+    """The bag's image topic as a traversal of cached frame files (no pixel decoded) named ``BAG:TOPIC@STAMP``, with
+    header timestamps, positions and their ``crs``, time-gap segments and what was read (``bag``)."""
     from seqvpr.data.loaders.dbstruct import time_gap_segments
 
     path = Path(path)
-    recording = read_recording(path, topics)
+    recording = read_recording(path, topics, Path(frames_dir) if frames_dir is not None else frames_root())
     keep, positions = _positions(recording, topics.tolerance, path)
-    folder = Path(frames_dir) if frames_dir is not None else _frames_folder(path, topics.image)
-    paths = _write_frames(folder, keep, recording.images)
     stamps = recording.stamps[keep]
+    names = tuple(f"{path}:{recording.camera_topic}@{recording.stamp_texts[i]}" for i in keep)
+    reading = BagReading(recording.camera_topic, recording.position_topic if positions is not None else None,
+                         len(recording.stamps) - len(keep), topics.tolerance)
     return Traversal(f"{path.stem}{topics.image or ''}".replace("/", "_"), np.asarray(keep, np.int64),
-                     time_gap_segments(stamps), None, paths, positions, stamps, source=str(path))
+                     time_gap_segments(stamps), None, tuple(recording.files[i] for i in keep), positions, stamps,
+                     source=str(path), names=names, crs=recording.crs, bag=reading)
 
 
-def read_recording(path: Path, topics: BagTopics = BagTopics()) -> Recording:
-    """Every frame of the image topic and every fix of the position topic, in stamp order."""
+def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | None = None) -> Recording:
+    """Every frame of the image topic (stored in ``folder``, by default ``frames_root()``) and every fix of the
+    position topic, in stamp order."""
     from rosbags.highlevel import AnyReader
 
+    folder = frames_root() if folder is None else folder
     try:
         with AnyReader([path]) as reader:
             image = _one_topic(reader, IMAGE_TYPES, topics.image, path, "image")
-            frames = [(_stamp(m), _decode(m, path)) for m in _messages(reader, image)]
+            frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
             position = _position_topic(reader, topics, path)
             fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
     except (OSError, ValueError, KeyError) as error:
@@ -125,9 +149,10 @@ def read_recording(path: Path, topics: BagTopics = BagTopics()) -> Recording:
         raise SeqvprError(f"{path}: topic {image.topic} holds no frames")
     frames.sort(key=lambda f: f[0])
     fixes = [f for f in sorted(fixes, key=lambda f: f[0]) if np.all(np.isfinite(f[1]))]
-    return Recording(np.array([f[0] for f in frames]), [f[1] for f in frames],
-                     np.array([f[0] for f in fixes]) if fixes else None,
-                     _metres(np.array([f[1] for f in fixes]), position, path) if fixes else None)
+    metres, crs = _metres(np.array([f[1] for f in fixes]), position, path) if fixes else (None, None)
+    return Recording(np.array([f[0] for f in frames]), [f[1] for f in frames], [f[2] for f in frames],
+                     np.array([f[0] for f in fixes]) if fixes else None, metres, crs, image.topic,
+                     position.topic if position else None)
 
 
 def _one_topic(reader, types: tuple[str, ...], topic: str | None, path: Path, what: str):
@@ -164,6 +189,11 @@ def _stamp(message) -> float:
     return float(message.header.stamp.sec) + 1e-9 * float(message.header.stamp.nanosec)
 
 
+def _stamp_text(message) -> str:
+    """The header stamp exactly, ``SEC.NANOSEC`` (nine digits): a frame's name, which a float would round."""
+    return f"{int(message.header.stamp.sec)}.{int(message.header.stamp.nanosec):09d}"
+
+
 def _fix(message) -> np.ndarray:
     """(latitude, longitude) of a NavSatFix, or (x, y) of an Odometry pose."""
     if hasattr(message, "latitude"):
@@ -172,24 +202,51 @@ def _fix(message) -> np.ndarray:
     return np.array([position.x, position.y], dtype=np.float64)
 
 
-def _metres(values: np.ndarray, connection, path: Path) -> np.ndarray:
-    """Fixes in metres: NavSatFix latitude/longitude to UTM (the first fix's zone), odometry as it is."""
+def _metres(values: np.ndarray, connection, path: Path) -> tuple[np.ndarray, str]:
+    """Fixes in metres and their ``crs``: NavSatFix latitude/longitude to UTM (the first fix's zone), odometry as
+    it is (``local``)."""
     if connection.msgtype != GPS_TYPE:
-        return values
-    from seqvpr.data.loaders.image_folder import latlon_to_utm
-
-    return latlon_to_utm(path, values[:, 0], values[:, 1])
+        return values, LOCAL
+    return latlon_to_utm(values[:, 0], values[:, 1], f"{path}: {connection.topic}")
 
 
-def _decode(message, path: Path) -> np.ndarray:
-    """An RGB (or gray) uint8 array from an Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16) or CompressedImage."""
-    if hasattr(message, "format"):
-        import io
+def _frame_file(message, folder: Path, path: Path) -> Path:
+    """The cached image file of a frame message, written if absent: a CompressedImage's bytes as they are, a raw
+    Image as a fast lossless PNG; named by the sha256 of the message's bytes and format, so any bag holding the
+    same frame finds it."""
+    compressed = hasattr(message, "format")
+    kind = (str(message.format) if compressed else
+            f"{message.encoding}|{message.height}|{message.width}|{message.step}|{message.is_bigendian}")
+    digest = hashlib.sha256(kind.encode() + b"\0")
+    digest.update(memoryview(np.ascontiguousarray(message.data)))
+    key = digest.hexdigest()
+    file = folder / key[:2] / f"{key}{_suffix(message.format) if compressed else '.png'}"
+    if not file.is_file():
+        _write_frame(file, message, compressed, path)
+    return file
 
-        from seqvpr.data.images import to_8bit
 
-        with Image.open(io.BytesIO(bytes(message.data))) as image:
-            return np.asarray(to_8bit(image, "RGB"))
+def _suffix(image_format: str) -> str:
+    """The file suffix of a CompressedImage ``format`` (``jpeg``, ``png``, ``bgr8; jpeg compressed bgr8``, ...)."""
+    text = image_format.lower()
+    return ".png" if "png" in text else ".jpg" if ("jpeg" in text or "jpg" in text) else ".img"
+
+
+def _write_frame(file: Path, message, compressed: bool, path: Path) -> None:
+    """Write one frame's file atomically (a half-written file never carries the name)."""
+    from PIL import Image
+
+    from seqvpr.io import atomic_write
+
+    with atomic_write(file, "wb") as handle:
+        if compressed:
+            handle.write(memoryview(np.ascontiguousarray(message.data)))
+        else:
+            Image.fromarray(_raw_pixels(message, path)).save(handle, format="PNG", compress_level=1)
+
+
+def _raw_pixels(message, path: Path) -> np.ndarray:
+    """An RGB (or gray) uint8 array of a raw Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16: its high byte)."""
     data, encoding = np.frombuffer(bytes(message.data), np.uint8), message.encoding
     h, w, step = int(message.height), int(message.width), int(message.step)
     channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2}.get(encoding)
@@ -221,29 +278,10 @@ def _positions(recording: Recording, tolerance: float, path: Path) -> tuple[list
     return keep.tolist(), recording.fixes[pick[keep]]
 
 
-def _frames_folder(path: Path, topic: str | None) -> Path:
-    """Where a bag's frames are decoded: a folder keyed by the bag's path, size, mtime and topic."""
-    stat = path.stat() if path.is_file() else (path / "metadata.yaml").stat()
-    key = hashlib.sha256(f"{path.absolute()}|{stat.st_size}|{stat.st_mtime_ns}|{topic}".encode()).hexdigest()[:16]
-    return _frames_root() / key
+def frames_root() -> Path:
+    """The folder of bags' frame files: ``$SEQVPR_BAG_FRAMES`` if set and non-empty, else the cache folder
+    ``bag-frames`` (``seqvpr.cache``)."""
+    from seqvpr.cache import cache_folder
 
-
-def _frames_root() -> Path:
-    """The folder of decoded bag frames: ``$SEQVPR_BAG_FRAMES``, else ``seqvpr-bag-frames`` in the temp folder."""
     chosen = os.environ.get("SEQVPR_BAG_FRAMES", "").strip()  # set but empty: as unset, never the current folder
-    return Path(chosen) if chosen else Path(tempfile.gettempdir()) / "seqvpr-bag-frames"
-
-
-def _write_frames(folder: Path, keep: list[int], images: list[np.ndarray]) -> tuple[Path, ...]:
-    """The kept frames as PNGs named by their place in the topic, in ``folder`` (each written once, atomically)."""
-    from seqvpr.io import atomic_write
-
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for i in keep:
-        file = folder / f"{i:06d}.png"
-        if not file.exists():
-            with atomic_write(file, "wb") as handle:
-                Image.fromarray(images[i]).save(handle, format="PNG")
-        paths.append(file)
-    return tuple(paths)
+    return Path(chosen).expanduser() if chosen else cache_folder(FRAMES_KIND)

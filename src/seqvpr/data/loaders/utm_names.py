@@ -1,8 +1,9 @@
 """Folders whose image names carry UTM positions (VPR-datasets-downloader, VPR-methods-evaluation, gsv-cities).
 
 A name reads ``@UTM_east@UTM_north@zone_number@zone_letter@lat@lon@pano_id@tile@heading@pitch@roll@height@
-timestamp@note@.jpg``; after splitting on ``@`` field 1 is the easting, 2 the northing, 9 the heading and 13 the
-timestamp. Only fields 1 and 2 are required. The sequence layout of JIST/SeqVLAD (MSLS reformatted),
+timestamp@note@.jpg``; after splitting on ``@`` field 1 is the easting, 2 the northing, 3 and 4 the zone, 9 the
+heading and 13 the timestamp. Only fields 1 and 2 are required; when every name carries the same zone the
+traversal's ``crs`` is that zone (``utm:32N``), else ``local``. The sequence layout of JIST/SeqVLAD (MSLS reformatted),
 ``@east@north@seq_id@frame_num@pano_id@city@timestamp@.jpg``, is recognised by having fewer than 13 fields and an
 integer field 4: frames are then ordered by that frame number, and a jump in it starts a new segment (JIST only
 builds windows over consecutive frame numbers).
@@ -22,12 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from seqvpr.data.geo import LOCAL, utm_crs
 from seqvpr.data.loaders.image_folder import is_image_name, natural_key
 from seqvpr.data.traversal import Traversal, segments_from_gaps
 from seqvpr.errors import SeqvprError
 
 ROLE_FOLDERS = {"reference": "database", "query": "queries"}
-_EAST, _NORTH, _FRAME_NUMBER, _HEADING, _TIMESTAMP = 1, 2, 4, 9, 13
+_EAST, _NORTH, _ZONE, _FRAME_NUMBER, _HEADING, _TIMESTAMP = 1, 2, 3, 4, 9, 13
 
 
 @dataclass(frozen=True)
@@ -41,6 +43,7 @@ class _Frame:
     heading: float | None
     timestamp: float | None
     frame_number: int | None = None
+    crs: str | None = None
 
 
 def load_utm_named_folder(
@@ -150,9 +153,21 @@ def _gather_frames(images_dir: Path) -> list[_Frame]:
                 heading=_optional_field(fields, _HEADING),
                 timestamp=_optional_field(fields, _TIMESTAMP),
                 frame_number=_sequence_frame_number(fields),
+                crs=_zone(fields),
             )
         )
     return frames
+
+
+def _zone(fields: list[str]) -> str | None:
+    """The ``crs`` of the name's zone number and letter (fields 3 and 4, e.g. ``32@T``: ``utm:32N``), or None when
+    the name carries no valid zone (the short sequence layout has other fields there)."""
+    if len(fields) < _TIMESTAMP or not fields[_ZONE].isdigit() or not 1 <= int(fields[_ZONE]) <= 60:
+        return None
+    letter = fields[_ZONE + 1].strip().upper()
+    if len(letter) != 1 or letter not in "CDEFGHJKLMNPQRSTUVWX":
+        return None
+    return utm_crs(int(fields[_ZONE]), letter >= "N")
 
 
 def _sequence_frame_number(fields: list[str]) -> int | None:
@@ -204,4 +219,11 @@ def _traversal(frames: list[_Frame], images_dir: Path, label: str, max_distance_
         headings=None if None in headings else np.asarray(headings, dtype=np.float64),
         timestamps=None if None in stamps else np.asarray(stamps, dtype=np.float64),
         source=str(images_dir),
+        crs=_one_zone(frames),
     )
+
+
+def _one_zone(frames: list[_Frame]) -> str:
+    """The frames' UTM zone when every name carries the same one, else ``local`` (easting/northing of no one zone)."""
+    zones = {f.crs for f in frames}
+    return zones.pop() if len(zones) == 1 and None not in zones else LOCAL
