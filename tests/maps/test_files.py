@@ -194,3 +194,29 @@ def test_shards_carry_the_coordinate_system_and_the_frame_names(tmp_path):
     whole = open_map(tmp_path / "s")
     assert whole.info.crs == whole.frames.crs == "utm:55S" and whole.frames.frame_names() == list(names)
     assert open_map(tmp_path / "s" / "shard-001").info.crs == "utm:55S"
+
+
+def test_build_map_reads_frames_a_network_described_before_from_the_cache(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from seqvpr.cache import cache_folder
+    from seqvpr.features import extraction
+    from seqvpr.features.extraction import ExtractorConfig
+    from seqvpr.maps import FrameDescription, build_map
+
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(images / f"{i}.png")
+    description = FrameDescription("efficientnet-lite0", extractor=ExtractorConfig(width=32, height=24))
+    first = build_map([str(images)], tmp_path / "a", description)
+    assert len(list(cache_folder("descriptors").glob("*.npz"))) == 1
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("described again")
+
+    monkeypatch.setattr(extraction, "_prepare_model", no_network)
+    second = build_map([str(images)], tmp_path / "b", description)
+    np.testing.assert_array_equal(np.asarray(first.descriptors), np.asarray(second.descriptors))
