@@ -5,6 +5,7 @@ stamp, and that a map built from a bag outlives the frame cache and gives its fi
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 
@@ -347,3 +348,17 @@ def test_a_maps_positions_go_back_to_the_latitudes_and_longitudes_it_was_built_f
     assert saved.info.crs == saved.frames.crs == "utm:56S"
     back = utm_to_latlon(saved.frames.positions, saved.info.crs)
     np.testing.assert_allclose(back, np.c_[lat, lon], rtol=0, atol=1e-6)
+    from seqvpr.localization import Localizer
+
+    localizer = Localizer.open(tmp_path / "m", seq_len=1, threshold=0.0)  # every scored frame localised
+    for i in (2, 5):
+        estimate = localizer.update(images[i])
+        assert estimate.index == i and estimate.latlon == pytest.approx((lat[i], lon[i]), abs=1e-6)
+    code, _, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", source, "-L", "1",
+                           "--threshold", "0", "--radius", "5m", "--out", tmp_path / "o")
+    assert code == 0, err
+    rows = [r for r in csv.DictReader(open(tmp_path / "o" / "stream.csv")) if r["status"] == "localised"]
+    assert len(rows) == 8
+    for r in rows:
+        row = int(r["localised_row"])
+        assert (float(r["latitude"]), float(r["longitude"])) == pytest.approx((lat[row], lon[row]), abs=1e-6)

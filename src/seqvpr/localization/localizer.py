@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import torch
 
+from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
@@ -217,16 +218,21 @@ class Localizer:
         latency = {"describe": describe_ms, "distance": scored.distance_ms, "sequence": scored.sequence_ms,
                    "total": (time.perf_counter() - started) * 1e3}
         index = best if status == "localised" else None
-        return Estimate(self.frame, index, best, scored.score, status, scored.indices, scored.distances,
-                        *self._place(index), timestamp, latency)
+        position, name, latlon = self._place(index)
+        return Estimate(self.frame, index, best, scored.score, status, scored.indices, scored.distances, position,
+                        name, timestamp, latency, latlon=latlon)
 
-    def _place(self, row: int | None) -> tuple[tuple[float, ...] | None, str | None]:
-        """The map frame's position and name, where the map has them (none for no frame)."""
+    def _place(self, row: int | None) -> tuple[tuple[float, ...] | None, str | None, tuple[float, float] | None]:
+        """The map frame's position, name and latitude/longitude, where the map has them (none for no frame)."""
         frames = self.saved.frames
         if row is None:
-            return None, None
-        position = None if frames.positions is None else tuple(float(v) for v in frames.positions[row])
-        return position, None if frames.image_paths is None else str(frames.image_paths[row])
+            return None, None, None
+        name = frames.names[row] if frames.names is not None else None
+        if frames.positions is None:
+            return None, name, None
+        position = tuple(float(v) for v in frames.positions[row])
+        latlon = utm_to_latlon(frames.positions[row], frames.crs)
+        return position, name, None if latlon is None else (float(latlon[0, 0]), float(latlon[0, 1]))
 
     def save_state(self, path: str | Path) -> None:
         """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``)."""

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seqvpr.data.geo import utm_to_latlon
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -161,27 +162,30 @@ def latency_percentiles(run: Replay) -> dict[str, dict[str, float]]:
 
 
 STREAM_COLUMNS = ("frame", "query_frame", "timestamp", "status", "score", "localised_row", "localised_frame", "x", "y",
-                  "best_row", "best_frame", "kept", *(f"{s}_ms" for s in STAGES), "correct")
+                  "latitude", "longitude", "best_row", "best_frame", "kept", *(f"{s}_ms" for s in STAGES), "correct")
 
 
 def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.ndarray | None = None) -> None:
     """One row per query frame: status and score; the localised map frame (as a map row and as a frame of its
-    source, the numbering ``predictions.csv`` uses) and its position, empty unless the frame is localised; the
+    source, the numbering ``predictions.csv`` uses) and its position (and latitude/longitude when the map's
+    positions are UTM), empty unless the frame is localised; the
     best-scoring map frame whatever the status (empty while warming up); latencies; whether the best is right."""
     with atomic_write(path, newline="") as handle:
         out = csv.writer(handle)
         out.writerow(STREAM_COLUMNS)
+        latlon = None if reference.positions is None else utm_to_latlon(reference.positions, reference.crs)
         for i in range(len(run.best)):
-            out.writerow(_stream_row(run, reference, right, i))
+            out.writerow(_stream_row(run, reference, latlon, right, i))
 
 
-def _stream_row(run: Replay, reference: Traversal, right: np.ndarray | None, i: int) -> list:
+def _stream_row(run: Replay, reference: Traversal, latlon: np.ndarray | None, right: np.ndarray | None, i: int) -> list:
     stamp = "" if run.query.timestamps is None else f"{run.query.timestamps[i]:.6f}"
     localised, best = int(run.index[i]), int(run.best[i])
     row = lambda r: "" if r < 0 else r  # noqa: E731
     source = lambda r: "" if r < 0 else int(reference.frame_index[r])  # noqa: E731
     where = ["", ""] if localised < 0 or reference.positions is None else \
         [f"{v:.3f}" for v in reference.positions[localised][:2]]
+    where += ["", ""] if localised < 0 or latlon is None else [f"{v:.8f}" for v in latlon[localised]]
     score = "" if not run.scored[i] else f"{run.score[i]:.6f}"
     ok = "" if right is None or not run.scored[i] else int(right[i])
     return [i, int(run.query.frame_index[i]), stamp, run.status[i], score, row(localised), source(localised), *where,
