@@ -141,6 +141,7 @@ def _calibrate(o: dict[str, Any], localizer, run, gt) -> None:
     found = find_threshold(run.score[usable], correct_best(run, gt)[usable], o["target_precision"])
     record = {"threshold": found.threshold, "target_precision": o["target_precision"], "precision": found.precision,
               "recall": found.recall, "reached": found.reached, "calibration": str(o["query"]),
+              "query_frames": o["frames"], "radius": o["radius"], "ground_truth": o["gt_file"],
               "frames": int(usable.sum()), "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     store_calibration(o["map_dir"], localizer.settings, record)
     if o["as_json"]:
@@ -164,7 +165,7 @@ def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
     with atomic_write(out / "run.json") as handle:
         json.dump(summary, handle, indent=2)
     if scores is not None:
-        _write_page(out / "report", summary, run, gt, localizer.threshold)
+        _write_page(out / "report", summary, run, gt, o, localizer)
     click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
 
 
@@ -208,19 +209,23 @@ def _summary_text(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _write_page(folder: Path, summary: dict[str, Any], run, gt, threshold: float) -> None:
+def _write_page(folder: Path, summary: dict[str, Any], run, gt, o: dict[str, Any], localizer) -> None:
+    """The report page: the replay as plain arrays, the threshold and where it came from, the measures."""
     import numpy as np
 
-    from seqvpr.evaluation.plots import plot_localisation
-    from seqvpr.evaluation.report import write_localisation_report
-    from seqvpr.localization.replay import correct_best
+    from seqvpr.evaluation.localisation_report import (
+        LocalisationTrace, describe_replay, describe_threshold, localisation_metric_rows, write_localisation_report,
+    )
+    from seqvpr.localization.localizer import read_calibrations
+    from seqvpr.localization.replay import STAGES, correct_best
 
-    right = correct_best(run, gt)
     truth = np.array([p[len(p) // 2] if len(p) else -1 for p in (gt.positives_of(i) for i in range(len(run.best)))])
-    rows = [(k, f"{v:.3f}" if isinstance(v, float) else str(v)) for k, v in summary.items()
-            if k in ("frames", "threshold", "pr_auc", "recall_at_100_precision", "precision_at_threshold",
-                     "recall_at_threshold")]
-    rows += [(f"R@{k}", f"{v:.3f}") for k, v in summary["recall"].items()]
-    write_localisation_report(folder, title="seqvpr localisation", summary=_summary_text(summary), rows=rows,
-                              draw=lambda path: plot_localisation(run.best, truth, right, run.index >= 0, run.score,
-                                                                  threshold, path))
+    trace = LocalisationTrace(run.query.frame_index, run.index, run.best, run.status, run.score, run.latency, STAGES,
+                              correct_best(run, gt), truth, run.query.timestamps, localizer.saved.frames.positions,
+                              run.query.positions)
+    calibration = next((c for c in read_calibrations(o["map_dir"]) if c.get("settings") == localizer.settings.key()),
+                       None)
+    source = describe_threshold(localizer.settings.method, o["threshold"] is not None, calibration)
+    write_localisation_report(folder, title="seqvpr localisation", summary=describe_replay(summary), trace=trace,
+                              threshold=localizer.threshold, threshold_source=source,
+                              metrics=localisation_metric_rows(summary))
