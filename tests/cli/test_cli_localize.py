@@ -49,7 +49,9 @@ def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, 
     assert all(r["localised_row"] == r["x"] == r["y"] == "" and r["best_row"] != "" for r in rows
                if r["status"] in ("uncertain", "lost"))
     assert trusted[0]["best_frame"] == trusted[0]["best_row"]  # one source, numbered from 0
-    assert (tmp_path / "o" / "report" / "index.html").exists()
+    report = tmp_path / "o" / "report"
+    assert (report / "index.html").exists() and (report / "localisation.png").exists() and (report / "map.png").exists()
+    assert "calibrated on " in (report / "index.html").read_text()
 
 
 def test_an_uncalibrated_threshold_says_so(route, tmp_path, monkeypatch, capsys):
@@ -85,3 +87,33 @@ def test_bad_localize_options_are_one_line(route, tmp_path, monkeypatch, capsys,
                            "--out", tmp_path / "o")
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_report_counts_each_status_as_the_summary_does(route, tmp_path, monkeypatch, capsys):
+    import re
+
+    from seqvpr.evaluation import localisation_report
+    from seqvpr.evaluation.localisation_plots import legend_label
+
+    drawn: dict[str, list[str]] = {}
+    for name in ("plot_map_view", "plot_over_time"):
+        original = getattr(localisation_report, name)
+        monkeypatch.setattr(localisation_report, name,
+                            lambda *a, _f=original, _n=name: drawn.setdefault(_n, _f(*a)))
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    code, out, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", route / "qry.npz",
+                             "--radius", "10m", "--out", tmp_path / "o", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    status = summary["status"]
+    page = (tmp_path / "o" / "report" / "index.html").read_text()
+    table = page[page.index('class="recall status"'):]
+    shown = {name: int(n) for name, n in re.findall(r"</span>([^<]+)</td><td>(\d+)</td>", table[:table.index("</table>")])}
+    by_status = {s: sum(n for name, n in shown.items() if name.split(",")[0] == s) for s in status}
+    assert by_status == status and sum(shown.values()) == 120
+    assert shown.get("localised, correct", 0) == summary["localised_correct"]
+    assert shown.get("localised, wrong", 0) + shown.get("localised, no true place (wrong)", 0) == \
+        summary["localised_wrong"]
+    assert drawn["plot_map_view"] == drawn["plot_over_time"] == [legend_label(k, v) for k, v in shown.items()]
+    assert "the default for matching, not calibrated on this map" in page and "Recall@1" in page and "pr_auc" not in page
+    assert "trusted" not in page

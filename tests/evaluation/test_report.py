@@ -315,3 +315,38 @@ def test_large_matrix_draws_quickly(tmp_path):
     with Image.open(tmp_path / "big.png") as img:
         assert img.width <= 1000 and img.height <= 1000
     assert elapsed < 10.0, f"drawing took {elapsed:.1f} s"
+
+
+@pytest.mark.parametrize("n", [3, 10, 20, 30])
+def test_every_method_gets_its_own_colour(n):
+    names = [f"method {i}" for i in range(n)]
+    colours = report.method_colours(names)
+    assert list(colours) == names
+    assert len(set(colours.values())) == n
+
+
+def test_table_swatches_use_the_method_colours(tmp_path, images):
+    methods = [make_method(f"m{i}", 0.1 * i) for i in range(10)]
+    text = full_report(tmp_path / "report", images, methods=methods).read_text(encoding="utf-8")
+    colours = report.method_colours([m.name for m in methods])
+    assert all(f"background:{colours[m.name]}" in text for m in methods)
+
+
+def test_examples_of_two_methods_share_the_query_cell_and_name_the_method(tmp_path, images):
+    single, sequence = make_examples(images)
+    examples = [dataclasses.replace(single, method="single image"),
+                dataclasses.replace(single, match_correct=[True] * 3, method="sequence matching L=5")]
+    index = full_report(tmp_path / "report", images, examples=examples,
+                        methods=[make_method("single image", 0.3), make_method("sequence matching L=5", 0.6)])
+    page = parse(index)
+    text = index.read_text(encoding="utf-8")
+    assert page.classes.count("query") == 1 and "grid-row: span 2" in text
+    assert page.classes.count("method") == 2 and "sequence matching L=5</div>" in text
+    assert page.classes.count("correct") == 2 + 3 and page.classes.count("wrong") == 1
+
+
+def test_distance_views_say_what_their_colours_and_axes_show(tmp_path, images):
+    view = dataclasses.replace(make_view(), distance_label="sequence distance (mean of 5 frame distances)",
+                               query_label="query frame (night)")
+    text = full_report(tmp_path / "report", images, distance_views=[view]).read_text(encoding="utf-8")
+    assert "sequence distance (mean of 5 frame distances) between query frame (night) (row)" in text

@@ -26,3 +26,21 @@ def test_the_threshold_is_the_lowest_that_reaches_the_target(pairs, target):
 def test_bad_targets_and_empty_calibrations_are_one_line():
     raises_one_line("--target-precision must be in (0, 1]", find_threshold, np.ones(3), np.ones(3, bool), 1.5)
     raises_one_line("no frame of the calibration traversal", find_threshold, np.zeros(0), np.zeros(0, bool), 0.9)
+
+
+def test_a_threshold_says_where_it_came_from(tmp_path):
+    from seqvpr.localization.localizer import (
+        LocalizerSettings, calibration_source, store_calibration, stored_threshold,
+    )
+
+    settings = LocalizerSettings()
+    assert stored_threshold(tmp_path, settings) == (
+        0.1, "the default for matching, not calibrated on this map (seqvpr localize --calibrate)")
+    record = {"threshold": 0.3, "calibration": "winter", "query_frames": "17:400", "ground_truth": "radius 1f",
+              "target_precision": 0.99, "precision": 0.991, "reached": True, "created": "2026-11-26T10:00:00+00:00"}
+    assert calibration_source(record) == ("calibrated on winter frames 17:400, ground truth radius 1f, target "
+                                          "precision 0.99 reached (0.991), 2026-11-26T10:00:00+00:00")
+    assert "NOT reached" in calibration_source({**record, "reached": False})
+    store_calibration(tmp_path, settings, record)
+    assert stored_threshold(tmp_path, settings) == (0.3, calibration_source({"settings": settings.key(), **record}))
+    assert stored_threshold(tmp_path, LocalizerSettings(method="hmm"))[0] == 0.5

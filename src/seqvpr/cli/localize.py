@@ -174,7 +174,7 @@ def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
     with atomic_write(out / "run.json") as handle:
         json.dump(summary, handle, indent=2)
     if scores is not None:
-        _write_page(out / "report", summary, run, gt)
+        _write_page(out / "report", summary, run, gt, localizer)
     click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
 
 
@@ -220,19 +220,19 @@ def _summary_text(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _write_page(folder: Path, summary: dict[str, Any], run, gt) -> None:
+def _write_page(folder: Path, summary: dict[str, Any], run, gt, localizer) -> None:
+    """The report page: the replay as plain arrays, the threshold and where it came from, the measures."""
     import numpy as np
 
-    from seqvpr.evaluation.plots import plot_localisation
-    from seqvpr.evaluation.report import write_localisation_report
-    from seqvpr.localization.replay import correct_best
+    from seqvpr.evaluation.localisation_report import (
+        LocalisationTrace, describe_replay, localisation_metric_rows, write_localisation_report,
+    )
+    from seqvpr.localization.replay import STAGES, correct_best
 
-    right = correct_best(run, gt)
     truth = np.array([p[len(p) // 2] if len(p) else -1 for p in (gt.positives_of(i) for i in range(len(run.best)))])
-    rows = [(k, f"{v:.3f}" if isinstance(v, float) else str(v)) for k, v in summary.items()
-            if k in ("frames", "threshold", "pr_auc", "recall_at_100_precision", "precision_of_localised",
-                     "recall_of_localised")]
-    rows += [(f"R@{k}", f"{v:.3f}") for k, v in summary["recall"].items()]
-    write_localisation_report(folder, title="seqvpr localisation", summary=_summary_text(summary), rows=rows,
-                              draw=lambda path: plot_localisation(run.best, truth, right, run.localised, run.score,
-                                                                  run.threshold, path))
+    trace = LocalisationTrace(run.query.frame_index, run.index, run.best, run.status, run.score, run.latency, STAGES,
+                              correct_best(run, gt), truth, run.query.timestamps, localizer.saved.frames.positions,
+                              run.query.positions)
+    write_localisation_report(folder, title="seqvpr localisation", summary=describe_replay(summary), trace=trace,
+                              threshold=run.threshold, threshold_source=run.threshold_source,
+                              metrics=localisation_metric_rows(summary))

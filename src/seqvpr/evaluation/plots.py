@@ -18,7 +18,7 @@ from matplotlib import colormaps
 from matplotlib.artist import Artist
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.colors import Colormap
+from matplotlib.colors import Colormap, to_hex
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
@@ -33,14 +33,34 @@ CORRECT_COLOUR = "#2ca02c"
 WRONG_COLOUR = "#d62728"
 GT_COLOUR = "#1f9bff"
 NO_WINDOW_COLOUR = "#d9d9d9"
-METHOD_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+LEGEND_COLUMNS = 2  # columns of the method legends below the curves
 
 Extent = tuple[float, float, float, float]
 
 
-def method_colours(methods: Sequence[MethodResult]) -> dict[str, str]:
-    """One colour per method name, in order, so a method looks the same in every plot and in the table."""
-    return {m.name: METHOD_COLOURS[i % len(METHOD_COLOURS)] for i, m in enumerate(methods)}
+def method_colours(names: Sequence[str]) -> dict[str, str]:
+    """One distinct colour per method name, in order, so a method looks the same in the table and every plot:
+    tab10 up to 10 methods, tab20 up to 20, else evenly spaced samples of turbo."""
+    n = len(names)
+    if n <= 10:
+        rgba = [colormaps["tab10"](i) for i in range(n)]
+    elif n <= 20:
+        rgba = [colormaps["tab20"](i) for i in range(n)]
+    else:
+        rgba = list(colormaps["turbo"](np.linspace(0.0, 1.0, n)))
+    return {name: to_hex(colour) for name, colour in zip(names, rgba)}
+
+
+def legend_below(fig: Figure, ax: Axes, n_entries: int) -> None:
+    """The axes' legend under the plot, outside the curves, in up to ``LEGEND_COLUMNS`` columns."""
+    if n_entries:
+        fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=min(n_entries, LEGEND_COLUMNS),
+                   frameon=False, fontsize=8, handlelength=1.5, columnspacing=1.0)
+
+
+def legend_height(n_entries: int) -> float:
+    """Inches a figure grows by to hold a legend of ``n_entries`` below its axes."""
+    return 0.25 * math.ceil(n_entries / LEGEND_COLUMNS)
 
 
 def new_figure(width: float, height: float) -> Figure:
@@ -60,7 +80,7 @@ def save_figure(fig: Figure, path: Path) -> None:
 
 def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
     """Recall@K against K, one line per method; log-x once K reaches 10 so the small Ks stay readable."""
-    fig = new_figure(5.6, 4.2)
+    fig = new_figure(5.6, 4.2 + legend_height(len(methods)))
     ax = fig.add_subplot()
     k_max = 1
     for m in methods:
@@ -82,14 +102,13 @@ def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], p
     ax.set_ylabel("recall")
     ax.set_title("Recall@K")
     ax.grid(True, which="major", alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right", frameon=True)
+    legend_below(fig, ax, len(ax.get_legend_handles_labels()[0]))
     save_figure(fig, path)
 
 
 def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
     """Precision against recall of the top-1 match over all distance thresholds, one line per method."""
-    fig = new_figure(5.6, 4.2)
+    fig = new_figure(5.6, 4.2 + legend_height(len(methods)))
     ax = fig.add_subplot()
     for m in methods:
         recall, precision = np.asarray(m.recall, float), np.asarray(m.precision, float)
@@ -105,8 +124,7 @@ def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], pat
     ax.set_ylabel("precision")
     ax.set_title("Precision–recall (top-1 match)")
     ax.grid(True, alpha=0.3)
-    if methods:
-        ax.legend(loc="lower left", frameon=True)
+    legend_below(fig, ax, len(methods))
     save_figure(fig, path)
 
 
@@ -161,7 +179,7 @@ def plot_distance_view(view: DistanceView, path: Path) -> None:
     aspect = n_q / max(n_r, 1)
     fig = new_figure(7.0, float(np.clip(7.0 * aspect, 4.5, 7.5)) + 0.4)
     ax = fig.add_subplot()
-    _draw_matrix(fig, ax, drawn, extent)
+    _draw_matrix(fig, ax, drawn, extent, view.distance_label)
     handles = _draw_positives(ax, pos_drawn, steps, extent)
     handles += _draw_top1(ax, top1, correct, n_q)
     if (~np.isfinite(distances)).all(axis=1).any():
@@ -169,21 +187,22 @@ def plot_distance_view(view: DistanceView, path: Path) -> None:
 
     ax.set_xlim(-0.5, n_r - 0.5)
     ax.set_ylim(n_q - 0.5, -0.5)
-    ax.set_xlabel("reference frame")
-    ax.set_ylabel("query frame")
+    ax.set_xlabel(view.reference_label)
+    ax.set_ylabel(view.query_label)
     ax.set_title(_distance_title(view.title, steps))
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), frameon=False, fontsize=9)
     save_figure(fig, path)
 
 
-def _draw_matrix(fig: Figure, ax: Axes, drawn: np.ndarray, extent: Extent) -> None:
-    """The (block-reduced) distances as an image with a colour bar; undefined cells in the 'no distance' grey."""
+def _draw_matrix(fig: Figure, ax: Axes, drawn: np.ndarray, extent: Extent, label: str) -> None:
+    """The (block-reduced) distances as an image with a colour bar saying what they are (``label``); undefined cells
+    in the 'no distance' grey."""
     vmin, vmax = colour_limits(drawn)
     image = ax.imshow(
         np.ma.masked_invalid(drawn), cmap=_matrix_colormap(), vmin=vmin, vmax=vmax, origin="upper", extent=extent,
         aspect="auto", interpolation="antialiased",
     )
-    fig.colorbar(image, ax=ax, label="distance", shrink=0.9, pad=0.02)
+    fig.colorbar(image, ax=ax, label=textwrap.fill(label, 45), shrink=0.9, pad=0.02)
 
 
 def _draw_positives(ax: Axes, pos_drawn: np.ndarray, steps: tuple[int, int], extent: Extent) -> list[Artist]:
@@ -235,26 +254,3 @@ def _rgb(hex_colour: str) -> tuple[float, float, float]:
     """'#rrggbb' as three floats in 0..1."""
     v = hex_colour.lstrip("#")
     return tuple(int(v[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]
-
-
-def plot_localisation(estimate: np.ndarray, truth: np.ndarray, correct: np.ndarray, trusted: np.ndarray,
-                      score: np.ndarray, threshold: float, path: Path) -> None:
-    """A localiser's replay over time: its best map frame per query frame (green right, red wrong, grey when not
-    trusted) against the nearest true map frame, and below, its score with the threshold."""
-    fig = new_figure(10, 6)
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-    frames = np.arange(len(estimate))
-    has_truth = truth >= 0
-    top.plot(frames[has_truth], truth[has_truth], ".", color=GT_COLOUR, markersize=2, label="ground truth")
-    shown = estimate >= 0
-    for mask, colour, label in ((shown & ~trusted, NO_WINDOW_COLOUR, "not trusted"),
-                                (shown & trusted & correct, CORRECT_COLOUR, "trusted, right"),
-                                (shown & trusted & ~correct, WRONG_COLOUR, "trusted, wrong")):
-        top.plot(frames[mask], estimate[mask], "o", color=colour, markersize=2.5, label=label)
-    top.set_ylabel("map frame")
-    top.legend(loc="upper left", fontsize=8, markerscale=3)
-    bottom.plot(frames, score, color="#444444", linewidth=0.8)
-    bottom.axhline(threshold, color=WRONG_COLOUR, linewidth=0.8, linestyle="--")
-    bottom.set_ylabel("score")
-    bottom.set_xlabel("query frame")
-    save_figure(fig, path)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import csv
 import html
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +23,6 @@ from seqvpr.evaluation.plots import (  # noqa: F401  (re-exported: tests and cal
     DPI,
     GT_COLOUR,
     MAX_DRAWN,
-    METHOD_COLOURS,
     NO_WINDOW_COLOUR,
     WRONG_COLOUR,
     block_reduce,
@@ -58,24 +57,30 @@ class MethodResult:
 
 @dataclass(frozen=True)
 class DistanceView:
-    """A distance matrix to draw: [n_query, n_reference] (NaN where no window), GT positives mask, top-1 path."""
+    """A distance matrix to draw: [n_query, n_reference] (NaN where no window), GT positives mask, top-1 path, and
+    what its colours and axes show (the colour bar's and the axes' labels)."""
 
     title: str
     distances: np.ndarray
     positives: np.ndarray
     top1: np.ndarray
     correct: np.ndarray
+    distance_label: str = "distance"
+    query_label: str = "query frame"
+    reference_label: str = "reference frame"
 
 
 @dataclass(frozen=True)
 class QueryExample:
-    """A query image and its top matches (paths), with whether each is a correct place."""
+    """A query image and its top matches (paths) by one method (``method``: its name, '' when there is one method),
+    with whether each is a correct place. Consecutive examples of one query image share its cell in the grid."""
 
     query_image: Path
     query_label: str
     match_images: list[Path]
     match_labels: list[str]
     match_correct: list[bool]
+    method: str = ""
 
 
 # ----------------------------------------------------------------------------------------------- validation
@@ -154,7 +159,7 @@ span.swatch { display: inline-block; width: 12px; height: 12px; border-radius: 2
               vertical-align: -1px; }
 .plots { display: flex; flex-wrap: wrap; gap: 16px; }
 .plots figure { margin: 0; flex: 1 1 520px; max-width: 560px; }
-.plots figure.wide { flex: 1 1 700px; max-width: 720px; }
+.plots figure.wide { flex: 1 1 540px; max-width: 720px; }
 .plots img { width: 100%; height: auto; border: 1px solid #e2e4e8; }
 figcaption { font-size: 0.85em; color: #555; margin-top: 4px; }
 .examples { display: grid; gap: 14px 10px; align-items: start; }
@@ -168,6 +173,7 @@ figcaption { font-size: 0.85em; color: #555; margin-top: 4px; }
                  font-size: 0.8em; }
 .cell figcaption { font-size: 0.8em; line-height: 1.3; margin-top: 3px; word-break: break-word; }
 .cell.query figcaption { font-weight: 600; }
+.cell.method { align-self: center; font-size: 0.85em; font-weight: 600; line-height: 1.3; word-break: break-word; }
 .cell.correct figcaption .mark { color: """ + CORRECT_COLOUR + """; font-weight: 700; }
 .cell.wrong figcaption .mark { color: """ + WRONG_COLOUR + """; font-weight: 700; }
 .legend { font-size: 0.9em; color: #444; margin: 0 0 10px; }
@@ -230,21 +236,52 @@ def example_cell_html(src: str | None, label: str, kind: str, caption_prefix: st
     )
 
 
-def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | None]) -> str:
-    """The grid: one row per query, the query first and then its ranked matches framed green or red."""
-    n_cols = 1 + max((len(e.match_images) for e in examples), default=0)
+def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | None], colours: dict[str, str]) -> str:
+    """The grid: one row per example, the query first (one cell for the consecutive examples of one query), then
+    the method's name when examples name one, then its ranked matches framed green or red."""
+    with_method = any(e.method for e in examples)
+    n_matches = max((len(e.match_images) for e in examples), default=0)
     cells = []
-    for e in examples:
-        cells.append(example_cell_html(thumbs[Path(e.query_image)], e.query_label, "query", "query"))
-        for rank, (img, label, ok) in enumerate(zip(e.match_images, e.match_labels, e.match_correct), start=1):
-            cells.append(example_cell_html(thumbs[Path(img)], label, "correct" if ok else "wrong", f"#{rank}"))
-        cells.extend('<div class="cell"></div>' for _ in range(n_cols - 1 - len(e.match_images)))
+    for group in _query_groups(examples):
+        cells.append(_query_cell(group, thumbs))
+        for e in group:
+            if with_method:
+                cells.append(_method_cell(e.method, colours))
+            for rank, (img, label, ok) in enumerate(zip(e.match_images, e.match_labels, e.match_correct), start=1):
+                cells.append(example_cell_html(thumbs[Path(img)], label, "correct" if ok else "wrong", f"#{rank}"))
+            cells.extend('<div class="cell"></div>' for _ in range(n_matches - len(e.match_images)))
     legend = (
         '<p class="legend"><span class="box query-box"></span>query'
         '<span class="box ok-box"></span>correct place<span class="box bad-box"></span>wrong place</p>'
     )
-    grid = f'<div class="examples" style="grid-template-columns: repeat({n_cols}, minmax(0, 1fr));">\n'
+    columns = "minmax(0, 1fr) " + ("minmax(6em, 0.6fr) " if with_method else "") + f"repeat({n_matches}, minmax(0, 1fr))"
+    grid = f'<div class="examples" style="grid-template-columns: {columns};">\n'
     return legend + grid + "\n".join(cells) + "\n</div>"
+
+
+def _query_groups(examples: Sequence[QueryExample]) -> list[list[QueryExample]]:
+    """Consecutive examples of the same query image, grouped: they share one query cell."""
+    groups: list[list[QueryExample]] = []
+    for e in examples:
+        if groups and Path(groups[-1][0].query_image) == Path(e.query_image):
+            groups[-1].append(e)
+        else:
+            groups.append([e])
+    return groups
+
+
+def _query_cell(group: Sequence[QueryExample], thumbs: dict[Path, str | None]) -> str:
+    """The query's framed thumbnail, spanning the rows of every method shown for it."""
+    first = group[0]
+    cell = example_cell_html(thumbs[Path(first.query_image)], first.query_label, "query", "query")
+    return cell if len(group) == 1 else cell.replace("<figure ", f'<figure style="grid-row: span {len(group)}" ', 1)
+
+
+def _method_cell(method: str, colours: dict[str, str]) -> str:
+    """The name of the method whose matches follow in the row, with its colour swatch when it has one."""
+    colour = colours.get(method)
+    swatch = f'<span class="swatch" style="background:{colour}"></span>' if colour else ""
+    return f'<div class="cell method">{swatch}{html.escape(method)}</div>'
 
 
 def summary_html(summary: str) -> str:
@@ -303,14 +340,14 @@ def build_report(
     example_title: str,
 ) -> None:
     """Write every file of the report into the (empty) ``folder``."""
-    colours = method_colours(methods)
+    colours = method_colours([m.name for m in methods])
     files: list[tuple[str, str]] = [("results.csv", "the numbers of the table, every K")]
     write_results_csv(methods, folder / "results.csv")
     sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary)]
     sections += _recall_sections(methods, table_ks, colours)
     sections += _curve_sections(methods, colours, folder, files)
     sections += _distance_sections(distance_views, folder, files)
-    example_parts, n_thumbs = _example_sections(examples, example_title, folder)
+    example_parts, n_thumbs = _example_sections(examples, example_title, folder, colours)
     sections += example_parts
     sections.append("<h2>Files</h2>")
     sections.append(files_html([("index.html", "this page"), *files], n_thumbs))
@@ -359,19 +396,23 @@ def _distance_sections(views: Sequence[DistanceView], folder: Path, files: list[
         files.append((name, f"distance matrix: {view.title}"))
         figures.append(
             f'<figure class="wide"><img src="{name}" alt="{html.escape(view.title, quote=True)}">'
-            f"<figcaption>{html.escape(view.title)}: darker is closer; the blue band marks the ground-truth "
-            "positives; dots are each query's top-1 reference, green when correct, red when wrong.</figcaption></figure>"
+            f"<figcaption>{html.escape(view.title)}: each cell's colour is the {html.escape(view.distance_label)} "
+            f"between {html.escape(view.query_label)} (row) and {html.escape(view.reference_label)} (column), darker "
+            "is closer; the blue band marks the ground-truth positives; dots are each query's top-1 reference, green "
+            "when correct, red when wrong.</figcaption></figure>"
         )
     return ["<h2>Distance matrices</h2>", '<div class="plots">' + "".join(figures) + "</div>"]
 
 
-def _example_sections(examples: Sequence[QueryExample], example_title: str, folder: Path) -> tuple[list[str], int]:
+def _example_sections(
+    examples: Sequence[QueryExample], example_title: str, folder: Path, colours: dict[str, str]
+) -> tuple[list[str], int]:
     """Thumbnail the example images into ``folder``; their section and how many thumbnails were written."""
     if not examples:
         return [], 0
     thumbs = copy_thumbnails(examples, folder / EXAMPLES_DIR)
     n_thumbs = sum(1 for v in thumbs.values() if v)
-    return [f"<h2>{html.escape(example_title or 'Example queries')}</h2>", examples_html(examples, thumbs)], n_thumbs
+    return [f"<h2>{html.escape(example_title or 'Example queries')}</h2>", examples_html(examples, thumbs, colours)], n_thumbs
 
 
 def write_report(
@@ -397,17 +438,3 @@ def write_report(
             distance_views=distance_views, examples=examples, example_title=example_title,
         )
     return out_dir / "index.html"
-
-
-def write_localisation_report(out_dir: Path, *, title: str, summary: str, rows: Sequence[tuple[str, str]],
-                              draw: Callable[[Path], None]) -> Path:
-    """A localisation page: the summary, a table of (measure, value) rows and the figure ``draw`` writes (estimate
-    against ground truth over time, the score), written atomically as ``out_dir/index.html``."""
-    table = "\n".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
-    with atomic_folder(Path(out_dir), "index.html") as tmp:
-        draw(tmp / "localisation.png")
-        sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary),
-                    f'<table class="recall">\n{table}\n</table>',
-                    '<h2>Estimate over time</h2>\n<img src="localisation.png" alt="estimate against ground truth">']
-        (tmp / "index.html").write_text(page_html(title, sections), encoding="utf-8")
-    return Path(out_dir) / "index.html"

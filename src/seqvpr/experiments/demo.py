@@ -148,27 +148,41 @@ def distance_view(run: MethodRun, gt: GroundTruth) -> DistanceView:
     distances = distance_matrix(result.reference, result.query, result.settings)
     top1 = result.topk.indices[:, 0]
     correct = gt.contains(np.arange(len(top1)), top1)
-    return DistanceView(run.name, distances, gt.positives.toarray(), top1, correct)
+    return DistanceView(run.name, distances, gt.positives.toarray(), top1, correct,
+                        distance_label=distance_label(result.settings.sequence.length),
+                        query_label=f"query frame ({result.query.name})",
+                        reference_label=f"reference frame ({result.reference.name})")
 
 
-def query_examples(run: MethodRun, gt: GroundTruth, count: int, shown: int = 5) -> list[QueryExample]:
-    """``count`` evenly spaced scored queries with their top ``shown`` matches, each marked correct or not."""
+def distance_label(length: int) -> str:
+    """What a cell of the drawn matrix is: one image distance, or the mean of L of them along a window."""
+    image = "Euclidean distance of L2-normalised descriptors"
+    return f"image distance ({image})" if length == 1 else f"sequence distance (mean of {length} frame distances)"
+
+
+def query_examples(runs: Sequence[MethodRun], gt: GroundTruth, count: int, shown: int = 5) -> list[QueryExample]:
+    """``count`` evenly spaced queries that every run scored, each with its top ``shown`` matches by every run in
+    turn (named, marked correct or not), so the grid compares the methods on the same queries."""
+    scored = np.logical_and.reduce([run.result.topk.has_window for run in runs]) & gt.has_positive()
+    candidates = np.flatnonzero(scored)
+    chosen = candidates[np.linspace(0, len(candidates) - 1, min(count, len(candidates))).astype(int)] \
+        if len(candidates) else []
+    return [run_example(run, gt, int(row), shown, len(runs) > 1) for row in chosen for run in runs]
+
+
+def run_example(run: MethodRun, gt: GroundTruth, row: int, shown: int, named: bool) -> QueryExample:
+    """Query ``row`` of ``run`` with its top ``shown`` matches and their distances (named by the run if ``named``)."""
     result = run.result
-    scored = np.flatnonzero(result.topk.has_window & gt.has_positive())
-    chosen = scored[np.linspace(0, len(scored) - 1, min(count, len(scored))).astype(int)] if len(scored) else []
     ref_paths, qry_paths = result.reference.image_paths, result.query.image_paths
     assert ref_paths is not None and qry_paths is not None
-    examples = []
-    for row in chosen:
-        picks = [int(j) for j in result.topk.indices[row, :shown] if j >= 0]
-        correct = gt.contains(np.full(len(picks), row), np.asarray(picks, dtype=np.int64))
-        examples.append(QueryExample(
-            qry_paths[row], f"frame {int(result.query.frame_index[row])}",
-            [ref_paths[j] for j in picks],
-            [f"ref {int(result.reference.frame_index[j])} ({result.topk.distances[row, k]:.2f})" for k, j in enumerate(picks)],
-            [bool(c) for c in correct],
-        ))
-    return examples
+    picks = [int(j) for j in result.topk.indices[row, :shown] if j >= 0]
+    correct = gt.contains(np.full(len(picks), row), np.asarray(picks, dtype=np.int64))
+    return QueryExample(
+        qry_paths[row], f"frame {int(result.query.frame_index[row])}",
+        [ref_paths[j] for j in picks],
+        [f"ref {int(result.reference.frame_index[j])} ({result.topk.distances[row, k]:.2f})" for k, j in enumerate(picks)],
+        [bool(c) for c in correct], run.name if named else "",
+    )
 
 
 def report_summary(settings: DemoSettings, world: dict[str, Traversal]) -> str:
@@ -226,8 +240,9 @@ def run_demo(
         summary=report_summary(settings, world),
         methods=[method_result(run) for run in runs],
         distance_views=[distance_view(runs[0], gt), distance_view(best, gt)],
-        examples=query_examples(runs[0], gt, settings.examples),
-        example_title=f"Single-image retrieval: top 5 reference frames per query (green: within {settings.radius_m:g} m)",
+        examples=query_examples([runs[0], best], gt, settings.examples),
+        example_title=f"Top 5 reference frames per query by {runs[0].name} and by {best.name}, the best sequence "
+                      f"method by R@1 (green: within {settings.radius_m:g} m)",
     )
     lap("report")
     return DemoResult(runs, page, seconds)
