@@ -52,6 +52,10 @@ def test_busy_cores_is_the_median_of_the_kernels_runnable_count_less_this_proces
     stat.write_text("cpu  1 2 3\nprocs_running 3\nprocs_blocked 0\n")
     assert threads.busy_cores(samples=3, interval=0.0, stat=stat) == 2.0
     assert threads.busy_cores(samples=1, stat=tmp_path / "missing") is None
+    for number, state in ((1, "R"), (2, "R"), (3, "S")):  # this process's own threads, two running (a BLAS pool)
+        (tmp_path / "task" / str(number)).mkdir(parents=True)
+        (tmp_path / "task" / str(number) / "stat").write_text(f"{number} (py thon) {state} 1 2 3\n")
+    assert threads.busy_cores(samples=1, stat=stat, own=tmp_path / "task") == 1.0
     stat.write_text("cpu  1 2 3\n")
     assert threads.busy_cores(samples=1, stat=stat) is None
 

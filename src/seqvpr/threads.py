@@ -57,18 +57,35 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def busy_cores(samples: int = LOAD_SAMPLES, interval: float = LOAD_INTERVAL, stat: Path = Path("/proc/stat")) -> float | None:
-    """How many other processes are running right now: the median over a few reads of the kernel's count of
-    runnable tasks, less this one; None where the system does not say (not Linux)."""
+def busy_cores(samples: int = LOAD_SAMPLES, interval: float = LOAD_INTERVAL, stat: Path = Path("/proc/stat"),
+               own: Path = Path("/proc/self/task")) -> float | None:
+    """How many other processes' threads are running right now: the median over a few reads of the kernel's count
+    of runnable tasks, less this process's own running threads (numpy's BLAS pool spins for a while after
+    import); None where the system does not say (not Linux)."""
     counts = []
     for i in range(samples):
         running = _procs_running(stat)
         if running is None:
             return None
-        counts.append(max(0, running - 1))
+        counts.append(max(0, running - max(1, _own_running(own))))
         if i + 1 < samples:
             time.sleep(interval)
     return float(statistics.median(counts))
+
+
+def _own_running(tasks: Path) -> int:
+    """This process's threads in the running state (R), from ``/proc/self/task/*/stat``; 0 if unreadable."""
+    count = 0
+    try:
+        for task in tasks.iterdir():
+            try:
+                if (task / "stat").read_text().rsplit(")", 1)[1].split()[0] == "R":
+                    count += 1
+            except (OSError, IndexError):
+                continue
+    except OSError:
+        return 0
+    return count
 
 
 def _procs_running(stat: Path) -> int | None:
