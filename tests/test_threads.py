@@ -28,6 +28,7 @@ def fresh_python(code: str, env: dict[str, str] | None = None) -> str:
 def no_thread_variables(monkeypatch):
     for variable in ("SEQVPR_THREADS", "OMP_NUM_THREADS"):
         monkeypatch.delenv(variable, raising=False)
+    monkeypatch.setattr(threads, "_exported", None)  # as in a process that has not applied a policy yet
 
 
 def test_the_count_comes_from_the_option_then_the_variables_then_the_free_cores(monkeypatch, no_thread_variables):
@@ -166,3 +167,14 @@ def test_every_command_takes_threads(monkeypatch, capsys):
         leaves = list(command.commands.values()) if isinstance(command, click.Group) else [command]
         for leaf in leaves:
             assert "--threads" in [o for p in leaf.params for o in getattr(p, "opts", [])], f"{name} {leaf.name}"
+
+
+def test_the_count_this_process_exported_is_not_read_back_as_a_choice(monkeypatch, no_thread_variables):
+    monkeypatch.setattr(threads, "_applied", threads.current_policy())  # restored after: the session's policy
+    for variable in (*threads.POOL_VARIABLES, "NUMBA_NUM_THREADS"):
+        monkeypatch.setenv(variable, os.environ.get(variable, "1"))
+    monkeypatch.setattr(threads, "busy_cores", lambda: 0.0)
+    monkeypatch.setattr(threads, "usable_cores", lambda: 4)
+    threads.apply_policy(threads.ThreadPolicy(1, "--threads", 4))
+    assert os.environ["OMP_NUM_THREADS"] == "1"  # what child processes inherit
+    assert (threads.choose_policy().threads, threads.choose_policy().source) == (4, "free cores")

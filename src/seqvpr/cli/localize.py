@@ -38,7 +38,7 @@ Examples:
 @click.option("--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
               help="With --shortlist: the H frames before the window place candidates too.")
 @click.option("--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits.")
-@click.option("--threshold", type=FINITE, help="Score from which an estimate is trusted [default: the map's "
+@click.option("--threshold", type=FINITE, help="Score from which an estimate is localised [default: the map's "
                                               "calibrated one for these settings, else the method's default].")
 @click.option("--lost-after", type=COUNT, default=5, show_default=True, help="Frames below the threshold before 'lost'.")
 @click.option("--exclusion", type=NONNEGATIVE, default=10, show_default=True,
@@ -53,8 +53,8 @@ Examples:
 @click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
 @click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
               help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
-@click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query and "
-                                                "store it with the map (needs ground truth).")
+@click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query, "
+                                                "store it with the map (needs ground truth) and write the run at it.")
 @click.option("--target-precision", type=FRACTION, default=0.99, show_default=True)
 @click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @click.option("--resume-state", type=click.Path(), help="Start from a saved localiser state.")

@@ -47,7 +47,7 @@ LONG_OPEN = 100_000  # maps from this many frames take seconds to open: say so
 @dataclass(frozen=True)
 class LocalizerSettings:
     """How the localiser matches (``method``, ``seq_len``, K, an optional shortlist of S per frame with ``history``),
-    when it trusts a match (``threshold`` on the score; None: the map's calibration, else a default), when it is
+    when a match is localised (``threshold`` on the score; None: the map's calibration, else a default), when it is
     lost (``lost_after`` frames below it), the score's ``exclusion`` (frames around the best that do not count as
     another place), keyframe gating (``keyframe_distance``: skip frames closer than this to the last kept one; 0:
     off) and the filter's settings (``hmm``)."""
@@ -95,7 +95,7 @@ class Estimate:
     """Where the localiser places one query frame.
 
     ``index``, ``position``, ``latlon`` and ``name`` are the map frame the localiser stands behind: set only when
-    ``status`` is ``localised`` (None while warming up, uncertain or lost, so nothing untrusted can be acted on).
+    ``status`` is ``localised`` (None while warming up, uncertain or lost, so nothing the localiser does not stand behind can be acted on).
     ``best`` is the best-scoring map frame whatever the status (None while warming up): a diagnostic, not an
     estimate. ``indices``/``distances`` the top-K (sequence distances; 1 - belief mass for the filter);
     ``latency`` milliseconds per stage (describe, distance, sequence, total); ``kept`` False for a frame keyframe
