@@ -75,10 +75,11 @@ def test_the_running_count_rises_with_busy_processes():
     assert loaded is not None and loaded >= 1.0
 
 
-@pytest.mark.parametrize("value", ["0", "-1", "two", "1.5"])
+@pytest.mark.parametrize("value", ["0", "-1", "two", "1.5", "10000"])
 def test_a_bad_thread_count_is_one_line_naming_where_it_came_from(monkeypatch, value):
     monkeypatch.setenv("SEQVPR_THREADS", value)
     raises_one_line("SEQVPR_THREADS", threads.choose_policy)
+    raises_one_line("--threads", threads.choose_policy, int(value) if value.lstrip("-").isdigit() else 0)
 
 
 def test_the_cli_refuses_a_bad_variable_in_one_line(monkeypatch, capsys):

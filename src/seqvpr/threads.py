@@ -104,14 +104,16 @@ def free_cores(cores: int, busy: float | None) -> int:
     return max(1, cores - int(round(busy or 0.0)))
 
 
-def parse_threads(text: str, where: str) -> int:
-    """A thread count from an option or variable; anything but a whole number >= 1 is one line naming ``where``."""
+def parse_threads(text: str, where: str, cores: int) -> int:
+    """A thread count from an option or variable; anything but a whole number from 1 to 4x the usable cores (more
+    only waits on itself) is one line naming ``where``."""
     try:
         value = int(str(text).strip())
     except ValueError:
         value = 0
-    if value < 1:
-        raise SeqvprError(f"{where} must be a whole number of threads >= 1, got {text!r}")
+    if not 1 <= value <= 4 * cores:
+        raise SeqvprError(f"{where} must be a whole number of threads from 1 to {4 * cores} (4 x the {cores} usable "
+                          f"cores), got {text!r}")
     return value
 
 
@@ -120,11 +122,11 @@ def choose_policy(requested: int | None = None) -> ThreadPolicy:
     ``$OMP_NUM_THREADS``, else the free cores measured now."""
     cores = usable_cores()
     if requested is not None:
-        return ThreadPolicy(parse_threads(str(requested), "--threads"), "--threads", cores)
+        return ThreadPolicy(parse_threads(str(requested), "--threads", cores), "--threads", cores)
     for variable in (ENV, "OMP_NUM_THREADS"):
         value = os.environ.get(variable, "").strip()
         if value and not (variable == "OMP_NUM_THREADS" and value == _exported):
-            return ThreadPolicy(parse_threads(value, variable), variable, cores)
+            return ThreadPolicy(parse_threads(value, variable, cores), variable, cores)
     busy = busy_cores()
     return ThreadPolicy(free_cores(cores, busy), "free cores", cores, busy)
 
