@@ -28,9 +28,9 @@ from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
 from seqvpr.maps.files import SavedMap, open_map
+from seqvpr.progress import LOGGER
 from seqvpr.sequences.filter import FilterSettings
 from seqvpr.sequences.matching import unit_rows
-from seqvpr.progress import LOGGER
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
@@ -95,7 +95,7 @@ class Estimate:
     """Where the localiser places one query frame.
 
     ``index``, ``position``, ``latlon`` and ``name`` are the map frame the localiser stands behind: set only when
-    ``status`` is ``localised`` (None while warming up, uncertain or lost, so nothing the localiser does not stand behind can be acted on).
+    ``status`` is ``localised``, None while warming up, uncertain or lost (nothing else can be acted on).
     ``best`` is the best-scoring map frame whatever the status (None while warming up): a diagnostic, not an
     estimate. ``indices``/``distances`` the top-K (sequence distances; 1 - belief mass for the filter);
     ``latency`` milliseconds per stage (describe, distance, sequence, total); ``kept`` False for a frame keyframe
