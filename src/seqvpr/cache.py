@@ -19,3 +19,15 @@ def cache_root() -> Path:
 def cache_folder(kind: str) -> Path:
     """The cache folder of one kind of entry (``bag-frames``, ...): ``cache_root() / kind`` (not created here)."""
     return cache_root() / kind
+
+
+def writable_folder(folder: Path) -> Path:
+    """``folder`` created if absent; one line naming it (and ``$SEQVPR_CACHE``) when it cannot be."""
+    from seqvpr.errors import SeqvprError
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise SeqvprError(f"cache folder {folder} cannot be created ({error.strerror}); point $SEQVPR_CACHE at a "
+                          "writable folder") from None
+    return folder

@@ -362,3 +362,14 @@ def test_a_maps_positions_go_back_to_the_latitudes_and_longitudes_it_was_built_f
     for r in rows:
         row = int(r["localised_row"])
         assert (float(r["latitude"]), float(r["longitude"])) == pytest.approx((lat[row], lon[row]), abs=1e-6)
+
+
+def test_an_unwritable_cache_folder_is_one_line_naming_it(tmp_path, monkeypatch, capsys):
+    images = synthetic_jpegs(tmp_path / "jpg", 3)
+    lat, lon = fixes(3)
+    bag = write_bag(tmp_path / "b", images, lat, lon, ros1=False, compressed=True)
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "file" / "cache"))
+    code, _, err = run_cli(monkeypatch, capsys, "map", "build", bag, "--out", tmp_path / "m")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "cache folder" in err and "SEQVPR_CACHE" in err, err
+    assert not (tmp_path / "m").exists()

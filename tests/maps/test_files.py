@@ -220,3 +220,22 @@ def test_build_map_reads_frames_a_network_described_before_from_the_cache(tmp_pa
     monkeypatch.setattr(extraction, "_prepare_model", no_network)
     second = build_map([str(images)], tmp_path / "b", description)
     np.testing.assert_array_equal(np.asarray(first.descriptors), np.asarray(second.descriptors))
+
+
+def test_an_unwritable_default_cache_is_a_warning_and_the_map_is_built(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from seqvpr.errors import SeqvprWarning
+    from seqvpr.features.extraction import ExtractorConfig
+    from seqvpr.maps import FrameDescription, build_map
+
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "file" / "cache"))
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((24, 32, 3), 40 * i, np.uint8)).save(images / f"{i}.png")
+    with pytest.warns(SeqvprWarning, match="describing without a cache"):
+        saved = build_map([str(images)], tmp_path / "m",
+                          FrameDescription("efficientnet-lite0", extractor=ExtractorConfig(width=32, height=24)))
+    assert saved.info.count == 3

@@ -93,7 +93,7 @@ def localize(**o: Any) -> None:
         localizer.save_state(o["save_state"])
     if o["calibrate"]:
         run = _calibrate(o, localizer, run, gt)
-    elif localizer.threshold_source.startswith("the default"):
+    elif localizer.uses_default_threshold:
         warnings.warn(f"threshold {localizer.threshold:g} is {localizer.threshold_source}", SeqvprWarning)
     _report(o, localizer, run, gt, k_values)
 

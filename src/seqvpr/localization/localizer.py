@@ -162,6 +162,11 @@ class Localizer:
             LOGGER.info(f"localiser: ready in {time.perf_counter() - started:.1f} s; threshold {threshold:g}, {source}")
         return localizer
 
+    @property
+    def uses_default_threshold(self) -> bool:
+        """Whether the threshold is the method's uncalibrated default (worth a warning)."""
+        return self.threshold_source == default_source(self.settings.method)
+
     def reset(self) -> None:
         """Start over: a new drive, a kidnapping, a restart with no trusted state."""
         self.matcher.reset()
@@ -358,8 +363,12 @@ def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> tuple[f
     entry = stored_calibration(folder, settings)
     if entry is not None:
         return float(entry["threshold"]), calibration_source(entry)
-    return (DEFAULT_THRESHOLDS[settings.method],
-            f"the default for {settings.method}, not calibrated on this map (seqvpr localize --calibrate)")
+    return DEFAULT_THRESHOLDS[settings.method], default_source(settings.method)
+
+
+def default_source(method: str) -> str:
+    """Where a default threshold came from, in words (the words ``Localizer.uses_default_threshold`` looks for)."""
+    return f"the default for {method}, not calibrated on this map (seqvpr localize --calibrate)"
 
 
 def stored_calibration(folder: str | Path, settings: LocalizerSettings) -> dict[str, Any] | None:

@@ -91,12 +91,20 @@ def describe_frames(
 def with_default_cache(description: FrameDescription, models: Mapping[str, TrainedModel],
                        extraction: dict[str, Any]) -> dict[str, Any]:
     """``extraction`` with the descriptor cache folder (``seqvpr.cache``) when none is given and a network describes
-    the frames: rebuilding a map, or building one from frames already described, reads them back."""
+    the frames: rebuilding a map, or building one from frames already described, reads them back. A cache folder
+    that cannot be created is a warning, not a failure: the frames are described without it."""
     if extraction.get("cache_dir") is not None or description.descriptor == "patchnorm" or image_model(models):
         return extraction
-    from seqvpr.cache import cache_folder
+    import warnings
 
-    return {**extraction, "cache_dir": cache_folder("descriptors")}
+    from seqvpr.cache import cache_folder, writable_folder
+    from seqvpr.errors import SeqvprWarning
+
+    try:
+        return {**extraction, "cache_dir": writable_folder(cache_folder("descriptors"))}
+    except SeqvprError as error:
+        warnings.warn(f"{error}; describing without a cache", SeqvprWarning)
+        return extraction
 
 
 def model_records(models: Mapping[str, TrainedModel]) -> dict[str, Any] | None:

@@ -132,7 +132,9 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
     position topic, in stamp order."""
     from rosbags.highlevel import AnyReader
 
-    folder = frames_root() if folder is None else folder
+    from seqvpr.cache import writable_folder
+
+    folder = writable_folder(frames_root() if folder is None else folder)
     try:
         with AnyReader([path]) as reader:
             image = _one_topic(reader, IMAGE_TYPES, topics.image, path, "image")
