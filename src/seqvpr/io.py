@@ -1,10 +1,17 @@
 """Atomic output files and folders: write under a temporary name beside the target, then rename, so no partial
-output remains under the final name."""
+output remains under the final name. A folder replaces an old one by one atomic exchange of the two names, so a
+reader sees the old output or the new, never a mix; every rename goes through ``rename`` / ``exchange`` (one place
+to inject a failure). Temporaries are named ``.NAME.seqvpr-PID-XXXX.KIND``: one left by a process that is gone
+(killed) is removed by the next writer in that folder."""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
+import hashlib
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -12,6 +19,12 @@ from pathlib import Path
 from typing import IO
 
 from seqvpr.errors import SeqvprError
+
+#: the longest file name most file systems take, in bytes
+NAME_MAX = 255
+TEMP_TAG = ".seqvpr-"
+_LEFTOVER = re.compile(r"^\..*\.seqvpr-(\d+)-\w+\.(part|old)$")  # a temporary: its process id, its kind
+_TEMP_TAIL = TEMP_TAG + "0000000-XXXXXXXX.part"  # the longest tail a temporary name adds (a 7-digit process id)
 
 
 def current_umask() -> int:
@@ -26,12 +39,12 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
     """Open a temporary file next to ``path``; on success rename it over ``path``, on error delete it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=".part", dir=path.parent)
     os.chmod(tmp, 0o666 & ~current_umask())  # what open() would have given, not mkstemp's private 0600
     try:
         with os.fdopen(fd, mode, **open_kwargs) as handle:
             yield handle
-        os.replace(tmp, path)
+        rename(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -46,9 +59,7 @@ def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]
     a user's other files are never deleted."""
     path = Path(path)
     check_replaceable(path, marker)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
-    os.chmod(tmp, 0o777 & ~current_umask())  # what mkdir would have given, not mkdtemp's private 0700
+    tmp = temporary_folder(path)
     try:
         yield tmp
         _replace_folder(tmp, path)
@@ -73,19 +84,124 @@ def check_replaceable(path: Path, marker: str | None) -> None:
 
 
 def _replace_folder(new: Path, target: Path) -> None:
-    """Put the finished folder ``new`` in place of ``target``; the old one is restored if the swap fails."""
+    """Put the finished folder ``new`` in place of ``target`` by one atomic exchange of the two names (the old
+    folder then sits under ``new``'s temporary name and is removed). Where the file system cannot exchange, the old
+    folder is moved aside first, and restored if the second rename fails or, after a kill, by ``sweep_leftovers``."""
     if not target.exists():
-        os.replace(new, target)
+        rename(new, target)
         return
-    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
-    os.replace(target, old / target.name)
     try:
-        os.replace(new, target)
+        exchange(new, target)
+    except OSError as error:
+        if error.errno not in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EXDEV):
+            raise
+        _replace_in_two_steps(new, target)
+        return
+    shutil.rmtree(new, ignore_errors=True)
+
+
+def _replace_in_two_steps(new: Path, target: Path) -> None:
+    """The fallback of ``_replace_folder``: the old folder to a ``.old`` temporary, then the new one in its place."""
+    old = Path(tempfile.mkdtemp(prefix=temporary_prefix(target), suffix=".old", dir=target.parent))
+    rename(target, old / target.name)
+    try:
+        rename(new, target)
     except BaseException:
-        os.replace(old / target.name, target)
+        rename(old / target.name, target)
         raise
     finally:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def rename(source: str | Path, target: str | Path) -> None:
+    """``os.replace``: every rename that commits an output goes through here (tests inject failures here)."""
+    os.replace(source, target)
+
+
+def exchange(first: str | Path, second: str | Path) -> None:
+    """Swap two existing paths in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``); OSError ENOSYS where the
+    system or file system has no such call."""
+    call = _renameat2()
+    if call is None:
+        raise OSError(errno.ENOSYS, "no atomic exchange on this system", str(first), None, str(second))
+    at_cwd, rename_exchange = -100, 2
+    if call(at_cwd, os.fsencode(first), at_cwd, os.fsencode(second), rename_exchange) != 0:
+        code = ctypes.get_errno()
+        raise OSError(code, os.strerror(code), str(first), None, str(second))
+
+
+def _renameat2():
+    """libc's ``renameat2``, or None where there is none (not Linux, or an old C library)."""
+    try:
+        call = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return None
+    call.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    call.restype = ctypes.c_int
+    return call
+
+
+def short_name(name: str, tail: str) -> str:
+    """``name`` (a file name) shortened so that ``.NAME`` + ``tail`` fits in NAME_MAX bytes: a name too long keeps
+    its start and gains a hash of the whole, so two long names never collide."""
+    room = NAME_MAX - len(tail.encode()) - 1
+    if len(name.encode()) <= room:
+        return name
+    digest = hashlib.sha256(name.encode()).hexdigest()[:16]
+    head = name.encode()[: max(0, room - 17)].decode(errors="ignore")
+    return f"{head}-{digest}"
+
+
+def temporary_prefix(target: Path) -> str:
+    """The start of every temporary name this process makes for ``target``: ``.NAME.seqvpr-PID-``."""
+    return f".{short_name(target.name, _TEMP_TAIL)}{TEMP_TAG}{os.getpid()}-"
+
+
+def temporary_folder(target: Path) -> Path:
+    """A new empty folder beside ``target`` (made with mkdir's usual mode) to build ``target`` in; temporaries of
+    ``target`` left by dead processes are removed first."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    sweep_leftovers(target.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=temporary_prefix(target), suffix=".part", dir=target.parent))
+    os.chmod(tmp, 0o777 & ~current_umask())  # what mkdir would have given, not mkdtemp's private 0700
+    return tmp
+
+
+def sweep_leftovers(folder: Path) -> list[Path]:
+    """Remove the temporaries in ``folder`` whose process is gone (a killed writer's half-written output); an old
+    output a killed writer had moved aside, whose name is now free, is put back. The paths handled, returned."""
+    try:
+        names = [m for m in map(_LEFTOVER.match, os.listdir(folder)) if m and not _alive(int(m.group(1)))]
+    except OSError:
+        return []
+    handled = []
+    for match in names:
+        path = folder / match.group(0)
+        if match.group(2) == "old":
+            for kept in list(path.iterdir()) if path.is_dir() else []:
+                if not (folder / kept.name).exists():
+                    rename(kept, folder / kept.name)
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        handled.append(path)
+    return handled
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (this process counts as alive)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # exists, owned by someone else
+    return True
+
+
+def lock_path(target: Path) -> Path:
+    """The lock file of an output: ``.NAME.seqvpr-lock`` beside it (NAME shortened to fit a file name)."""
+    return target.parent / f".{short_name(target.name, '.seqvpr-lock')}.seqvpr-lock"
 
 
 @contextlib.contextmanager
@@ -95,7 +211,7 @@ def output_lock(path: str | Path) -> Iterator[Path]:
     process that is gone (killed) is taken over."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    lock = target.parent / f".{target.name}.seqvpr-lock"
+    lock = lock_path(target)
     for _ in range(2):
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)

@@ -74,6 +74,8 @@ class MapInfo:
     columns: tuple[str, ...] = field(default=())
     shard: dict[str, Any] | None = None  # in a sharded map: its number, and its rows of the whole (``shards``)
     crs: str | None = None  # the positions' coordinate system (``seqvpr.data.geo``); None: no positions
+    identity: str | None = None  # the map's content identity: a hash of its row files' digests (``files``)
+    files: dict[str, str] | None = None  # each data file's content digest (``seqvpr.identity``); index files too
 
     def to_json(self) -> dict[str, Any]:
         values = asdict(self)

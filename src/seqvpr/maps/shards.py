@@ -26,7 +26,7 @@ import numpy as np
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.io import atomic_folder
+from seqvpr.io import atomic_folder, temporary_folder
 from seqvpr.maps.files import (
     SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, ShardedMap, ShardRecord, map_table, open_map, open_sharded_map,
     write_map_rows,
@@ -88,11 +88,10 @@ def build_sharded(build: Callable[[Path], object], out: str | Path, shards: int,
     """A map made by ``build(folder)`` (and indexed there, if it does) written straight as ``shards`` shards under
     ``out``: built in a temporary folder beside ``out``, sharded, then removed, failed or not."""
     import shutil
-    import tempfile
 
     target = Path(out)
     target.parent.mkdir(parents=True, exist_ok=True)
-    whole = Path(tempfile.mkdtemp(prefix=f".{target.name}.whole-", dir=target.parent))
+    whole = temporary_folder(target.parent / f"{target.name}.whole")
     try:
         shutil.rmtree(whole)  # the map writer makes its own folder
         build(whole)
