@@ -24,6 +24,7 @@ from seqvpr.errors import SeqvprError
 NAME_MAX = 255
 TEMP_TAG = ".seqvpr-"
 _LEFTOVER = re.compile(r"^\..*\.seqvpr-(\d+)-\w+\.(part|old)$")  # a temporary: its process id, its kind
+_HELD: set[Path] = set()  # the output locks this process holds
 _TEMP_TAIL = TEMP_TAG + "0000000-XXXXXXXX.part"  # the longest tail a temporary name adds (a 7-digit process id)
 
 
@@ -81,6 +82,12 @@ def check_replaceable(path: Path, marker: str | None) -> None:
         mark = f" and no {marker}" if marker else ""
         raise SeqvprError(f"{path} holds other files{mark}, so it is not this command's output: give a new or empty "
                           "folder (the output folder is replaced whole)")
+
+
+def commit_folder(new: Path, target: Path, marker: str | None = None) -> None:
+    """Put a finished temporary folder (``temporary_folder``) in place of ``target`` as ``atomic_folder`` does."""
+    check_replaceable(target, marker)
+    _replace_folder(new, target)
 
 
 def _replace_folder(new: Path, target: Path) -> None:
@@ -212,6 +219,9 @@ def output_lock(path: str | Path) -> Iterator[Path]:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     lock = lock_path(target)
+    if lock.resolve() in _HELD:  # this process holds it already (a build that indexes its map): nested, not taken
+        yield lock
+        return
     for _ in range(2):
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -225,9 +235,11 @@ def output_lock(path: str | Path) -> Iterator[Path]:
         raise SeqvprError(f"{target}: cannot take the lock {lock}")
     with os.fdopen(fd, "w") as handle:
         handle.write(str(os.getpid()))
+    _HELD.add(lock.resolve())
     try:
         yield lock
     finally:
+        _HELD.discard(lock.resolve())
         lock.unlink(missing_ok=True)
 
 

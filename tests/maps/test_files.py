@@ -29,7 +29,7 @@ def test_a_map_holds_the_normalised_frames_memory_mapped_with_their_table(source
     np.testing.assert_array_equal(saved.frames.positions, reference.positions)
     np.testing.assert_array_equal(saved.frames.frame_index, reference.frame_index)
     info = json.loads((tmp_path / "m" / "map.json").read_text())
-    assert (info["format"], info["version"], info["count"], info["dim"], info["normalized"]) == ("seqvpr-map", 1, 80, 12, True)
+    assert (info["format"], info["version"], info["count"], info["dim"], info["normalized"]) == ("seqvpr-map", 2, 80, 12, True)
     assert info["sources"] == [{"source": str(ref), "name": "ref", "first": 0, "frames": 80}]
     assert info["columns"] == ["positions", "timestamps"] and info["library_version"] and info["created"]
 
@@ -67,7 +67,7 @@ def test_broken_maps_are_one_line_errors(sources, tmp_path):
     build_map([str(sources[0])], folder)
     info = folder / "map.json"
     good = info.read_text()
-    info.write_text(good.replace('"version": 1', '"version": 9'))
+    info.write_text(good.replace('"version": 2', '"version": 9'))
     message = raises_one_line("version 9 is not known", open_map, folder)
     assert "malformed" not in message
     info.write_text(good.replace('"sources"', '"origins"'))
@@ -82,12 +82,12 @@ def test_broken_maps_are_one_line_errors(sources, tmp_path):
     info.write_text(good)
     data = (folder / "descriptors.npy").read_bytes()
     (folder / "descriptors.npy").write_bytes(data[: len(data) // 2])
-    raises_one_line("descriptors.npy: unreadable or truncated", open_map, folder)
+    raises_one_line("descriptors.npy: its content is not what", open_map, folder)
     (folder / "descriptors.npy").write_bytes(data)
     np.save(folder / "segments.npy", np.zeros(3, np.int64))
-    raises_one_line("segments.npy: holds int64 (3,), the map needs int64 (80,)", open_map, folder)
+    raises_one_line("segments.npy: its content is not what", open_map, folder)
     (folder / "segments.npy").unlink()
-    raises_one_line("segments.npy: missing map file", open_map, folder)
+    raises_one_line("segments.npy: missing", open_map, folder)
 
 
 def test_sq8_stores_a_quarter_and_decodes_within_half_a_step(sources, tmp_path):
@@ -101,7 +101,7 @@ def test_sq8_stores_a_quarter_and_decodes_within_half_a_step(sources, tmp_path):
     assert np.abs(decoded - wide.descriptors).max() <= step.max() / 2 + 1e-6
     np.testing.assert_array_equal(coded.descriptors[np.array([3, 70])], decoded[[3, 70]])
     (tmp_path / "sq8" / "quantizer.npy").unlink()
-    raises_one_line("quantizer.npy: missing map file", open_map, tmp_path / "sq8")
+    raises_one_line("quantizer.npy: missing", open_map, tmp_path / "sq8")
 
 
 def test_map_files_take_the_umask_mode_not_a_private_one(sources, tmp_path):
@@ -187,7 +187,7 @@ def test_shards_carry_the_coordinate_system_and_the_frame_names(tmp_path):
     frames = Traversal("run", np.arange(10), np.zeros(10, np.int64), np.eye(10, 4, dtype=np.float32) + 0.1,
                        tuple(Path(f"/cache/{i}.jpg") for i in range(10)), np.c_[np.arange(10.0), np.zeros(10)],
                        names=names, crs="utm:55S")
-    write_map(tmp_path / "m", frames, MapInfo(10, 4, "float32", True, {"descriptor": "patchnorm"},
+    write_map(tmp_path / "m", frames, MapInfo(10, 4, "float32", False, {"descriptor": "patchnorm"},
                                               map_sources([frames], ["run.bag"])))
     assert (tmp_path / "m" / "names.txt").read_text().splitlines() == list(names)
     shard_map(tmp_path / "m", tmp_path / "s", 3, overlap=1)

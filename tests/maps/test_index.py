@@ -107,7 +107,7 @@ def test_shortlist_errors_are_one_line(route, tmp_path):
                     shortlist=5, history=3)
     add_index(saved, IndexSpec("flat"))
     (tmp_path / "m" / "index.faiss").write_bytes(b"garbage")
-    raises_one_line("unreadable faiss index", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
+    raises_one_line("index.faiss: its content is not what", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
                     shortlist=5)
     raises_one_line("must divide the dimension 16", add_index, saved, IndexSpec("ivf", nlist=4, pq=5))
     raises_one_line("400 lists for 300 frames", add_index, saved, IndexSpec("ivf", nlist=400))
@@ -142,7 +142,7 @@ def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_pat
                                   run_method(method, reference, query, replace(SETTINGS, sequence=SequenceSpec(3)))
                                   .topk.indices)
     (tmp_path / "m" / "index_rows.npy").unlink()
-    raises_one_line("index_rows.npy: missing map file", match_map, load_map(tmp_path / "m"), query, method, SETTINGS)
+    raises_one_line("index_rows.npy: missing", match_map, load_map(tmp_path / "m"), query, method, SETTINGS)
 
 
 def test_a_window_index_as_wide_as_the_map_is_exhaustive_matching(route, tmp_path):

@@ -97,24 +97,20 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
 
 
 def _build_map(sources, out_dir, description, models, extraction, *, dtype, normalize, device, frames, index) -> None:
-    """Build one map (and its index, if one is asked for) and print what it holds."""
+    """Build one map (with its index, if one is asked for, committed as one) and print what it holds."""
     from seqvpr.maps import build_map
     from seqvpr.maps.index import add_index
 
+    spec, seed, windows, window_method, index_model = index
+    records = []
+    indexed = None if spec is None else (lambda saved: records.append(
+        add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)))
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
-                      progress=tqdm_progress, frames=frames, loaded=_echo_bag, **extraction)
+                      progress=tqdm_progress, frames=frames, loaded=_echo_bag, indexed=indexed, **extraction)
     info = saved.info
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
-    spec, seed, windows, window_method, index_model = index
-    if spec is not None:
-        try:
-            record = add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)
-        except BaseException:  # a map without the index asked for is not what was asked: none is left
-            import shutil
-
-            shutil.rmtree(out_dir, ignore_errors=True)
-            raise
+    for record in records:
         _echo_index(record)
 
 

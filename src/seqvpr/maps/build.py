@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,9 @@ from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
+from seqvpr.io import check_replaceable, commit_folder, temporary_folder
 from seqvpr.maps.files import (
+    INFO_FILE,
     MapInfo,
     SavedMap,
     concatenate_traversals,
@@ -127,13 +130,15 @@ def build_map(
     progress: ProgressFactory | None = None,
     frames: str | None = None,
     loaded: Callable[[str, Traversal], None] | None = None,
+    indexed: Callable[[SavedMap], object] | None = None,
     **extraction: Any,
 ) -> SavedMap:
     """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames
     through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
     as one map (each source its own segments; the positions' ``crs`` recorded). ``loaded`` is told each source and
     its traversal as soon as it is read (before describing), for a command to report what was read (a bag's
-    topics: ``Traversal.bag``)."""
+    topics: ``Traversal.bag``). ``indexed`` (e.g. ``add_index``) runs on the new map before it replaces anything at
+    ``out``, so a failed index leaves the previous map as it was."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
@@ -160,5 +165,22 @@ def build_map(
     info = MapInfo(len(whole), int(vectors.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},
                    map_sources(described, list(sources)), model_records(models))
-    write_map(out, whole.with_descriptors(vectors), info)
+    write_indexed_map(Path(out), whole.with_descriptors(vectors), info, indexed)
     return open_map(out)
+
+
+def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
+                      indexed: Callable[[SavedMap], object] | None) -> None:
+    """``write_map``, and ``indexed`` run on the written map before it is committed to ``out`` (as one)."""
+    if indexed is None:
+        write_map(out, frames, info)
+        return
+    check_replaceable(out, INFO_FILE)
+    tmp = temporary_folder(out)
+    try:
+        write_map(tmp, frames, info)
+        indexed(open_map(tmp))
+        commit_folder(tmp, out, INFO_FILE)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

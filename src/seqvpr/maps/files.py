@@ -33,12 +33,14 @@ import numpy as np
 
 from seqvpr.data.geo import LOCAL, common_crs
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SeqvprWarning
+from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
 from seqvpr.maps.codes import SIDE_FILES, decoded_rows, encode, parse_storage, stored_shape
 
 MAP_FORMAT = "seqvpr-map"
-MAP_VERSION = 1
+MAP_VERSION = 2  # 2: map.json records each file's digest and the map's identity
+READABLE_VERSIONS = (1, 2)  # a version-1 map (no identity) still opens, unproven, with a warning
 INFO_FILE = "map.json"
 DESCRIPTORS_FILE = "descriptors.npy"
 OPTIONAL_COLUMNS = ("positions", "timestamps", "headings")
@@ -116,16 +118,21 @@ def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSou
 
 
 def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
-    """Write a map folder atomically: the descriptors in ``info.dtype``, the per-frame table (names as
-    ``Traversal.image_names``), ``map.json`` last (its ``crs`` the frames')."""
+    """Write a map folder atomically: the rows checked (finite; unit length in a normalised map) before anything is
+    written, the descriptors in ``info.dtype``, the per-frame table (names as ``Traversal.image_names``), each
+    file's digest and the map's identity in ``map.json``, written last (its ``crs`` the frames'); the folder is
+    opened as a reader would before it replaces an old map, so a map that cannot be opened never takes the name."""
     from seqvpr import __version__
 
     assert frames.descriptors is not None
+    check_rows(frames.descriptors, info.normalized, f"{folder}: the map's rows")
+    names = frames.image_names()
+    check_names(names, folder)
     stored, side = encode(frames.descriptors, info.dtype)  # an unknown storage fails before anything is written
     columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns,
-                      "crs": frames.crs})
+                      "crs": frames.crs, "version": MAP_VERSION})
     with atomic_folder(folder, INFO_FILE) as tmp:
         np.save(tmp / DESCRIPTORS_FILE, stored)
         if side is not None:
@@ -136,19 +143,53 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
                                                [s.frames for s in info.sources]))
         for column in columns:
             np.save(tmp / f"{column}.npy", np.asarray(getattr(frames, column), dtype=np.float64))
-        names = frames.image_names()
         if names is not None:
             (tmp / "names.txt").write_text("".join(f"{n}\n" for n in names))
-        (tmp / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
+        write_sealed_info(tmp, info)
+        open_map(tmp)  # what a reader will do, before the map replaces anything
     return Path(folder)
+
+
+def write_sealed_info(folder: Path, info: MapInfo) -> MapInfo:
+    """``map.json`` written last, recording the digest of every other file in ``folder`` and their identity."""
+    files = seal_files(folder, sorted(p.name for p in folder.iterdir() if p.name != INFO_FILE))
+    sealed = replace(info, files=files, identity=combined_identity(files), version=MAP_VERSION)
+    (folder / INFO_FILE).write_text(json.dumps(sealed.to_json(), indent=2))
+    return sealed
+
+
+def check_rows(rows, normalized: bool, what: str, chunk: int = 1 << 16) -> None:
+    """Every row finite and, in a normalised map, of unit length: one line naming the first bad row otherwise (read a
+    chunk at a time, so a memory-mapped million rows are never held)."""
+    for start in range(0, len(rows), chunk):
+        block = np.asarray(rows[start:start + chunk], dtype=np.float32)
+        bad = ~np.isfinite(block).all(axis=1)
+        if bad.any():
+            raise SeqvprError(f"{what}: row {start + int(np.argmax(bad))} is not finite (NaN or inf)")
+        if normalized:
+            norms = np.linalg.norm(block, axis=1)
+            off = (np.abs(norms - 1.0) > 1e-2) & (norms > 0)  # a zero row stays zero when normalised
+            if off.any():
+                row = int(np.argmax(off))
+                raise SeqvprError(f"{what}: row {start + row} has length {norms[row]:.4g}, but the map is marked "
+                                  "normalised (unit rows)")
+
+
+def check_names(names: Sequence[str] | None, folder: str | Path) -> None:
+    """Frame names fit ``names.txt`` (one per line): a name with a line separator is one line naming the frame."""
+    for row, name in enumerate(names or ()):
+        if len(name.splitlines()) != 1 or name != name.strip("\r\n"):
+            raise SeqvprError(f"{folder}: frame {row}'s name {name[:60]!r} holds a line separator (or is empty); "
+                              "names.txt keeps one name a line")
 
 
 PER_FRAME_FILES = ("segments.npy", "frame_index.npy", "sources.npy", *(f"{c}.npy" for c in OPTIONAL_COLUMNS))
 
 
-def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[str, Any]) -> None:
+def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[str, Any]) -> MapInfo:
     """Rows ``[lo, hi)`` of an opened map as a map of their own in ``folder`` (which must not exist): every stored
-    file sliced as stored (codes stay the same codes), the side files copied, ``map.json`` last with ``shard``."""
+    file sliced as stored (codes stay the same codes), the side files copied, ``map.json`` last with ``shard``
+    (and its own digests and identity); its info returned."""
     import shutil
 
     folder.mkdir(parents=True)
@@ -172,7 +213,7 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
                               int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
                     for i, k in enumerate(kept))
     info = replace(saved.info, count=hi - lo, sources=sources, index=None, shard=shard)
-    (folder / INFO_FILE).write_text(json.dumps(info.to_json(), indent=2))
+    return write_sealed_info(folder, info)
 
 
 @dataclass(frozen=True)
@@ -205,15 +246,48 @@ def read_map_info(folder: str | Path) -> MapInfo:
         raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
     if kind != MAP_FORMAT:
         raise SeqvprError(f"{path}: not a seqvpr map (format {kind!r})")
-    if version != MAP_VERSION:
-        raise SeqvprError(f"{path}: map format version {version!r} is not known (this seqvpr reads version "
-                          f"{MAP_VERSION})")
+    if version not in READABLE_VERSIONS:
+        raise SeqvprError(f"{path}: map format version {version!r} is not known (this seqvpr reads versions "
+                          f"{', '.join(map(str, READABLE_VERSIONS))})")
     try:
         values["sources"] = tuple(MapSource(**s) for s in values["sources"])
         values["columns"] = tuple(values.get("columns", ()))
-        return MapInfo(**with_crs(values))
+        info = MapInfo(**with_crs(values))
     except (TypeError, KeyError, AttributeError) as error:
         raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
+    check_manifest(info, path)
+    return info
+
+
+def check_manifest(info: MapInfo, path: Path) -> None:
+    """``map.json`` is consistent: a version-2 map names its files' digests and their identity, and every file it
+    names (its files, its index's) is a plain name inside the map folder."""
+    if info.version >= 2 and (not isinstance(info.files, dict) or info.identity != combined_identity(info.files)):
+        raise SeqvprError(f"{path}: its file digests and identity do not agree (edited by hand?); rebuild the map")
+    named = [*(info.files or {}), *((info.index or {}).get(key) for key in ("file", "rows_file"))]
+    for name in filter(None, named):
+        if not is_plain_name(name):
+            raise SeqvprError(f"{path}: names the file {name!r}, which is not inside the map folder")
+
+
+def is_plain_name(name: object) -> bool:
+    """A file name with no folder part (so it stays inside the folder that names it)."""
+    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name \
+        and "\0" not in name
+
+
+def verify_map_files(folder: Path, info: MapInfo, fresh: bool = False) -> None:
+    """Every file ``map.json`` records holds the bytes it recorded (a stat where a file was seen before, else one
+    streamed read, remembered; ``fresh``: read them all); a version-1 map has no digests: a warning."""
+    if info.files is None:
+        import warnings
+
+        warnings.warn(f"{folder} was written by an older seqvpr and records no content identity, so it cannot be "
+                      "checked: rebuild it with seqvpr map build", SeqvprWarning, stacklevel=3)
+        return
+    owner = str(folder / INFO_FILE)
+    for name, digest in info.files.items():
+        check_digest(folder / name, digest, owner, fresh)
 
 
 def with_crs(values: dict[str, Any]) -> dict[str, Any]:
@@ -231,6 +305,7 @@ def open_map(folder: str | Path) -> SavedMap:
     if (folder / SHARDS_FILE).is_file():
         return open_sharded_map(folder).as_map()
     info = read_map_info(folder)
+    verify_map_files(folder, info)
     descriptors = _stored_rows(folder, info)
     column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
     optional = {c: column(c, (info.count, 2) if c == "positions" else (info.count,), "float64") for c in info.columns}
@@ -277,7 +352,7 @@ def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mm
 
 SHARDS_FILE = "shards.json"
 SHARDS_FORMAT = "seqvpr-sharded-map"
-SHARDS_VERSION = 1
+SHARDS_VERSION = 2  # 2: each shard's identity, and the whole map's, recorded and checked
 
 @dataclass(frozen=True)
 class ShardRecord:
@@ -287,6 +362,7 @@ class ShardRecord:
     first: int
     own_first: int
     own_last: int
+    identity: str | None = None  # the shard map's identity (its map.json); None in a sharded map of version 1
 
 
 @dataclass(frozen=True)
@@ -300,8 +376,17 @@ class ShardedMap:
     info: dict[str, Any]  # the unsharded map's ``map.json``
 
     def open_shard(self, number: int) -> SavedMap:
-        """Shard ``number`` as a map, memory-mapped (only its own files are touched)."""
-        return open_map(self.folder / self.shards[number].folder)
+        """Shard ``number`` as a map, memory-mapped (only its own files are touched), checked to be the shard
+        ``shards.json`` records there: its identity, its number, its rows and the map it was cut from."""
+        record = self.shards[number]
+        saved = open_map(self.folder / record.folder)
+        expected = {"number": number, "first": record.first, "own": [record.own_first, record.own_last],
+                    "count": self.count, "map": self.info.get("identity")}
+        found = {key: (saved.info.shard or {}).get(key) for key in expected}
+        if record.identity is not None and (saved.info.identity != record.identity or found != expected):
+            raise SeqvprError(f"{saved.folder}: not the shard {number} that {self.folder / SHARDS_FILE} records "
+                              "(swapped, copied from another map, or its rows shifted); re-shard the map")
+        return saved
 
     def as_map(self) -> SavedMap:
         """The whole map in one process, its rows read through the shards: what ``open_map`` gives for a sharded
@@ -323,12 +408,15 @@ def open_sharded_map(folder: str | Path) -> ShardedMap:
         raise SeqvprError(f"{folder}: not a sharded map (no {SHARDS_FILE})")
     try:
         values = json.loads(path.read_text())
-        if values.get("format") != SHARDS_FORMAT or values.get("version") != SHARDS_VERSION:
+        if values.get("format") != SHARDS_FORMAT or values.get("version") not in (1, SHARDS_VERSION):
             raise ValueError(f"format {values.get('format')!r} version {values.get('version')!r}")
         records = tuple(ShardRecord(**r) for r in values["shards"])
         sharded = ShardedMap(folder, int(values["count"]), int(values["overlap"]), records, dict(values["map"]))
     except (ValueError, TypeError, KeyError, AttributeError) as error:
         raise SeqvprError(f"{path}: malformed sharded map description ({type(error).__name__}: {error})") from None
+    outside = [r.folder for r in records if not is_plain_name(r.folder)]
+    if outside:
+        raise SeqvprError(f"{path}: names the shard folder {outside[0]!r}, which is not inside the sharded map")
     owned = [(r.own_first, r.own_last) for r in records]
     if [a for a, _ in owned] != [0, *[b for _, b in owned[:-1]]] or owned[-1][1] != sharded.count:
         raise SeqvprError(f"{path}: its shards do not tile the map's {sharded.count} frames")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from seqvpr.errors import SeqvprError
-from seqvpr.io import atomic_write, current_umask
-from seqvpr.maps.files import INFO_FILE, SavedMap, read_map_info
+from seqvpr.identity import check_digest, remember_digest, seal_files
+from seqvpr.io import commit_folder, output_lock, temporary_folder
+from seqvpr.maps.files import INFO_FILE, SavedMap, open_map
 
 INDEX_FILE = "index.faiss"
 ADD_BLOCK = 65_536  # map rows added to an index at a time (a memory-mapped map is never read whole)
@@ -142,15 +143,27 @@ def add_index(
     model_folder: str | Path | None = None,
 ) -> dict[str, Any]:
     """Build the map's index, over its frames or (``windows`` L) over the ``method`` sequence descriptors of its
-    windows of L frames, and save it beside the descriptors: ``index.faiss`` (and, over windows, the map row of
-    each vector, ``index_rows.npy``) first, then ``map.json`` naming it, each atomically (a map whose
-    ``map.json`` names no index has none)."""
-    import faiss
-
+    windows of L frames, and commit it with the map as one: holding the map's lock, a new version of the map folder
+    (its files hard-linked) gains ``index.faiss`` (and, over windows, ``index_rows.npy``, the map row of each vector)
+    and ``map.json`` naming them, with their digests and the identity of the rows they index, then replaces the
+    map by one atomic exchange. A reader sees the map with its old index or with the new one, never a mix."""
     if windows < 0:
         raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
     if (method == "seqnet") != (model_folder is not None) and windows:
         raise SeqvprError("an index over seqnet windows needs its SeqNet (--index-model), and only it takes one")
+    with output_lock(saved.folder):
+        current = open_map(saved.folder)  # under the lock: the rows this index is built over
+        if current.info.identity != saved.info.identity:
+            raise SeqvprError(f"{saved.folder}: the map was rebuilt since it was opened; index it again")
+        return _index_new_version(current, spec, seed, progress, windows, method, model_folder)
+
+
+def _index_new_version(saved: SavedMap, spec: IndexSpec, seed: int, progress, windows: int, method: str,
+                       model_folder: str | Path | None) -> dict[str, Any]:
+    """``add_index``'s work: the index built, written with the map's linked files into a temporary folder, and the
+    folder swapped in for the map."""
+    import faiss
+
     started = time.perf_counter()
     model = _seqnet(model_folder) if windows and model_folder is not None else None
     described = window_vectors(saved.descriptors, saved.frames.segment_ids, windows, method, model) if windows else None
@@ -158,25 +171,43 @@ def add_index(
     index = build_frame_index(vectors, spec, seed, progress)
     record = {"spec": str(spec), "over": f"{method}:{windows}" if windows else "frames", "file": INDEX_FILE,
               "ntotal": int(index.ntotal), "dim": int(vectors.shape[1]), "seed": seed,
-              "build_seconds": round(time.perf_counter() - started, 2)}
+              "build_seconds": round(time.perf_counter() - started, 2), "map": saved.info.identity}
     if model is not None:
         record["model"] = model_record(model_folder)
-    if described is not None:
-        with atomic_write(saved.folder / ROWS_FILE, "wb") as handle:
-            np.save(handle, described.rows)
-    fd, tmp = tempfile.mkstemp(prefix=f".{INDEX_FILE}.", suffix=".part", dir=saved.folder)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~current_umask())
+    folder = Path(saved.folder)
+    tmp = temporary_folder(folder)
     try:
-        faiss.write_index(index, tmp)
-        os.replace(tmp, saved.folder / INDEX_FILE)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    info = read_map_info(saved.folder)
-    with atomic_write(saved.folder / INFO_FILE) as handle:
-        json.dump({**info.to_json(), "index": record}, handle, indent=2)
+        linked = link_map_files(saved, tmp)
+        faiss.write_index(index, str(tmp / INDEX_FILE))
+        record["digest"] = seal_files(tmp, [INDEX_FILE])[INDEX_FILE]
+        if described is not None:
+            np.save(tmp / ROWS_FILE, described.rows)
+            record.update(rows_file=ROWS_FILE, rows_digest=seal_files(tmp, [ROWS_FILE])[ROWS_FILE])
+        (tmp / INFO_FILE).write_text(json.dumps({**saved.info.to_json(), "index": record}, indent=2))
+        commit_folder(tmp, folder, INFO_FILE)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for name, digest in linked.items():  # removing the old links changed the files' change time, not their bytes
+        remember_digest(folder / name, digest)
     return record
+
+
+def link_map_files(saved: SavedMap, folder: Path) -> dict[str, str]:
+    """The map's row files (``map.json``'s ``files``) in ``folder``, hard-linked (copied where links are refused),
+    each checked against its digest as it is linked; the digests, for the files whose bytes were proven."""
+    names = list(saved.info.files or {}) or [p.name for p in Path(saved.folder).iterdir()
+                                             if p.is_file() and p.name not in (INFO_FILE, INDEX_FILE, ROWS_FILE)]
+    for name in names:
+        try:
+            os.link(Path(saved.folder) / name, folder / name)
+        except OSError:
+            shutil.copy2(Path(saved.folder) / name, folder / name)
+    proven = {}
+    for name, digest in (saved.info.files or {}).items():
+        check_digest(folder / name, digest, str(Path(saved.folder) / INFO_FILE))
+        proven[name] = digest
+    return proven
 
 
 def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: int = DEFAULT_EF_SEARCH):
@@ -189,6 +220,7 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
     path = Path(saved.folder) / record["file"]
     if not path.is_file():
         raise SeqvprError(f"{path}: missing map file (map.json names an index)")
+    check_index_record(saved, record, path)
     try:
         index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP | faiss.IO_FLAG_READ_ONLY)
     except RuntimeError as error:
@@ -202,6 +234,20 @@ def open_frame_index(saved: SavedMap, nprobe: int = DEFAULT_NPROBE, ef_search: i
     if hasattr(index, "hnsw"):
         index.hnsw.efSearch = ef_search
     return index
+
+
+def check_index_record(saved: SavedMap, record: dict[str, Any], path: Path) -> None:
+    """The index is the one ``map.json`` records (its digest) and was built over this map's rows (their identity);
+    an index recorded before identities is taken on its shape alone."""
+    owner = str(Path(saved.folder) / INFO_FILE)
+    if "digest" not in record:
+        return
+    if record.get("map") != saved.info.identity:
+        raise SeqvprError(f"{path}: built over other rows than this map's (map.json's index names another map); "
+                          f"rebuild it with seqvpr map index {saved.folder}")
+    check_digest(path, record["digest"], owner)
+    if record.get("rows_file"):
+        check_digest(Path(saved.folder) / record["rows_file"], record["rows_digest"], owner)
 
 
 def _seqnet(folder: str | Path):

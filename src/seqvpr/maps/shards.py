@@ -72,10 +72,11 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
     with atomic_folder(out, SHARDS_FILE) as tmp:
         for number, (lo, a, b, hi) in enumerate(shard_ranges(saved.info.count, shards, overlap)):
             folder = f"shard-{number:03d}"
-            write_map_rows(saved, lo, hi, tmp / folder, {"number": number, "of": shards, "first": lo,
-                                                         "own": [a, b], "count": saved.info.count})
+            shard = {"number": number, "of": shards, "first": lo, "own": [a, b], "count": saved.info.count,
+                     "map": saved.info.identity}
+            written = write_map_rows(saved, lo, hi, tmp / folder, shard)
             _index_like(saved, tmp / folder)
-            records.append(ShardRecord(folder, lo, a, b))
+            records.append(ShardRecord(folder, lo, a, b, written.identity))
         description = {"format": SHARDS_FORMAT, "version": SHARDS_VERSION, "count": saved.info.count,
                        "overlap": overlap, "source": str(source), "shards": [r.__dict__ for r in records],
                        "map": saved.info.to_json()}
