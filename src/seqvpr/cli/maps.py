@@ -220,6 +220,18 @@ def info(map_dir: str, as_json: bool) -> None:
     _echo_shards(map_dir)
 
 
+@map_group.command(name="check")
+@click.argument("map_dir", type=click.Path())
+def check_command(map_dir: str) -> None:
+    """Verify MAP in full: every file against the digest map.json records, every row finite (unit length in a
+    normalised map), the index and each shard the ones recorded. Opening a map checks only what is cheap."""
+    from seqvpr.maps.check import check_map
+
+    for line in check_map(map_dir):
+        click.echo(line)
+    click.echo("ok")
+
+
 def _echo_shards(map_dir: str) -> None:
     """A sharded map's shards: the rows each owns, where it starts, and its own index."""
     from seqvpr.maps.files import is_sharded_map, open_sharded_map
