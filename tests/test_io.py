@@ -144,3 +144,90 @@ def _assert_training_files_complete(out) -> None:
 class _NoCapture:
     def readouterr(self):
         return "", ""
+
+
+def _dead_pid() -> int:
+    """A process id that is no longer running (a child that has exited)."""
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
+
+
+def test_a_folder_replaces_the_old_by_one_exchange_and_leaves_no_temporary(tmp_path):
+    from seqvpr.io import atomic_folder
+
+    for text in ("old", "new"):
+        with atomic_folder(tmp_path / "out", "m") as tmp:
+            (tmp / "m").write_text(text)
+    assert (tmp_path / "out" / "m").read_text() == "new" and [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_without_an_exchange_a_kill_between_the_renames_is_undone_by_the_next_writer(tmp_path, monkeypatch):
+    """Where the file system cannot exchange, the old folder is moved aside first: a writer killed right then
+    leaves the old output under a temporary name, which the next writer in the folder puts back."""
+    import errno
+    import os
+
+    import seqvpr.io as io
+
+    with io.atomic_folder(tmp_path / "out", "m") as tmp:
+        (tmp / "m").write_text("old")
+
+    def no_exchange(a, b):
+        raise OSError(errno.EINVAL, "not here")
+
+    renames = []
+
+    def killed_after_one(source, target):
+        if renames:
+            raise KeyboardInterrupt  # the kill, between the two renames
+        renames.append(target)
+        os.replace(source, target)
+
+    monkeypatch.setattr(io, "exchange", no_exchange)
+    monkeypatch.setattr(io, "rename", killed_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        with io.atomic_folder(tmp_path / "out", "m") as tmp:
+            (tmp / "m").write_text("new")
+    monkeypatch.undo()
+    # what the kill leaves: the old output moved aside under this process's temporary name; a dead process's:
+    aside = next(p for p in tmp_path.iterdir() if p.name.endswith(".old"))
+    assert not (tmp_path / "out").exists() and (aside / "out" / "m").read_text() == "old"
+    dead = tmp_path / aside.name.replace(f"seqvpr-{os.getpid()}-", f"seqvpr-{_dead_pid()}-")
+    aside.rename(dead)
+    (tmp_path / f".out.seqvpr-{_dead_pid()}-abc.part").mkdir()
+    assert len(io.sweep_leftovers(tmp_path)) == 2
+    assert (tmp_path / "out" / "m").read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_a_live_process_s_temporaries_are_left_alone(tmp_path):
+    import os
+
+    from seqvpr.io import sweep_leftovers
+
+    mine = tmp_path / f".out.seqvpr-{os.getpid()}-abc.part"
+    mine.mkdir()
+    (tmp_path / ".out.seqvpr-notapid-abc.part").mkdir()
+    assert sweep_leftovers(tmp_path) == [] and mine.exists()
+
+
+def test_names_too_long_for_a_lock_or_a_temporary_are_shortened_alike(tmp_path):
+    from seqvpr.io import NAME_MAX, atomic_folder, lock_path, output_lock, temporary_prefix
+
+    target = tmp_path / ("x" * 250)
+    assert len(lock_path(target).name.encode()) <= NAME_MAX
+    assert lock_path(target) != lock_path(tmp_path / ("x" * 249 + "y"))
+    assert len(temporary_prefix(target).encode()) + len("XXXXXXXX.part") <= NAME_MAX
+    with output_lock(target), atomic_folder(target) as tmp:
+        (tmp / "f").write_text("1")
+    assert (target / "f").read_text() == "1"
+
+
+def test_a_lock_held_by_this_process_is_taken_again_inside_and_released_by_its_holder(tmp_path):
+    from seqvpr.io import lock_path, output_lock
+
+    with output_lock(tmp_path / "m"):
+        with output_lock(tmp_path / "m"):
+            pass
+        assert lock_path(tmp_path / "m").exists()
+    assert not lock_path(tmp_path / "m").exists()

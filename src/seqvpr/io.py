@@ -114,10 +114,10 @@ def _replace_in_two_steps(new: Path, target: Path) -> None:
     try:
         rename(new, target)
     except BaseException:
-        rename(old / target.name, target)
-        raise
-    finally:
+        rename(old / target.name, target)  # if this fails too, the old output waits aside for sweep_leftovers
         shutil.rmtree(old, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def rename(source: str | Path, target: str | Path) -> None:
