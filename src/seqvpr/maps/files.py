@@ -163,11 +163,12 @@ def check_rows(rows, normalized: bool, what: str, chunk: int = 1 << 16) -> None:
     chunk at a time, so a memory-mapped million rows are never held)."""
     for start in range(0, len(rows), chunk):
         block = np.asarray(rows[start:start + chunk], dtype=np.float32)
-        bad = ~np.isfinite(block).all(axis=1)
+        squares = np.einsum("ij,ij->i", block, block)  # NaN or inf for a row that is not finite (or huge)
+        bad = ~np.isfinite(block).all(axis=1) if not np.isfinite(squares).all() else np.zeros(len(block), bool)
         if bad.any():
             raise SeqvprError(f"{what}: row {start + int(np.argmax(bad))} is not finite (NaN or inf)")
         if normalized:
-            norms = np.linalg.norm(block, axis=1)
+            norms = np.sqrt(squares.astype(np.float64))
             off = (np.abs(norms - 1.0) > 1e-2) & (norms > 0)  # a zero row stays zero when normalised
             if off.any():
                 row = int(np.argmax(off))
