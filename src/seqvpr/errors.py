@@ -1,6 +1,8 @@
 """The one exception type users see: a one-line message that names the file or field at fault."""
 
 import csv
+import errno
+import os
 import pickle
 import struct
 import zipfile
@@ -45,3 +47,44 @@ class reading:
         if not (isinstance(error, READ_ERRORS) or type(error).__module__.startswith(READER_MODULES)):
             return False
         raise unreadable(self.what, self.kind, error) from error
+
+
+#: errno -> what the system refused and what to do; ``{path}`` is the path it named (``{other}`` a second one)
+OS_REFUSALS = {
+    "ENOSPC": "no space left on the device holding {path}: free space or write elsewhere",
+    "EDQUOT": "disk quota exceeded on the device holding {path}: free space or write elsewhere",
+    "EFBIG": "file size limit reached writing {path} (ulimit -f, or the file system's largest file): raise the "
+             "limit or write elsewhere",
+    "EROFS": "{path} is on a read-only file system: write elsewhere",
+    "EACCES": "permission denied: {path}: change its permissions or write elsewhere",
+    "EPERM": "operation not permitted: {path}: change its permissions or write elsewhere",
+    "ENAMETOOLONG": "a name in {path} is longer than the file system allows (255 bytes; 4096 for the whole path): give a "
+                    "shorter one",
+    "EMFILE": "too many open files (opening {path}): raise the limit (ulimit -n)",
+    "ENFILE": "too many open files on this system (opening {path}): close other programs or raise the limit",
+    "ENOTDIR": "{path}: a part of it is not a folder",
+    "EISDIR": "{path} is a folder, and a file goes there",
+    "ELOOP": "{path}: too many levels of symbolic links (a loop?)",
+    "EXDEV": "{path} and {other} are on different file systems: write the output on one file system",
+    "ENOENT": "{path}: no such file or folder",
+    "EIO": "input/output error on {path}: the device may be failing or disconnected",
+    "EBUSY": "{path} is busy (in use by the system or another program)",
+    "ETXTBSY": "{path} is busy (a running program's file)",
+}
+_REFUSALS = {getattr(errno, name): text for name, text in OS_REFUSALS.items() if hasattr(errno, name)}
+
+
+def os_refusal(error: OSError) -> SeqvprError | None:
+    """The one line for an OSError whose errno says the operating system refused (no space, a read-only file system,
+    permission denied, a name too long...): what happened, the path it named and what to do. None for any other."""
+    text = _REFUSALS.get(error.errno)
+    if text is None:
+        return None
+    return SeqvprError(text.format(path=_path_text(error.filename), other=_path_text(error.filename2)))
+
+
+def _path_text(name: object) -> str:
+    """A path an OSError names, as text; a placeholder where the system named none (a write to an open file)."""
+    if isinstance(name, (str, bytes, os.PathLike)):
+        return os.fsdecode(name)
+    return "(a path the system did not name)"

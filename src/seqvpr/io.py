@@ -46,9 +46,10 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
         with os.fdopen(fd, mode, **open_kwargs) as handle:
             yield handle
         rename(tmp, path)
-    except BaseException:
+    except BaseException as error:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        name_target(error, Path(tmp), path)
         raise
 
 
@@ -64,9 +65,28 @@ def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]
     try:
         yield tmp
         _replace_folder(tmp, path)
-    except BaseException:
+    except BaseException as error:
         shutil.rmtree(tmp, ignore_errors=True)
+        name_target(error, tmp, path)
         raise
+
+
+#: errnos of a failed write: one that names no path (a write to an open file) is said of the output being written
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EIO, errno.EROFS, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+def name_target(error: BaseException, tmp: Path, target: Path) -> None:
+    """Make an OSError from writing ``target`` (through its temporary ``tmp``) name ``target`` as the user gave it,
+    not the temporary, and name it where the system named nothing (ENOSPC from a write): the one-line error then
+    tells the user which output failed."""
+    if not isinstance(error, OSError):
+        return
+    for field in ("filename", "filename2"):
+        name = getattr(error, field)
+        if isinstance(name, (str, bytes, os.PathLike)) and Path(os.fsdecode(name)).is_relative_to(tmp):
+            setattr(error, field, str(target / Path(os.fsdecode(name)).relative_to(tmp)))
+    if error.filename is None and error.errno in _WRITE_ERRNOS:
+        error.filename = str(target)
 
 
 def check_replaceable(path: Path, marker: str | None) -> None:

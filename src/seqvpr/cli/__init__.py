@@ -14,7 +14,7 @@ import warnings
 
 import click
 
-from seqvpr.errors import SeqvprError, SeqvprWarning
+from seqvpr.errors import SeqvprError, SeqvprWarning, os_refusal
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
 COMMANDS = {
@@ -120,6 +120,8 @@ def main() -> None:
     warnings.showwarning = _show_warning
     show_library_log()
     signal.signal(signal.SIGTERM, _terminated)
+    if hasattr(signal, "SIGXFSZ"):  # past ``ulimit -f`` a write fails with EFBIG (one line) instead of killing us
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort as abort:
@@ -141,6 +143,12 @@ def main() -> None:
         sys.exit(error.exit_code)
     except SeqvprError as error:
         click.echo(f"seqvpr: error: {error}", err=True)
+        sys.exit(2)
+    except OSError as error:  # the system said no (no space, read-only, permission...): one line, when we know it
+        refusal = os_refusal(error)
+        if refusal is None:
+            raise
+        click.echo(f"seqvpr: error: {refusal}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:
         click.echo(f"seqvpr: interrupted (SIGINT); {INTERRUPTED}", err=True)

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, os_refusal
 
 #: how images become descriptors: patch-normalised thumbnails, one of the backbones, or torchscript:PATH
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
@@ -30,7 +30,13 @@ class WritablePath(click.ParamType):
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
         if not str(value).strip():
             self.fail("an empty path; name the output", param, ctx)
-        problem = output_problem(Path(value), self.kind)
+        try:
+            problem = output_problem(Path(value), self.kind)
+        except OSError as error:  # the system refused even to look (a path too long, a loop): its one line
+            refusal = os_refusal(error)
+            if refusal is None:
+                raise
+            problem = str(refusal)
         if problem:
             self.fail(problem, param, ctx)
         return str(value)
@@ -38,8 +44,14 @@ class WritablePath(click.ParamType):
 
 def output_problem(path: Path, kind: str) -> str | None:
     """Why ``path`` cannot be written as a ``kind`` (``folder`` or ``file``), or None."""
+    import errno
+    import os
     import tempfile
 
+    from seqvpr.io import NAME_MAX
+
+    if any(len(os.fsencode(part)) > NAME_MAX for part in path.parts):  # before the lock or any temporary is made
+        return str(os_refusal(OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG), str(path))))
     if path.is_symlink() and not path.exists():
         return f"{path} is a symbolic link to nothing (dangling, or a loop)"
     if path.exists() and (path.is_dir() != (kind == "folder")):
