@@ -85,8 +85,30 @@ def name_target(error: BaseException, tmp: Path, target: Path) -> None:
         name = getattr(error, field)
         if isinstance(name, (str, bytes, os.PathLike)) and Path(os.fsdecode(name)).is_relative_to(tmp):
             setattr(error, field, str(target / Path(os.fsdecode(name)).relative_to(tmp)))
+    if error.errno is None and error.filename is None:
+        error.errno = _short_write_errno(str(error), target)
     if error.filename is None and error.errno in _WRITE_ERRNOS:
         error.filename = str(target)
+
+
+def _short_write_errno(message: str, target: Path) -> int | None:
+    """The errno behind a short write reported without one (numpy's ``N requested and M written``): ENOSPC when
+    the device holding ``target`` has less room than was asked for, EFBIG under a file size limit, else None."""
+    import resource
+
+    short = re.search(r"(\d+) requested and \d+ written", message)
+    if short is None:
+        return None
+    folder = target.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    with contextlib.suppress(OSError):
+        device = os.statvfs(folder)
+        if device.f_bavail * device.f_frsize < int(short.group(1)):
+            return errno.ENOSPC
+    if resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY:
+        return errno.EFBIG
+    return None
 
 
 def check_replaceable(path: Path, marker: str | None) -> None:
