@@ -47,9 +47,9 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
             yield handle
         rename(tmp, path)
     except BaseException as error:
+        name_target(error, Path(tmp), path)
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        name_target(error, Path(tmp), path)
         raise
 
 
@@ -66,8 +66,8 @@ def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]
         yield tmp
         _replace_folder(tmp, path)
     except BaseException as error:
+        name_target(error, tmp, path)  # before the temporary goes: a full device is still full
         shutil.rmtree(tmp, ignore_errors=True)
-        name_target(error, tmp, path)
         raise
 
 
@@ -93,10 +93,11 @@ def name_target(error: BaseException, tmp: Path, target: Path) -> None:
 
 def _short_write_errno(message: str, target: Path) -> int | None:
     """The errno behind a short write reported without one (numpy's ``N requested and M written``): ENOSPC when
-    the device holding ``target`` has less room than was asked for, EFBIG under a file size limit, else None."""
+    the device holding ``target`` has less room than the N - M bytes left to write (asked while the partial file is
+    still there), EFBIG under a file size limit, else None."""
     import resource
 
-    short = re.search(r"(\d+) requested and \d+ written", message)
+    short = re.search(r"(\d+) requested and (\d+) written", message)
     if short is None:
         return None
     folder = target.parent
@@ -104,7 +105,7 @@ def _short_write_errno(message: str, target: Path) -> int | None:
         folder = folder.parent
     with contextlib.suppress(OSError):
         device = os.statvfs(folder)
-        if device.f_bavail * device.f_frsize < int(short.group(1)):
+        if device.f_bavail * device.f_frsize < int(short.group(1)) - int(short.group(2)):
             return errno.ENOSPC
     if resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY:
         return errno.EFBIG
