@@ -58,8 +58,8 @@ OS_REFUSALS = {
     "EROFS": "{path} is on a read-only file system: write elsewhere",
     "EACCES": "permission denied: {path}: change its permissions or write elsewhere",
     "EPERM": "operation not permitted: {path}: change its permissions or write elsewhere",
-    "ENAMETOOLONG": "a name in {path} is longer than the file system allows (255 bytes; 4096 for the whole path): give a "
-                    "shorter one",
+    "ENAMETOOLONG": "a name in {path} is longer than the file system allows (255 bytes; 4096 for the whole path): "
+                    "give a shorter one",
     "EMFILE": "too many open files (opening {path}): raise the limit (ulimit -n)",
     "ENFILE": "too many open files on this system (opening {path}): close other programs or raise the limit",
     "ENOTDIR": "{path}: a part of it is not a folder",

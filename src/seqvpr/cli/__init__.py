@@ -120,7 +120,7 @@ def main() -> None:
     warnings.showwarning = _show_warning
     show_library_log()
     signal.signal(signal.SIGTERM, _terminated)
-    if hasattr(signal, "SIGXFSZ"):  # past ``ulimit -f`` a write fails with EFBIG (one line), not killed (as python)
+    if hasattr(signal, "SIGXFSZ"):  # past ``ulimit -f`` a write fails with EFBIG (one line) rather than a kill
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         cli.main(standalone_mode=False)
