@@ -11,7 +11,7 @@ import resource
 import pytest
 
 from seqvpr.errors import os_refusal
-from seqvpr.io import TEMP_TAG, atomic_folder, atomic_write
+from seqvpr.io import TEMP_TAG, atomic_folder, atomic_write, output_lock
 
 REFUSALS = {
     errno.ENOSPC: "no space left on the device holding /data/out: free space or write elsewhere",
@@ -107,3 +107,18 @@ def test_a_short_write_without_errno_is_read_as_a_full_device_or_a_size_limit(tm
     full = short(tmp_path / "c")
     assert full.errno == errno.ENOSPC and "holding " + str(tmp_path / "c") in str(os_refusal(full))
     assert not _leftovers(tmp_path)
+
+
+def test_a_lock_that_cannot_be_written_is_not_left_behind(tmp_path, monkeypatch):
+    """A full device refuses the lock's process id: the empty lock would otherwise refuse every later run."""
+    real = os.fdopen
+
+    def full(fd, *args, **kwargs):
+        handle = real(fd, *args, **kwargs)
+        handle.close()
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fdopen", full)
+    with pytest.raises(OSError) as info, output_lock(tmp_path / "out"):
+        pass
+    assert info.value.filename == str(tmp_path / "out") and not list(tmp_path.iterdir())

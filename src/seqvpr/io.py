@@ -276,8 +276,13 @@ def output_lock(path: str | Path) -> Iterator[Path]:
             lock.unlink(missing_ok=True)  # stale: its process is gone
     else:
         raise SeqvprError(f"{target}: cannot take the lock {lock}")
-    with os.fdopen(fd, "w") as handle:
-        handle.write(str(os.getpid()))
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(str(os.getpid()))
+    except OSError as error:  # a full device: no empty lock is left to stop the next run
+        lock.unlink(missing_ok=True)
+        name_target(error, lock, target)
+        raise
     _HELD.add(lock.resolve())
     try:
         yield lock

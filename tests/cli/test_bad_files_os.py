@@ -151,3 +151,19 @@ def test_an_os_error_it_does_not_know_stays_as_it_was(inputs, tmp_path, monkeypa
     _inject(monkeypatch, errno.EAGAIN)
     with pytest.raises(BlockingIOError):
         run_cli(monkeypatch, capsys, *_command("match", inputs, "small", tmp_path / "out"))
+
+
+def test_a_device_too_full_for_the_lock(inputs, tmp_path, monkeypatch, capsys):
+    """The lock beside the output cannot even hold its process id: one line, and no empty lock left to refuse the
+    next run."""
+    folder, out = tmp_path / "full", tmp_path / "full" / "out"
+    with tmpfs(folder, "64k") as mounted:
+        if not mounted:
+            pytest.skip("needs a tmpfs mount (root); the lock's refusal is injected in tests/test_os_refusals.py")
+        before = _good_output("match", inputs, out, monkeypatch, capsys)
+        with contextlib.suppress(OSError), open(folder / "filler", "wb") as filler:
+            while True:
+                filler.write(b"\0" * 4096)
+                filler.flush()
+        code, _, err = run_cli(monkeypatch, capsys, *_command("match", inputs, "small", out))
+        _assert_refused(code, err, "no space left on the device holding", out, folder, before, out)
