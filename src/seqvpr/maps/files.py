@@ -150,7 +150,9 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     import shutil
 
     folder.mkdir(parents=True)
-    stored = np.load(saved.folder / DESCRIPTORS_FILE, mmap_mode="r", allow_pickle=False)
+    from seqvpr.arrays import load_npy
+
+    stored = load_npy(saved.folder / DESCRIPTORS_FILE, mmap_mode="r")
     np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
     for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
         if (saved.folder / name).is_file():
@@ -158,7 +160,7 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     rows = {}
     for name in PER_FRAME_FILES:
         if (saved.folder / name).is_file():
-            rows[name] = np.load(saved.folder / name, allow_pickle=False)[lo:hi]
+            rows[name] = load_npy(saved.folder / name)[lo:hi]
     kept, remapped = np.unique(rows["sources.npy"], return_inverse=True)
     rows["sources.npy"] = remapped.astype(np.int32)
     for name, values in rows.items():
@@ -261,9 +263,11 @@ def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mm
     path = folder / name
     if not path.is_file():
         raise SeqvprError(f"{path}: missing map file")
+    from seqvpr.arrays import load_npy
+
     try:
         # copy-on-write: chunks are zero-copy tensor views, and nothing written ever reaches the file
-        array = np.load(path, mmap_mode="c" if mmap else None, allow_pickle=False)
+        array = load_npy(path, mmap_mode="c" if mmap else None)
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
     if array.shape != shape or array.dtype != np.dtype(dtype):

@@ -219,8 +219,10 @@ def indexed_rows(saved: SavedMap) -> np.ndarray:
     path = Path(saved.folder) / ROWS_FILE
     if not path.is_file():
         raise SeqvprError(f"{path}: missing map file (map.json names an index over windows)")
+    from seqvpr.arrays import load_npy
+
     try:
-        return np.load(path, allow_pickle=False)
+        return load_npy(path)
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
 
