@@ -4,6 +4,7 @@ they are opened (a FIFO never hangs), and a zip bomb refused by its sizes before
 from __future__ import annotations
 
 import os
+import struct
 import threading
 import time
 import tracemalloc
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from seqvpr import arrays
-from seqvpr.arrays import check_regular_file, load_npy, open_npz
+from seqvpr.arrays import check_regular_file, load_mat, load_npy, open_npz
 from seqvpr.errors import SeqvprError
 from tests.helpers import raises_one_line
 
@@ -140,3 +141,27 @@ def test_an_honest_member_larger_than_memory_is_refused(tmp_path, monkeypatch):
                     tmp_path / "zeros.npz")
     monkeypatch.undo()
     assert read_npz(tmp_path / "zeros.npz")["descriptors"].shape == (1024, 1024)
+
+
+def _element(kind: int, payload: bytes) -> bytes:
+    """A MAT v5 data element: type, length, payload padded to 8 bytes."""
+    return struct.pack("<II", kind, len(payload)) + payload + b"\0" * (-len(payload) % 8)
+
+
+def _matrix(mclass: int, name: bytes, body: bytes) -> bytes:
+    flags = _element(6, struct.pack("<II", mclass, 0))
+    return _element(14, flags + _element(5, struct.pack("<ii", 1, 1)) + _element(1, name) + body)
+
+
+def write_function_handle_mat(path, name: str = "f") -> None:
+    """A MAT v5 file whose variable ``name`` is a MATLAB function handle (which scipy's writer cannot make)."""
+    inner = _matrix(6, b"", _element(9, struct.pack("<d", 1.0)))  # mxDOUBLE_CLASS 1.0
+    header = b"MATLAB 5.0 MAT-file".ljust(116, b" ") + b"\0" * 8 + struct.pack("<H", 0x0100) + b"IM"
+    path.write_bytes(header + _matrix(16, name.encode(), inner))  # 16: mxFUNCTION_CLASS
+
+
+def test_a_matlab_function_handle_is_one_line(tmp_path):
+    write_function_handle_mat(tmp_path / "fn.mat", "GT")
+    message = raises_one_line("variable 'GT' is a function handle; seqvpr reads only numeric arrays and structs",
+                              load_mat, tmp_path / "fn.mat")
+    assert str(tmp_path / "fn.mat") in message

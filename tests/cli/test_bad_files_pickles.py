@@ -14,6 +14,7 @@ import torch
 from PIL import Image
 
 from tests.helpers import run_cli, write_route_files
+from tests.test_arrays import write_function_handle_mat
 
 
 class Payload:
@@ -67,6 +68,8 @@ def world(tmp_path_factory):
     rows[3, 1] = [Payload(marker)]
     np.save(w / "evil_gt.npy", rows)  # VPR-Bench's layout, one row carrying the payload
     np.savez(w / "evil_gt.npz", gt=objects(marker, (80, 80)))
+    write_function_handle_mat(w / "handle.mat", "Y")
+    write_function_handle_mat(w / "handle_gt.mat", "GT")
     torch.save({"state_dict": {"pool.0.conv.weight": torch.zeros(4, 16, 3)}, "epoch": Payload(marker)}, w / "evil.pth")
     (w / "imgs").mkdir()
     for i in range(4):
@@ -80,6 +83,8 @@ def world(tmp_path_factory):
     describe(w, "member.toml", "evil_member.npz")
     describe(w, "gt_npy.toml", "good.npy", "evil_gt.npy")
     describe(w, "gt_npz.toml", "good.npy", "evil_gt.npz")
+    describe(w, "mat.toml", "handle.mat")
+    describe(w, "gt_mat.toml", "good.npy", "handle_gt.mat")
     assert not marker.exists()
     return w
 
@@ -92,6 +97,8 @@ CASES = {
     "match: a traversal .npz member": (("match", "-r", "{w}/ref.npz", "-q", "{w}/evil_member.npz", "--radius", "2f"), "evil_member.npz"),
     "match: ground truth .npy (VPR-Bench rows)": (("match", "-r", "{w}/good.npy", "-q", "{w}/good.npy", "--ground-truth", "{w}/evil_gt.npy"), "evil_gt.npy"),
     "match: ground truth .npz": (("match", "-r", "{w}/good.npy", "-q", "{w}/good.npy", "--ground-truth", "{w}/evil_gt.npz", "--gt-layout", "ref-query"), "evil_gt.npz"),
+    "match: descriptors .mat holding a function handle": (("match", "-r", "{w}/handle.mat", *Q, "--radius", "2f"), "handle.mat: variable 'Y' is a function handle"),
+    "match: ground truth .mat holding a function handle": (("match", "-r", "{w}/good.npy", "-q", "{w}/good.npy", "--ground-truth", "{w}/handle_gt.mat"), "handle_gt.mat: variable 'GT' is a function handle"),
     "import: a checkpoint .pth": (("import", "{w}/evil.pth", "--out", "{out}"), "evil.pth"),
     "extract: backbone weights .pth": (("extract", "{w}/imgs", "--descriptor", "resnet18", "--weights", "{w}/evil.pth", "--out", "{out}/d.npz"), "evil.pth"),
     "localize: a localiser state .npz": (("localize", "--map", "{w}/map", *Q, "--resume-state", "{w}/evil_state.npz", "--out", "{out}"), "evil_state.npz"),
@@ -107,6 +114,8 @@ CASES = {
     "match: description naming a .npz with a pickled member": (("match", "-r", "{w}/member.toml", "-q", "{w}/member.toml"), "evil_member.npz"),
     "match: description naming ground truth .npy": (("match", "-r", "{w}/gt_npy.toml", "-q", "{w}/gt_npy.toml"), "evil_gt.npy"),
     "match: description naming ground truth .npz": (("match", "-r", "{w}/gt_npz.toml", "-q", "{w}/gt_npz.toml", "--gt-layout", "ref-query"), "evil_gt.npz"),
+    "match: description naming descriptors .mat": (("match", "-r", "{w}/mat.toml", "-q", "{w}/mat.toml"), "handle.mat: variable 'Y'"),
+    "match: description naming ground truth .mat": (("match", "-r", "{w}/gt_mat.toml", "-q", "{w}/gt_mat.toml"), "handle_gt.mat: variable 'GT'"),
     "map build: description naming descriptors .npy": (("map", "build", "{w}/desc.toml", "--out", "{out}"), "evil.npy"),
     "localize: description naming descriptors .npy": (("localize", "--map", "{w}/map", "-q", "{w}/desc.toml", "--out", "{out}"), "evil.npy"),
 }
