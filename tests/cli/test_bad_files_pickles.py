@@ -52,6 +52,21 @@ def describe(w, name: str, descriptors: str, gt: str | None = None) -> None:
     (w / name).write_text(text)
 
 
+def exported_with_payload(path, marker) -> None:
+    """A torch.export file whose sample inputs (a pickle inside the archive) carry the payload."""
+    import io
+    import zipfile
+
+    program = torch.export.export(torch.nn.Linear(3, 4), (torch.zeros(2, 3),))
+    torch.export.save(program, path.with_suffix(".good.pt2"))
+    payload = io.BytesIO()
+    torch.save(((Payload(marker),), {}), payload)
+    with zipfile.ZipFile(path.with_suffix(".good.pt2")) as good, zipfile.ZipFile(path, "w") as evil:
+        for info in good.infolist():
+            evil.writestr(info, payload.getvalue() if info.filename.endswith("sample_inputs/model.pt")
+                          else good.read(info.filename))
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     w = tmp_path_factory.mktemp("pickles")
@@ -74,6 +89,7 @@ def world(tmp_path_factory):
     (w / "imgs").mkdir()
     for i in range(4):
         Image.fromarray(np.zeros((24, 32, 3), np.uint8)).save(w / "imgs" / f"{i}.png")
+    exported_with_payload(w / "evil.pt2", marker)
     np.savez(w / "evil_state.npz", header=np.array("{}"), matcher_x=objects(marker, (3,)))
     assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     evil_map(w, "map_desc", "descriptors.npy")
@@ -101,6 +117,7 @@ CASES = {
     "match: ground truth .mat holding a function handle": (("match", "-r", "{w}/good.npy", "-q", "{w}/good.npy", "--ground-truth", "{w}/handle_gt.mat"), "handle_gt.mat: variable 'GT' is a function handle"),
     "import: a checkpoint .pth": (("import", "{w}/evil.pth", "--out", "{out}"), "evil.pth"),
     "extract: backbone weights .pth": (("extract", "{w}/imgs", "--descriptor", "resnet18", "--weights", "{w}/evil.pth", "--out", "{out}/d.npz"), "evil.pth"),
+    "extract: a torch.export encoder .pt2": (("extract", "{w}/imgs", "--descriptor", "torchscript:{w}/evil.pt2", "--out", "{out}/d.npz"), "evil.pt2"),
     "localize: a localiser state .npz": (("localize", "--map", "{w}/map", *Q, "--resume-state", "{w}/evil_state.npz", "--out", "{out}"), "evil_state.npz"),
     "match: a map's descriptors.npy": (("match", "--map", "{w}/map_desc", *Q, "--radius", "10m"), "descriptors.npy"),
     "match: a map's segments.npy": (("match", "--map", "{w}/map_seg", *Q, "--radius", "10m"), "segments.npy"),
