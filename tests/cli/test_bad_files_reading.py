@@ -9,6 +9,7 @@ import zipfile
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from tests.helpers import run_cli, write_route_files
@@ -23,7 +24,7 @@ class _Capsys:
 def world(tmp_path_factory):
     w = tmp_path_factory.mktemp("reading")
     write_route_files(w, 80, 16, 2)
-    for name in ("fifo.npy", "fifo.npz", "fifo.toml", "fifo.pth", "fifo.csv", "fifo.txt", "fifo.mat"):
+    for name in ("fifo.npy", "fifo.npz", "fifo.toml", "fifo.pth", "fifo.csv", "fifo.txt", "fifo.mat", "fifo.json"):
         os.mkfifo(w / name)
     for folder in ("imgs", "imgs_fifo"):
         (w / folder).mkdir()
@@ -36,6 +37,7 @@ def world(tmp_path_factory):
                                     '[ground_truth]\nfile = "fifo.npy"\n')
     (w / "fifo_bounds.toml").write_text('[reference]\ndescriptors = "ref.npz"\nseq_bounds = "fifo.txt"\n'
                                         '[query]\ndescriptors = "qry.npz"\n[ground_truth]\nradius = "2f"\n')
+    torch.save({"pool.0.conv.weight": torch.zeros(4, 16, 3), "pool.0.conv.bias": torch.zeros(4)}, w / "seqnet.pth")
     info = zipfile.ZipInfo("descriptors.npy")
     info.compress_type = zipfile.ZIP_DEFLATED
     with zipfile.ZipFile(w / "bomb.npz", "w") as archive:
@@ -61,6 +63,7 @@ CASES = {
     "match: a zip bomb as a traversal": (("match", "-r", "{w}/bomb.npz", "-q", "{w}/qry.npz", "--radius", "2f"), "would decompress to 1024.0 GiB"),
     "eval: a FIFO as predictions": (("eval", "{w}/fifo.csv", *R), "fifo.csv: is a named pipe"),
     "import: a FIFO as a checkpoint": (("import", "{w}/fifo.pth", "--out", "{out}"), "fifo.pth: is a named pipe"),
+    "import: a FIFO as flags.json": (("import", "{w}/seqnet.pth", "--flags", "{w}/fifo.json", "--out", "{out}"), "fifo.json: is a named pipe"),
     "extract: a FIFO as backbone weights": (("extract", "{w}/imgs", "--descriptor", "resnet18", "--weights", "{w}/fifo.pth", "--out", "{out}/d.npz"), "fifo.pth: is a named pipe"),
     "localize: a FIFO as a state": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--resume-state", "{w}/fifo.npz", "--out", "{out}"), "fifo.npz: is a named pipe"),
     "map build: a FIFO as descriptors": (("map", "build", "{w}/fifo.npy", "--out", "{out}"), "fifo.npy: is a named pipe"),

@@ -118,6 +118,10 @@ def read_flags(path: str | Path | None) -> dict[str, Any]:
     """The run's ``flags.json`` (seqL, w, outDims...), or nothing."""
     if path is None:
         return {}
+    if Path(path).exists():
+        from seqvpr.arrays import check_regular_file
+
+        check_regular_file(path, "a flags.json")
     try:
         flags = json.loads(Path(path).read_text())
     except FileNotFoundError:
