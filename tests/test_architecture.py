@@ -17,7 +17,7 @@ PACKAGE = SRC / "seqvpr"
 #: pipeline -> models -> evaluation/features -> data/sequences/synthetic -> errors/io)
 LAYERS = {
     "seqvpr": 0, "seqvpr.errors": 0, "seqvpr.io": 0, "seqvpr.threads": 0, "seqvpr.progress": 0, "seqvpr.cache": 0,
-    "seqvpr.identity": 0,
+    "seqvpr.identity": 0, "seqvpr.arrays": 0,
     "seqvpr.data": 1, "seqvpr.sequences": 1,
     "seqvpr.features": 2, "seqvpr.evaluation": 2, "seqvpr.synthetic": 2,
     "seqvpr.models": 3,

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from seqvpr.arrays import check_regular_file
 from seqvpr.errors import SeqvprError
 
 #: integer modes wider than 8 bits, with the largest value each can hold
@@ -25,12 +26,21 @@ def to_8bit(image: Image.Image, mode: str = "RGB") -> Image.Image:
 
 
 def read_image(path: str | Path, mode: str = "RGB") -> Image.Image:
-    """The image file as 8-bit ``mode``, fully decoded (a truncated file fails here, not later)."""
+    """The image file as 8-bit ``mode``, fully decoded (a truncated file fails here, not later); one with more pixels
+    than PIL's ``Image.MAX_IMAGE_PIXELS`` (a decompression bomb) is one line with its size, never a warning."""
+    import warnings
+
+    if Path(path).exists():
+        check_regular_file(path, "an image")
     try:
-        with Image.open(path) as image:
-            image.load()
-            return to_8bit(image, mode)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                image.load()
+                return to_8bit(image, mode)
     except FileNotFoundError:
         raise SeqvprError(f"{path}: no such image") from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+        raise SeqvprError(f"{path}: too large to decode safely ({' '.join(str(error).split())})") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as error:
         raise SeqvprError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None

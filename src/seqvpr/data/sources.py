@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 import scipy.io
 
+from seqvpr.arrays import check_regular_file, open_npz
 from seqvpr.data.groundtruth import Radius, parse_radius
 from seqvpr.data.loaders.descriptors import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
 from seqvpr.data.traversal import Traversal
@@ -62,6 +63,7 @@ def _load_traversal(text: str, role: Role) -> Traversal:
         return _traversal_from_folder(path, role)
     if not path.exists():
         raise SeqvprError(f"{path}: no such file or folder")
+    check_regular_file(path, f"a {role} traversal")
     suffix = path.suffix.lower()
     if suffix == ".db" or (suffix == ".mat" and _holds_dbstruct(path)):
         return _dbstruct_side(path, role)
@@ -142,7 +144,7 @@ def _dbstruct_side(path: Path, role: Role) -> Traversal:
 
 def _is_traversal_npz(path: Path) -> bool:
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        with open_npz(path) as archive:
             return "descriptors" in archive.files
     except Exception:
         return False
@@ -151,7 +153,7 @@ def _is_traversal_npz(path: Path) -> bool:
 def load_traversal_npz(path: Path) -> Traversal:
     """A traversal file: ``descriptors`` plus optional ``positions`` (in ``crs``, else ``local``), ``timestamps``,
     ``segments``."""
-    with np.load(path, allow_pickle=False) as archive:
+    with open_npz(path) as archive:
         arrays = {name: archive[name] for name in archive.files}
     descriptors = load_descriptor_array(f"{path}:descriptors")
     traversal = Traversal.from_descriptors(
@@ -206,6 +208,7 @@ DESCRIPTION_KEYS = {
 def _read_toml(path: Path) -> dict:
     if not path.exists():
         raise SeqvprError(f"{path}: description file not found")
+    check_regular_file(path, "a dataset description")
     try:
         values = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as error:

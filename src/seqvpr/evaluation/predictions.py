@@ -67,6 +67,9 @@ def read_predictions(path: str | Path) -> PredictionsFile:
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: predictions file not found")
+    from seqvpr.arrays import check_regular_file
+
+    check_regular_file(path, "a predictions CSV")
     with reading(path, "a predictions CSV (UTF-8 text)"):
         return _read_predictions(path)
 

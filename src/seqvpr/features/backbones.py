@@ -138,9 +138,12 @@ def lite0_weights_path() -> Path:
 
 def load_state_dict_file(path: str | Path) -> dict[str, torch.Tensor]:
     """A state dict from a .pth/.pt (weights only) or .safetensors file; unwraps 'state_dict'/'model' and 'module.'."""
+    from seqvpr.arrays import check_regular_file
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise SeqvprError(f"{path}: no such weights file")
+    check_regular_file(path, "a weights file")
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file

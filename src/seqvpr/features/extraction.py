@@ -305,10 +305,11 @@ def _read_checked(file: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] |
     import warnings
     import zipfile
 
+    from seqvpr.arrays import open_npz
     from seqvpr.errors import SeqvprWarning
 
     try:
-        with np.load(file, allow_pickle=False) as saved:
+        with open_npz(file) as saved:
             arrays = {name: saved[name] for name in (*names, "checksum")}
         if str(arrays.pop("checksum")) == array_digest(*(arrays[name] for name in names)):
             return arrays

@@ -98,12 +98,31 @@ def _load_scripted(path: Path) -> nn.Module:
 
 def _load_exported(path: Path) -> nn.Module:
     """A ``torch.export`` program as a callable module (its train/eval mode is fixed at export). torch.export logs
-    why a file failed (with a traceback) and raises a vaguer error; the logged reason is raised instead."""
-    with _captured_errors("torch.export") as logged:
+    why a file failed (with a traceback) and raises a vaguer error; the logged reason is raised instead. Its pickled
+    parts are read weights-only: torch.export would otherwise retry them with full unpickling (code in the file)."""
+    with _captured_errors("torch.export") as logged, _weights_only_loads():
         try:
             return torch.export.load(str(path)).module()
         except Exception as error:  # noqa: BLE001 - re-raised, with the logged reason where there is one
             raise (logged[-1] if logged else error) from None
+
+
+@contextmanager
+def _weights_only_loads() -> Iterator[None]:
+    """Every ``torch.load`` inside runs weights-only, whatever its caller asks (torch's own switch, read per call),
+    so no library code reached from here can unpickle a file; the previous setting is restored."""
+    import os
+
+    key = "TORCH_FORCE_WEIGHTS_ONLY_LOAD"
+    previous = os.environ.get(key)
+    os.environ[key] = "1"
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = previous
 
 
 class _ErrorList(logging.Handler):

@@ -252,8 +252,10 @@ class Localizer:
 
     def restore(self, path: str | Path) -> None:
         """Go on from a state ``save_state`` wrote, for this map and these settings; anything else is one line."""
+        from seqvpr.arrays import open_npz
+
         with reading(path, "a localiser state"):
-            with np.load(path, allow_pickle=False) as data:
+            with open_npz(path) as data:
                 header = json.loads(str(data["header"]))
                 arrays = {k: data[k] for k in data.files}
             if not isinstance(header, dict) or header.get("format") != STATE_FORMAT \

@@ -33,6 +33,7 @@ import numpy as np
 
 from seqvpr.data.geo import LOCAL, common_crs
 from seqvpr.data.traversal import Traversal
+from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
@@ -194,7 +195,9 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     import shutil
 
     folder.mkdir(parents=True)
-    stored = np.load(saved.folder / DESCRIPTORS_FILE, mmap_mode="r", allow_pickle=False)
+    from seqvpr.arrays import load_npy
+
+    stored = load_npy(saved.folder / DESCRIPTORS_FILE, mmap_mode="r")
     np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
     for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
         if (saved.folder / name).is_file():
@@ -202,7 +205,7 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     rows = {}
     for name in PER_FRAME_FILES:
         if (saved.folder / name).is_file():
-            rows[name] = np.load(saved.folder / name, allow_pickle=False)[lo:hi]
+            rows[name] = load_npy(saved.folder / name)[lo:hi]
     kept, remapped = np.unique(rows["sources.npy"], return_inverse=True)
     rows["sources.npy"] = remapped.astype(np.int32)
     for name, values in rows.items():
@@ -341,7 +344,9 @@ def _load_column(folder: Path, name: str, shape: tuple[int, ...], dtype: str, mm
         raise SeqvprError(f"{path}: missing map file")
     try:
         # copy-on-write: chunks are zero-copy tensor views, and nothing written ever reaches the file
-        array = np.load(path, mmap_mode="c" if mmap else None, allow_pickle=False)
+        array = load_npy(path, mmap_mode="c" if mmap else None)
+    except SeqvprError:
+        raise
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
     if array.shape != shape or array.dtype != np.dtype(dtype):

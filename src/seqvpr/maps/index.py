@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError
 from seqvpr.identity import check_digest, remember_digest, seal_files
 from seqvpr.io import commit_folder, output_lock, temporary_folder
@@ -266,7 +267,9 @@ def indexed_rows(saved: SavedMap) -> np.ndarray:
     if not path.is_file():
         raise SeqvprError(f"{path}: missing map file (map.json names an index over windows)")
     try:
-        return np.load(path, allow_pickle=False)
+        return load_npy(path)
+    except SeqvprError:
+        raise
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: unreadable or truncated ({str(error).splitlines()[0]})") from None
 

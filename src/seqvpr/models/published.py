@@ -61,9 +61,12 @@ def numpy_scalar_globals() -> list:
 
 def read_container(path: str | Path) -> dict[str, Any]:
     """The checkpoint's top-level object, loaded with ``weights_only`` and the numpy-scalar allow-list."""
+    from seqvpr.arrays import check_regular_file
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise SeqvprError(f"{path}: no such checkpoint file")
+    check_regular_file(path, "a checkpoint file")
     try:
         with torch.serialization.safe_globals(numpy_scalar_globals()):
             content = torch.load(path, map_location="cpu", weights_only=True)
@@ -115,6 +118,10 @@ def read_flags(path: str | Path | None) -> dict[str, Any]:
     """The run's ``flags.json`` (seqL, w, outDims...), or nothing."""
     if path is None:
         return {}
+    if Path(path).exists():
+        from seqvpr.arrays import check_regular_file
+
+        check_regular_file(path, "a flags.json")
     try:
         flags = json.loads(Path(path).read_text())
     except FileNotFoundError:

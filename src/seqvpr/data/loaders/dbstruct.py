@@ -109,6 +109,10 @@ def load_dbstruct(path: str | Path, *, image_root: str | Path | None = None) -> 
 
 def _read_record(path: Path) -> np.void:
     """The ``dbStruct`` record of a MATLAB v5 file, with errors for missing, non-MAT and v7.3 files."""
+    from seqvpr.arrays import check_regular_file, load_mat
+
+    if path.exists():
+        check_regular_file(path, "a dbStruct .mat file")
     if not path.is_file():
         raise SeqvprError(f"{path}: dbStruct file not found")
     with open(path, "rb") as handle:
@@ -123,8 +127,9 @@ def _read_record(path: Path) -> np.void:
     if major == 2:
         raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) file; save it from MATLAB with save(..., '-v7')")
     try:
-        with open(path, "rb") as handle:
-            contents = scipy.io.loadmat(handle, struct_as_record=True, chars_as_strings=True)
+        contents = load_mat(path, struct_as_record=True, chars_as_strings=True)
+    except SeqvprError:
+        raise
     except Exception as exc:  # a corrupt or truncated file can fail anywhere inside scipy's reader
         raise SeqvprError(f"{path}: not a readable MATLAB .mat file ({_one_line(exc)})") from None
     if "dbStruct" not in contents:

@@ -10,9 +10,9 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-import scipy.io
 import scipy.sparse as sp
 
+from seqvpr.arrays import check_regular_file, load_mat, load_npy, open_npz
 from seqvpr.errors import SeqvprError
 
 DESCRIPTOR_SUFFIXES = (".npy", ".npz", ".mat")
@@ -34,6 +34,7 @@ def load_descriptor_array(source: str | Path) -> np.ndarray:
     path, var = split_variable(str(source))
     if not path.exists():
         raise SeqvprError(f"{path}: descriptor file not found")
+    check_regular_file(path, "a descriptor file")
     suffix = path.suffix.lower()
     if suffix == ".npy":
         array = _load_npy(path)
@@ -48,18 +49,22 @@ def load_descriptor_array(source: str | Path) -> np.ndarray:
 
 def _load_npy(path: Path) -> np.ndarray:
     try:
-        return np.load(path, allow_pickle=False)
+        return load_npy(path)
+    except SeqvprError:
+        raise
     except ValueError as error:
         raise SeqvprError(f"{path}: not a numeric .npy array ({error})") from None
 
 
 def _load_npz(path: Path, var: str | None) -> np.ndarray:
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        with open_npz(path) as archive:
             names = list(archive.files)
             if {"format", "shape", "data", "indices", "indptr"} <= set(names) and var is None:
                 return sp.load_npz(path)
             arrays = {name: archive[name] for name in names}
+    except SeqvprError:
+        raise
     except (ValueError, zipfile.BadZipFile) as error:
         raise SeqvprError(f"{path}: not a readable .npz archive ({error})") from None
     return _pick(arrays, var, path)
@@ -67,9 +72,11 @@ def _load_npz(path: Path, var: str | None) -> np.ndarray:
 
 def _load_mat(path: Path, var: str | None) -> np.ndarray:
     try:
-        contents = scipy.io.loadmat(path)
+        contents = load_mat(path)
     except NotImplementedError:
         raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
+    except SeqvprError:
+        raise
     except (ValueError, TypeError, OSError) as error:
         raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
     arrays = {k: v for k, v in contents.items() if not k.startswith("__")}

@@ -9,9 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import scipy.io
 import scipy.sparse as sp
 
+from seqvpr.arrays import PICKLE_REFUSAL, check_regular_file, load_mat, load_npy, open_npz
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.errors import SeqvprError, reading
 
@@ -24,6 +24,7 @@ def load_ground_truth_file(
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: ground-truth file not found")
+    check_regular_file(path, "a ground-truth file")
     with reading(path, "a ground-truth file"):
         return _load_ground_truth_file(path, n_query, n_reference, layout)
 
@@ -43,10 +44,11 @@ def _load_ground_truth_file(path: Path, n_query: int | None, n_reference: int | 
 
 
 def _dense_matrix(path: Path) -> np.ndarray | None:
-    """A 2-D boolean or 0/1 matrix stored in the file (an .npz: its one array, or ``gt``), else None."""
+    """A 2-D boolean or 0/1 matrix stored in the file (an .npz: its one array, or ``gt``), else None (an object
+    array .npy: VPR-Bench's rows, read by ``_load_vprbench_npy``)."""
     try:
         if path.suffix.lower() == ".npz":
-            with np.load(path, allow_pickle=False) as archive:
+            with open_npz(path) as archive:
                 names = archive.files
                 if not names:
                     raise SeqvprError(f"{path}: an empty .npz")
@@ -54,12 +56,14 @@ def _dense_matrix(path: Path) -> np.ndarray | None:
                     raise SeqvprError(f"{path}: holds {', '.join(names)}; name the ground-truth array 'gt'")
                 value = archive["gt" if "gt" in names else names[0]]
         else:
-            value = np.load(path, allow_pickle=True)
-    except SeqvprError:
+            value = load_npy(path)
+    except SeqvprError as error:
+        if path.suffix.lower() == ".npy" and str(error).endswith(PICKLE_REFUSAL):
+            return None
         raise
     except (ValueError, OSError, EOFError) as error:
         raise SeqvprError(f"{path}: not a readable NumPy file ({type(error).__name__})") from None
-    if value.dtype == object or value.ndim != 2:
+    if value.ndim != 2:
         if path.suffix.lower() == ".npz":
             raise SeqvprError(f"{path}: expected a 2-D boolean matrix, got {value.dtype} {value.shape}")
         return None
@@ -85,9 +89,11 @@ def _oriented(matrix: np.ndarray, path: Path, n_query: int | None, n_reference: 
 def _load_gt_mat(path: Path) -> GroundTruth:
     """``GT.GThard`` (and optional ``GT.GTsoft``), stored [n_reference, n_query] as in VPR_Tutorial."""
     try:
-        contents = scipy.io.loadmat(path)
+        contents = load_mat(path)
     except NotImplementedError:
         raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
+    except SeqvprError:
+        raise
     except (ValueError, TypeError, OSError) as error:
         raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
     if "GT" not in contents:
@@ -115,20 +121,11 @@ def _as_matrix(value, path: Path, field: str) -> sp.csr_array:
 
 
 def _load_vprbench_npy(path: Path, n_query: int | None, n_reference: int | None) -> GroundTruth:
-    """Object array of rows [query_index, [reference indices]] (VPR-Bench)."""
-    try:
-        rows = np.load(path, allow_pickle=True)
-    except (ValueError, OSError) as error:
-        raise SeqvprError(f"{path}: not a readable .npy file ({error})") from None
-    if rows.ndim != 2 or rows.shape[1] != 2:
-        raise SeqvprError(f"{path}: expected VPR-Bench rows [query_index, [reference indices]], got shape {rows.shape}")
-    pairs = []
-    for line, (query, refs) in enumerate(rows):
-        try:
-            q = int(query)
-            pairs.extend((q, int(r)) for r in np.atleast_1d(refs))
-        except (TypeError, ValueError):
-            raise SeqvprError(f"{path}: row {line} is not [query_index, [reference indices]]") from None
+    """Object array of rows [query_index, [reference indices]] (VPR-Bench), read without unpickling."""
+    from seqvpr.data.loaders.vprbench import read_object_rows
+
+    rows = read_object_rows(path)
+    pairs = [(query, int(r)) for query, refs in rows for r in refs]
     q_idx = np.array([p[0] for p in pairs], dtype=np.int64)
     r_idx = np.array([p[1] for p in pairs], dtype=np.int64)
     if (q_idx < 0).any() or (r_idx < 0).any():

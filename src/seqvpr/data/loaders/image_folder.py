@@ -113,6 +113,10 @@ class _Columns:
 
 def _read_positions_csv(path: Path, folder: Path) -> _CsvRows:
     """Parse and validate every row of a positions CSV against the image folder."""
+    from seqvpr.arrays import check_regular_file
+
+    if path.exists():
+        check_regular_file(path, "a positions CSV")
     if not path.is_file():
         raise SeqvprError(f"{path}: positions CSV not found")
     try:

@@ -29,6 +29,10 @@ def is_msls_side(folder: Path) -> bool:
 
 def read_csv_rows(path: Path) -> list[dict[str, str]]:
     """The rows of a CSV with a header (pandas' unnamed index column kept as ``""``); one line on any fault."""
+    from seqvpr.arrays import check_regular_file
+
+    if path.exists():
+        check_regular_file(path, "an MSLS CSV")
     if not path.is_file():
         raise SeqvprError(f"{path}: missing MSLS file")
     with open(path, newline="") as handle:

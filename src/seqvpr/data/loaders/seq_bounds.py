@@ -16,6 +16,9 @@ def load_seq_bounds(path: str | Path, n_frames: int) -> np.ndarray:
     path = Path(path)
     if not path.exists():
         raise SeqvprError(f"{path}: seqBounds file not found")
+    from seqvpr.arrays import check_regular_file
+
+    check_regular_file(path, "a seqBounds file")
     try:
         bounds = np.loadtxt(path, ndmin=2)
     except ValueError as error:

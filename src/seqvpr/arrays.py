@@ -1,0 +1,170 @@
+"""The one home for reading arrays from files a user names: ``.npy``, ``.npz`` and MATLAB ``.mat``. Nothing is ever
+unpickled (object arrays are refused), any byte order reads as native, a FIFO, device, socket or folder given as a
+file is refused before it is opened (a FIFO would hang), and a ``.npz`` member that would decompress to more than
+memory holds (a zip bomb) or more than its header promises is refused before anything is allocated."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from seqvpr.errors import SeqvprError
+
+PICKLE_REFUSAL = "holds Python objects (a pickle); seqvpr never unpickles a file"
+#: deflate cannot shrink data more than about 1032:1: a member claiming more is lying about its size
+MAX_DEFLATE_RATIO = 1100
+_SPECIAL = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+            (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder"))
+
+
+def check_regular_file(path: str | Path, what: str) -> Path:
+    """``path`` as a Path when it names a regular file (after links); a FIFO, device, socket or folder is one line
+    naming it, decided by ``os.stat`` before anything opens it (opening a FIFO would wait for a writer forever)."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise SeqvprError(f"{path}: no such file ({what})") from None
+    except OSError as error:
+        raise SeqvprError(f"{path}: cannot be read as {what} ({error.strerror or type(error).__name__})") from None
+    for test, kind in _SPECIAL:
+        if test(mode):
+            raise SeqvprError(f"{path}: is {kind}, not a regular file; give {what} as a file")
+    if not stat.S_ISREG(mode):
+        raise SeqvprError(f"{path}: not a regular file; give {what} as a file")
+    return path
+
+
+def memory_cap() -> int:
+    """Bytes of memory available now (``MemAvailable``, else all physical memory): the most one array may need."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return 1 << 40
+
+
+def _size(nbytes: float) -> str:
+    """Bytes in words: ``64.0 GiB``."""
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if nbytes < 1024 or unit == "GiB":
+            return f"{nbytes:.0f} {unit}" if unit == "bytes" else f"{nbytes:.1f} {unit}"
+        nbytes /= 1024
+    return f"{nbytes:.1f} TiB"  # pragma: no cover
+
+
+def _read_header(handle: BinaryIO, label: str) -> tuple[np.dtype, int, int]:
+    """The dtype, element count and header length of the ``.npy`` data behind ``handle``; an object dtype (a pickle)
+    is refused here, before numpy reads any of it."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(handle)
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, dtype = reader(handle) if version in ((1, 0), (2, 0)) else fmt._read_array_header(handle, version)
+    except (ValueError, EOFError, SyntaxError, TypeError) as error:
+        raise SeqvprError(f"{label}: not a NumPy .npy array ({' '.join(str(error).split())[:200]})") from None
+    if dtype.hasobject:
+        raise SeqvprError(f"{label}: {PICKLE_REFUSAL}")
+    return dtype, int(np.prod(shape, dtype=np.int64)) if shape else 1, handle.tell()
+
+
+def _check_length(label: str, dtype: np.dtype, count: int, header: int, size: int) -> None:
+    """The data the header promises is what the file holds: a header claiming more (a truncated file, or one crafted
+    to make numpy allocate terabytes) is one line with both sizes."""
+    wanted = header + count * dtype.itemsize
+    if size < wanted:
+        raise SeqvprError(f"{label}: truncated: its header promises {_size(wanted)} ({count} x {dtype}), the file "
+                          f"holds {_size(size)}")
+
+
+def native(array: np.ndarray) -> np.ndarray:
+    """``array`` in the machine's byte order (a big-endian file's values, unchanged, as native numbers)."""
+    if array.dtype.isnative:
+        return array
+    return array.astype(array.dtype.newbyteorder("="))
+
+
+def load_npy(path: str | Path, mmap_mode: str | None = None) -> np.ndarray:
+    """A ``.npy`` array, never unpickled, in native byte order. With ``mmap_mode`` a native file is mapped; a
+    non-native one (big-endian) cannot be mapped as native numbers, so it is loaded as a native copy instead."""
+    path = check_regular_file(path, "a .npy array")
+    with open(path, "rb") as handle:
+        dtype, count, header = _read_header(handle, str(path))
+    _check_length(str(path), dtype, count, header, os.stat(path).st_size)
+    if count * dtype.itemsize > memory_cap() and mmap_mode is None:
+        raise SeqvprError(f"{path}: a {_size(count * dtype.itemsize)} array, more than the memory available")
+    mapped = mmap_mode if dtype.isnative else None
+    return native(np.load(path, mmap_mode=mapped, allow_pickle=False))
+
+
+class NpzArrays:
+    """The arrays of an opened ``.npz`` (checked by ``open_npz``): ``files``, ``name in``, ``[name]`` (native)."""
+
+    def __init__(self, archive: Any, label: str) -> None:
+        self._archive, self.label = archive, label
+        self.files: list[str] = list(archive.files)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.files
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return native(self._archive[name])
+
+
+def _check_members(archive: zipfile.ZipFile, path: Path) -> None:
+    """Every member an ``.npy`` whose uncompressed size fits in memory and is what its compressed size can give,
+    holding no objects and no more than its header promises; refused before anything is decompressed whole."""
+    total, cap = 0, memory_cap()
+    for info in archive.infolist():
+        label = f"{path} (member {info.filename})"
+        total += info.file_size
+        if info.file_size > cap or total > cap:
+            raise SeqvprError(f"{label}: would decompress to {_size(max(info.file_size, total))}, more than the "
+                              f"{_size(cap)} of memory available (a zip bomb?)")
+        limit = info.compress_size * MAX_DEFLATE_RATIO + 4096 if info.compress_type != zipfile.ZIP_STORED \
+            else info.compress_size
+        if info.file_size > limit:
+            raise SeqvprError(f"{label}: claims {_size(info.file_size)} from {_size(info.compress_size)} compressed, "
+                              "more than compression can give (a damaged or crafted archive)")
+        if not info.filename.endswith(".npy"):
+            continue
+        with archive.open(info) as member:
+            dtype, count, header = _read_header(member, label)
+        _check_length(label, dtype, count, header, info.file_size)
+
+
+@contextlib.contextmanager
+def open_npz(path: str | Path) -> Iterator[NpzArrays]:
+    """``with open_npz(path) as arrays:`` the arrays of a ``.npz``, never unpickled, in native byte order; a member
+    that is a pickle, claims more than it holds, or would not fit in memory is one line naming it and its size. A
+    file that is no zip raises zipfile's own error, for the caller's ``reading`` boundary to name as its kind."""
+    path = check_regular_file(path, "a .npz archive")
+    with zipfile.ZipFile(path) as archive:
+        _check_members(archive, path)
+    with np.load(path, allow_pickle=False) as archive:
+        yield NpzArrays(archive, str(path))
+
+
+def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:
+    """The variables of a MATLAB v5 ``.mat`` (scipy's reader runs no code); a MATLAB function handle or class object
+    among them is one line naming it, as seqvpr reads only numbers, text and structs."""
+    import scipy.io
+    from scipy.io.matlab import MatlabFunction, MatlabOpaque
+
+    path = check_regular_file(path, "a MATLAB .mat file")
+    with open(path, "rb") as handle:
+        contents = scipy.io.loadmat(handle, **options)
+    for name, value in contents.items():
+        if isinstance(value, (MatlabFunction, MatlabOpaque)):
+            kind = "a function handle" if isinstance(value, MatlabFunction) else "a MATLAB class object"
+            raise SeqvprError(f"{path}: variable {name!r} is {kind}; seqvpr reads only numeric arrays and structs")
+    return contents
