@@ -78,7 +78,17 @@ def _evaluation(recall: float) -> SimpleNamespace:
                            pr=SimpleNamespace(auc=recall / 2, recall_at_100_precision=0.0))
 
 
-FUNCTIONS = {"@tables": _tables, "@ablation": _ablation}
+def _plain_tables(out: str) -> None:
+    """results.csv / results.md as plain files, as seqvpr wrote them before pairs were committed as one."""
+    import shutil
+
+    scratch = Path(out).parent / "scratch"
+    _tables(str(scratch), "old")
+    for name in ("results.csv", "results.md"):
+        shutil.copy(scratch / name, Path(out) / name)
+
+
+FUNCTIONS = {"@tables": _tables, "@ablation": _ablation, "@plain": _plain_tables}
 
 
 def _match_check(d: Path, capsys) -> None:
@@ -160,6 +170,8 @@ WRITERS = {
                 (*C, "-r", "{d}/ri", "-q", "{d}/qi", "--radius", "2f"), "db", _convert_check),
     "benchmark tables": (None, ("@tables", "{d}/b", "old"), ("@tables", "{d}/b", "new"), "b",
                          lambda d, capsys: _pair_check(d / "b", "results")),
+    "benchmark tables over plain files": (None, ("@plain", "{d}/b"), ("@tables", "{d}/b", "new"), "b",
+                                          lambda d, capsys: _pair_check(d / "b", "results")),
     "ablation tables": (None, ("@ablation", "{d}/b", "old"), ("@ablation", "{d}/b", "new"), "b",
                         lambda d, capsys: _pair_check(d / "b", "ablation")),
 }
@@ -279,3 +291,15 @@ def test_a_killed_writer_leaves_the_old_output_and_its_temporary_is_swept(writer
     assert not _temporaries(folder)
     assert _state(folder) != old
     check(tmp_path, capsys)
+
+
+def test_links_a_killed_first_set_left_are_no_fault(tmp_path, capsys):
+    """A first dbstruct set killed before its commit leaves links to nothing under its names: the next convert to
+    the same --out is not refused (the links name what the set lacks) and commits the set."""
+    _route(tmp_path, capsys)
+    (tmp_path / "db").mkdir()
+    for name in ("route.db", "route_query.npy", "route.toml"):
+        (tmp_path / "db" / name).symlink_to(f".route.toml.set/{name}")
+    _run([a.format(d=tmp_path) for a in (*C, "-r", "{d}/a/ref.npz", "-q", "{d}/a/qry.npz", "--radius", "10m")], capsys)
+    _convert_check(tmp_path, capsys)
+    assert (tmp_path / "db" / "route_query.npy").is_file()
