@@ -2,8 +2,8 @@
 output remains under the final name. A folder replaces an old one by one atomic exchange of the two names, so a
 reader sees the old output or the new, never a mix; every rename goes through ``rename`` / ``exchange`` (one place
 to inject a failure). Files that belong together among other outputs' files are committed as one set
-(``atomic_file_set``: links into a folder swapped whole). Temporaries are named ``.NAME.seqvpr-PID-XXXX.KIND``: one left by a process that is gone
-(killed) is removed by the next writer in that folder."""
+(``atomic_file_set``: links into a folder swapped whole). Temporaries are named ``.NAME.seqvpr-PID-XXXX.KIND``: one
+left by a process that is gone (killed) is removed by the next writer in that folder."""
 
 from __future__ import annotations
 
