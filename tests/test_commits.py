@@ -178,11 +178,17 @@ WRITERS = {
 
 
 def _run(args: list[str], capsys) -> None:
+    """Run a writer (a command, or a table writer); a command that fails raises what it said."""
     if args[0] in FUNCTIONS:
         FUNCTIONS[args[0]](*args[1:])
         return
     code, _, err = run_cli(pytest.MonkeyPatch(), capsys, *args)
-    assert code == 0, err
+    if code != 0:
+        raise Failed(err)
+
+
+class Failed(Exception):
+    """A command that exited non-zero (an injected OSError the command line said in one line)."""
 
 
 def _state(folder: Path) -> dict[str, object]:
@@ -235,7 +241,8 @@ def test_a_failed_commit_leaves_the_old_output_or_the_new(writer, tmp_path, caps
             patch.setattr(seqvpr.io, "exchange", fail.exchange)
             try:
                 _run(new, capsys)
-            except Injected:
+            except (Injected, Failed):
+                assert fail.calls == k  # it failed where the failure was injected, not elsewhere
                 states.append(_state(folder))
                 check(tmp_path, capsys)
                 assert not _temporaries(folder), k
