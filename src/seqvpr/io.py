@@ -1,8 +1,9 @@
 """Atomic output files and folders: write under a temporary name beside the target, then rename, so no partial
 output remains under the final name. A folder replaces an old one by one atomic exchange of the two names, so a
 reader sees the old output or the new, never a mix; every rename goes through ``rename`` / ``exchange`` (one place
-to inject a failure). Temporaries are named ``.NAME.seqvpr-PID-XXXX.KIND``: one left by a process that is gone
-(killed) is removed by the next writer in that folder."""
+to inject a failure). Files that belong together among other outputs' files are committed as one set
+(``atomic_file_set``: links into a folder swapped whole). Temporaries are named ``.NAME.seqvpr-PID-XXXX.KIND``: one
+left by a process that is gone (killed) is removed by the next writer in that folder."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -112,9 +113,85 @@ def _short_write_errno(message: str, target: Path) -> int | None:
     return None
 
 
-def check_replaceable(path: Path, marker: str | None) -> None:
+@contextlib.contextmanager
+def atomic_file_set(folder: str | Path, names: Sequence[str], manifest: str) -> Iterator[Path]:
+    """Files that belong together, written among others' in ``folder``, committed as one: yield an empty temporary
+    folder to write some of ``names`` in (``manifest`` always, and last). Each ``folder/NAME`` is a relative link into
+    the set's hidden folder (``file_set_folder``), which ``atomic_folder`` swaps whole: a reader sees the old set or
+    the new, never a mix, and a NAME the new set lacks disappears with the swap. On error the old set stays."""
+    folder = Path(folder)
+    store = file_set_folder(folder, manifest)
+    folder.mkdir(parents=True, exist_ok=True)
+    _adopt_plain_files(folder, names, manifest)
+    try:
+        for name in names:  # before the swap: a name the old set lacks is a link to nothing (absent) until then
+            _point(folder / name, f"{store.name}/{name}")
+        with atomic_folder(store, manifest) as tmp:
+            yield tmp
+    finally:
+        for name in names:
+            if is_set_link(folder / name) and not (folder / name).exists():
+                (folder / name).unlink(missing_ok=True)
+
+
+def file_set_folder(folder: Path, manifest: str) -> Path:
+    """Where ``atomic_file_set`` keeps a set's committed files: the hidden folder ``.MANIFEST.set`` in ``folder``."""
+    return folder / f".{short_name(manifest, '.set')}.set"
+
+
+def is_set_link(path: Path) -> bool:
+    """Whether ``path`` is a link ``atomic_file_set`` made (``NAME -> .MANIFEST.set/NAME``); one to nothing is a name
+    the committed set lacks (or a killed first run's), not a fault."""
+    if not path.is_symlink():
+        return False
+    target = os.readlink(path)
+    return re.fullmatch(r"\.[^/]+\.set/" + re.escape(path.name), target) is not None
+
+
+def _point(path: Path, target: str) -> None:
+    """Make ``path`` a link to ``target``, replacing what is there by one rename (a folder there is an error)."""
+    if path.is_symlink() and os.readlink(path) == target:
+        return
+    if path.is_dir() and not path.is_symlink():
+        raise SeqvprError(f"{path} is a folder; a file goes there")
+    link = path.parent / f"{temporary_prefix(path)}{os.urandom(4).hex()}.part"
+    os.symlink(target, link)
+    try:
+        rename(link, path)
+    except BaseException:
+        link.unlink(missing_ok=True)
+        raise
+
+
+def _adopt_plain_files(folder: Path, names: Sequence[str], manifest: str) -> None:
+    """A set written as plain files (before sets were linked) becomes the set's committed folder, each name then a
+    link to the same bytes: the old output stays whole throughout, and a failed run keeps it."""
+    store = file_set_folder(folder, manifest)
+    plain = [n for n in names if (folder / n).is_file() and not (folder / n).is_symlink()]
+    if store.exists() or manifest not in plain:
+        return
+    tmp = temporary_folder(store)
+    try:
+        for name in plain:
+            try:
+                os.link(folder / name, tmp / name)
+            except OSError:
+                shutil.copy2(folder / name, tmp / name)
+        rename(tmp, store)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for name in plain:
+        _point(folder / name, f"{store.name}/{name}")
+
+
+def check_replaceable(path: Path, marker: str | None, keep: Sequence[str | Path | None] = ()) -> None:
     """``path`` may be replaced by a new output folder: absent, or an empty folder, or one holding ``marker``; and not
-    the current folder or one above it (a folder in use cannot be swapped)."""
+    the current folder or one above it (a folder in use cannot be swapped), nor one holding a path of ``keep`` (the
+    run's inputs and other outputs, which the swap would delete)."""
+    inside = [str(k) for k in keep if k and Path(k).resolve().is_relative_to(path.resolve())]
+    if inside:
+        raise SeqvprError(f"{inside[0]} lies in {path}, which is replaced whole by the new output: keep it elsewhere")
     if path.exists() and not path.is_dir():
         raise SeqvprError(f"{path} exists and is not a folder; not replacing it")
     if not path.is_dir():

@@ -47,6 +47,7 @@ def test_match_writes_the_top1_correspondences_with_their_frame_precision(monkey
     out = tmp_path / "out"
     (out).mkdir()
     (out / "correspondences.csv").write_text("stale\n")  # a previous run's pairs
+    (out / "run.json").write_text("{}")  # (its manifest: the folder is a run's output, replaced whole)
     code, stdout, stderr = run(monkeypatch, capsys, "match", "-r", ref, "-q", qry, "--radius", "1f", "-L", "5",
                                "--method", method, "--velocities", velocities, "--json", "--out", out)
     assert code == 0, stderr

@@ -188,7 +188,7 @@ def test_cli_ablate_prints_five_rows(monkeypatch, capsys, tmp_path, files):
         assert label in out
     table = (out_dir / "ablation.csv").read_text().splitlines()
     assert len(table) == 6
-    assert sorted(p.name for p in out_dir.iterdir() if p.is_dir()) == [
+    assert sorted(p.name for p in out_dir.iterdir() if p.is_dir() and not p.name.startswith(".")) == [
         "seqmatch-seqmatch", "seqmatch-single", "single-seqmatch", "single-single"]
 
 

@@ -48,34 +48,40 @@ def convert(**o: Any) -> None:
 
 
 def write_dbstruct_set(out: Path, reference, query, radius_text: str) -> list[Path]:
-    """The .db, each side's seqBounds (and descriptors .npy, when it has them) and the dataset.toml naming them."""
-    import numpy as np
-
+    """The .db, each side's seqBounds (and descriptors .npy, when it has them) and the dataset.toml naming them,
+    committed as one set (``seqvpr.io.atomic_file_set``, the .toml last): never a new .db beside old .npy files."""
     from seqvpr.data.groundtruth import parse_radius
     from seqvpr.data.loaders.dbstruct import write_dbstruct
-    from seqvpr.data.loaders.seq_bounds import seq_bounds_rows
-    from seqvpr.io import atomic_write
+    from seqvpr.io import atomic_file_set
 
     radius = parse_radius(radius_text)
     aligned = reference.positions is None or query.positions is None
     if (radius.unit == "m") == aligned:
         raise SeqvprError(f"--radius {radius_text}: use {'frames (e.g. 2f)' if aligned else 'metres (e.g. 25m)'} for "
                           f"{'frame-aligned traversals' if aligned else 'traversals with positions'}")
-    written, table = [write_dbstruct(out, reference, query, radius.value, out.stem)], []
-    for role, side, traversal in (("reference", "database", reference), ("query", "query", query)):
-        bounds = out.with_name(f"{out.stem}_{side}_seqBounds.txt")
-        with atomic_write(bounds) as handle:
-            np.savetxt(handle, seq_bounds_rows(traversal.segment_ids), fmt="%d")
-        entry = f'[{role}]\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'
-        written.append(bounds)
-        if traversal.descriptors is not None:
-            rows = out.with_name(f"{out.stem}_{side}.npy")
-            with atomic_write(rows, "wb") as handle:
-                np.save(handle, np.asarray(traversal.descriptors, dtype=np.float32))
-            entry = f'[{role}]\ndescriptors = "{rows.name}"\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'
-            written.append(rows)
-        table.append(entry)
     description = out.with_suffix(".toml")
-    with atomic_write(description) as handle:
-        handle.write("\n".join(table))
-    return [*written, description]
+    names = [out.name, *(f"{out.stem}_{side}{tail}" for tail in ("_seqBounds.txt", ".npy")
+                         for side in ("database", "query")), description.name]
+    with atomic_file_set(out.parent, names, description.name) as tmp:
+        written = [write_dbstruct(tmp / out.name, reference, query, radius.value, out.stem)]
+        table = [_write_side(tmp, out, role, side, traversal, written)
+                 for role, side, traversal in (("reference", "database", reference), ("query", "query", query))]
+        (tmp / description.name).write_text("\n".join(table))
+    return [out.parent / p.name for p in (*written, description)]
+
+
+def _write_side(folder: Path, out: Path, role: str, side: str, traversal, written: list[Path]) -> str:
+    """One side's seqBounds (and descriptors .npy) in ``folder``, added to ``written``; its dataset.toml entry."""
+    import numpy as np
+
+    from seqvpr.data.loaders.seq_bounds import seq_bounds_rows
+
+    bounds = folder / f"{out.stem}_{side}_seqBounds.txt"
+    np.savetxt(bounds, seq_bounds_rows(traversal.segment_ids), fmt="%d")
+    written.append(bounds)
+    if traversal.descriptors is None:
+        return f'[{role}]\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'
+    rows = folder / f"{out.stem}_{side}.npy"
+    np.save(rows, np.asarray(traversal.descriptors, dtype=np.float32))
+    written.append(rows)
+    return f'[{role}]\ndescriptors = "{rows.name}"\ndbstruct = "{out.name}"\nseq_bounds = "{bounds.name}"\n'

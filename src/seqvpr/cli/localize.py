@@ -18,6 +18,9 @@ from seqvpr.cli.options import (
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError, SeqvprWarning
 
+#: the manifest of a localize --out folder (written last; the marker that the folder is a run's output)
+RUN_FILE = "run.json"
+
 
 @click.command("localize", epilog="""\b
 Examples:
@@ -69,6 +72,7 @@ def localize(**o: Any) -> None:
     """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""
     from seqvpr.data.sources import load_traversal
     from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.io import check_replaceable
     from seqvpr.localization.replay import replay
     from seqvpr.pipeline import resolve_ground_truth
 
@@ -77,6 +81,8 @@ def localize(**o: Any) -> None:
         raise SeqvprError("--calibrate needs ground truth: give --radius or --ground-truth")
     if not 0.0 < o["target_precision"] <= 1.0:
         raise SeqvprError(f"--target-precision must be in (0, 1], got {o['target_precision']}")
+    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("map_dir", "query", "gt_file", "resume_state",
+                                                                     "save_state")] + list(o["model_dirs"]))
     from seqvpr import distributed
 
     with distributed.process_group(o["device"]) as world:  # under torchrun over a sharded map: ranks share it
@@ -163,18 +169,18 @@ def _truth_text(o: dict[str, Any]) -> str | None:
 
 
 def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
-    """stream.csv, run.json and the report page in --out; the summary (or JSON) on stdout."""
-    from seqvpr.io import atomic_write
+    """--out as one folder (``seqvpr.io.atomic_folder``): stream.csv, the report page and run.json last, swapped in
+    whole; the summary (or JSON) on stdout."""
+    from seqvpr.io import atomic_folder
     from seqvpr.localization.replay import correct_best, score_replay, write_stream
 
-    out = Path(o["out_dir"])
     scores = score_replay(run, gt, k_values) if gt is not None else None
-    write_stream(out / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
     summary = _summary(o, localizer, run, scores)
-    with atomic_write(out / "run.json") as handle:
-        json.dump(summary, handle, indent=2)
-    if scores is not None:
-        _write_page(out / "report", summary, run, gt, localizer)
+    with atomic_folder(Path(o["out_dir"]), RUN_FILE) as tmp:
+        write_stream(tmp / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
+        if scores is not None:
+            _write_page(tmp / "report", summary, run, gt, localizer)
+        (tmp / RUN_FILE).write_text(json.dumps(summary, indent=2))
     click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
 
 

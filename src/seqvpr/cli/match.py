@@ -23,6 +23,9 @@ from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.methods import METHODS
 
+#: the manifest of a match's --out folder (written last; the marker that the folder is a run's output)
+RUN_FILE = "run.json"
+
 MATCH_EPILOG = """\b
 Examples:
   seqvpr match --reference day.mat --query night.mat --seq-len 5 --radius 2f
@@ -108,6 +111,10 @@ def match(**o: Any) -> None:
     parse_steps(o["steps"])  # a bad --steps fails before any data is read
     if o["pca_dim"] < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
+    from seqvpr.io import check_replaceable
+
+    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("reference", "query", "map_dir", "gt_file",
+                                                                     "cache_dir")] + list(o["model_dirs"]))
     if o["seq_len"] is not None:
         SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
     from seqvpr.data.sources import load_pair
@@ -347,22 +354,20 @@ def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str,
 
 
 def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label: str, pair) -> None:
-    """predictions.csv, correspondences.csv (when the method pairs frames) and run.json in --out, then the table (or
-    one JSON object) on stdout."""
+    """--out as one folder (``seqvpr.io.atomic_folder``): predictions.csv, correspondences.csv (when the method pairs
+    frames) and run.json last, swapped in whole; then the table (or one JSON object) on stdout."""
     from seqvpr.evaluation.predictions import save_correspondences, save_match_predictions
     from seqvpr.evaluation.results import evaluation_json, recall_table
-    from seqvpr.io import atomic_write
+    from seqvpr.io import atomic_folder
     from seqvpr.pipeline import match_correspondences
 
     out = Path(o["out_dir"])
-    save_match_predictions(out / "predictions.csv", result, gt)
     pairs = match_correspondences(result)
-    if pairs is not None:
-        save_correspondences(out / "correspondences.csv", result, pairs, gt)
-    elif (out / "correspondences.csv").exists():  # a previous run's pairs would not describe this one
-        (out / "correspondences.csv").unlink()
-    with atomic_write(out / "run.json") as handle:
-        json.dump(evaluation_json(evaluation, run), handle, indent=2, default=str)
+    with atomic_folder(out, RUN_FILE) as tmp:
+        save_match_predictions(tmp / "predictions.csv", result, gt)
+        if pairs is not None:
+            save_correspondences(tmp / "correspondences.csv", result, pairs, gt)
+        (tmp / RUN_FILE).write_text(json.dumps(evaluation_json(evaluation, run), indent=2, default=str))
     if o["as_json"]:
         click.echo(json.dumps(evaluation_json(evaluation, run), default=str))
         return

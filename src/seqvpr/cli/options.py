@@ -48,11 +48,11 @@ def output_problem(path: Path, kind: str) -> str | None:
     import os
     import tempfile
 
-    from seqvpr.io import NAME_MAX
+    from seqvpr.io import NAME_MAX, is_set_link
 
     if any(len(os.fsencode(part)) > NAME_MAX for part in path.parts):  # before the lock or any temporary is made
         return str(os_refusal(OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG), str(path))))
-    if path.is_symlink() and not path.exists():
+    if path.is_symlink() and not path.exists() and not is_set_link(path):  # a set's name it lacks is no fault
         return f"{path} is a symbolic link to nothing (dangling, or a loop)"
     if path.exists() and (path.is_dir() != (kind == "folder")):
         return f"{path} is {'a folder' if path.is_dir() else 'not a folder'}, and a {kind} goes there"

@@ -16,7 +16,7 @@ from pathlib import Path
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.io import atomic_write
+from seqvpr.io import atomic_file_set
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals
 from seqvpr.models.seqmatchnet import load_seqmatchnet
@@ -115,12 +115,12 @@ def ablation_csv(rows: Sequence[AblationRow], ks: Sequence[int]) -> str:
 
 
 def write_ablation(rows: Sequence[AblationRow], ks: Sequence[int], out_dir: str | Path) -> tuple[Path, Path]:
-    """``ablation.csv`` and ``ablation.md`` in ``out_dir``, each written atomically."""
+    """``ablation.csv`` and ``ablation.md`` in ``out_dir`` (beside the variants' runs), committed as one pair
+    (``seqvpr.io.atomic_file_set``): never one run's csv beside another's md."""
     out = Path(out_dir)
-    with atomic_write(out / "ablation.csv") as handle:
-        handle.write(ablation_csv(rows, ks))
-    with atomic_write(out / "ablation.md") as handle:
-        handle.write(ablation_markdown(rows, ks) + "\n")
+    with atomic_file_set(out, ("ablation.csv", "ablation.md"), "ablation.md") as tmp:
+        (tmp / "ablation.csv").write_text(ablation_csv(rows, ks))
+        (tmp / "ablation.md").write_text(ablation_markdown(rows, ks) + "\n")
     return out / "ablation.csv", out / "ablation.md"
 
 

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from seqvpr.experiments.benchmark import BenchmarkConfig, Row
-from seqvpr.io import atomic_write
+from seqvpr.io import atomic_file_set
 from seqvpr.methods import METHODS
 
 
@@ -91,14 +91,14 @@ def _figure(value: float, digits: int, missing: str = "") -> str:
 
 
 def write_results(rows: Sequence[Row], config: BenchmarkConfig, out: Path) -> tuple[Path, Path]:
-    """results.csv and results.md (the three tables) in ``out``, each written atomically."""
+    """results.csv and results.md (the three tables) in ``out`` (beside the trained models), committed as one pair
+    (``seqvpr.io.atomic_file_set``): never one run's csv beside another's md."""
     markdown = f"## Methods at L={config.seq_len}\n\n{main_table(rows, config)}\n\n## Sequence length (R@{config.ks[0]})\n\n"
     markdown += length_table(rows, config) + "\n\n## Every length: R@K, R@100%P and frame-level precision\n\n"
     markdown += detail_table(rows, config) + "\n"
-    with atomic_write(out / "results.csv") as handle:
-        handle.write(rows_csv(rows, config.ks))
-    with atomic_write(out / "results.md") as handle:
-        handle.write(markdown)
+    with atomic_file_set(out, ("results.csv", "results.md"), "results.md") as tmp:
+        (tmp / "results.csv").write_text(rows_csv(rows, config.ks))
+        (tmp / "results.md").write_text(markdown)
     return out / "results.csv", out / "results.md"
 
 
