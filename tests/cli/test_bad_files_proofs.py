@@ -104,6 +104,7 @@ def damaged_states(w) -> None:
     belief[4] = np.nan
     rewrite_state(w / "state_hmm.npz", w / "state_belief_nan.npz", arrays={"matcher_belief": belief})
     saved_state(w / "map_a", w / "state_a.npz")
+    rewrite_state(w / "state.npz", w / "state_kept.npz", arrays={"last_kept": np.zeros(3, np.float32)})
 
 
 def trained_runs(w) -> None:
@@ -160,6 +161,8 @@ CASES = {
                                             "matcher_count"),
     "localize: NaN running sums": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_sums.npz"),
                                    "matcher_partial holds NaN"),
+    "localize: a last frame of another dimension": ((*LOCALIZE, "--map", "{w}/map", "--resume-state",
+                                                    "{w}/state_kept.npz"), "state_kept.npz: last_kept has shape (3,)"),
     "localize: a belief above 1": ((*LOCALIZE, "--map", "{w}/map", "--method", "hmm", "--resume-state",
                                     "{w}/state_belief.npz"), "matcher_belief is not a belief"),
     "localize: a NaN belief": ((*LOCALIZE, "--map", "{w}/map", "--method", "hmm", "--resume-state",

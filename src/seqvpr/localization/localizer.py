@@ -265,7 +265,7 @@ class Localizer:
             check_state_header(path, header, self.saved.info)
             if header.get("settings") != self.settings.key():
                 raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
-            check_state_arrays(path, arrays)
+            check_state_arrays(path, arrays, self.saved.info.dim)
             self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
                                      if k.startswith("matcher_")})
             self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))

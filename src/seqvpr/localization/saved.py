@@ -53,9 +53,9 @@ def check_state_header(path: str | Path, header: Any, info: MapInfo) -> None:
             raise SeqvprError(f"{path}: {key} {value!r} is not a count (a whole number >= 0)")
 
 
-def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
-    """A state's arrays: numbers; counts whole and >= 0; beliefs probabilities summing to 1; frames finite; running
-    sums free of NaN and -inf (+inf marks a window that does not exist)."""
+def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray], dim: int) -> None:
+    """A state's arrays: numbers; counts whole and >= 0; beliefs probabilities summing to 1; frames finite and of
+    the map's dimension ``dim``; running sums free of NaN and -inf (+inf marks a window that does not exist)."""
     for name, array in arrays.items():
         if name == "header":
             continue
@@ -68,8 +68,11 @@ def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
             if not np.isfinite(array).all() or (array < 0).any() or (array > 1).any() \
                     or not math.isclose(float(array.sum()), 1.0, rel_tol=1e-6):
                 raise SeqvprError(f"{path}: {name} is not a belief (probabilities in [0, 1] summing to 1)")
-        elif name.endswith(("frames", "last_kept")) and not np.isfinite(array).all():
-            raise SeqvprError(f"{path}: {name} holds NaN or infinite values (damaged)")
+        elif name.endswith(("frames", "last_kept")):
+            if array.ndim not in (1, 2) or array.shape[-1] != dim:
+                raise SeqvprError(f"{path}: {name} has shape {array.shape}; the map's frames are {dim}-D")
+            if not np.isfinite(array).all():
+                raise SeqvprError(f"{path}: {name} holds NaN or infinite values (damaged)")
         elif array.dtype.kind == "f" and (np.isnan(array).any() or np.isneginf(array).any()):
             raise SeqvprError(f"{path}: {name} holds NaN or -inf (damaged)")
 
