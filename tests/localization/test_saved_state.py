@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 
 import numpy as np
 import pytest
@@ -19,14 +20,18 @@ RECORD = {"threshold": 0.3, "calibration": "q", "target_precision": 0.9, "precis
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory):
+    """Two maps of other frames with the same count, dimension and second of creation (each its own identity)."""
     folder = write_route_files(tmp_path_factory.mktemp("route"), 60, 8, 4)
     build_map([str(folder / "ref.npz")], folder / "map")
+    build_map([str(folder / "qry.npz")], folder / "other")
+    created = json.loads((folder / "map" / "map.json").read_text())["created"]
+    rewrite_info(folder / "other", created=created)
     return folder
 
 
-def set_identity(folder, identity) -> None:
+def rewrite_info(folder, **values) -> None:
     path = folder / "map.json"
-    path.write_text(json.dumps({**json.loads(path.read_text()), "identity": identity}))
+    path.write_text(json.dumps({**json.loads(path.read_text()), **values}))
 
 
 def state_of(folder, path, route) -> None:
@@ -37,44 +42,48 @@ def state_of(folder, path, route) -> None:
 
 
 def test_a_map_without_an_identity_keeps_todays_check(route, tmp_path):
-    shutil.copytree(route / "map", tmp_path / "copy")
-    set_identity(tmp_path / "copy", None)
-    state_of(tmp_path / "copy", tmp_path / "state.npz", route)
-    shutil.copytree(tmp_path / "copy", tmp_path / "again")  # same count, dimension and creation: accepted
-    Localizer.open(load_map(tmp_path / "again")).restore(tmp_path / "state.npz")
+    shutil.copytree(route / "map", tmp_path / "old")  # as an older seqvpr wrote it: no digests, no identity
+    info = json.loads((tmp_path / "old" / "map.json").read_text())
+    (tmp_path / "old" / "map.json").write_text(json.dumps(
+        {k: v for k, v in info.items() if k not in ("files", "identity")} | {"version": 1}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # such a map opens with a warning of its own
+        state_of(tmp_path / "old", tmp_path / "state.npz", route)
+        shutil.copytree(tmp_path / "old", tmp_path / "again")  # same count, dimension and creation: accepted
+        Localizer.open(load_map(tmp_path / "again")).restore(tmp_path / "state.npz")
     header = json.loads(str(np.load(tmp_path / "state.npz")["header"]))
     assert "identity" not in header["map"] and header["version"] == 1
 
 
 def test_a_state_names_its_map_by_identity(route, tmp_path):
-    for name, fill in (("a", "a"), ("b", "b")):
-        shutil.copytree(route / "map", tmp_path / name)
-        set_identity(tmp_path / name, "sha256:" + fill * 64)
-    state_of(tmp_path / "a", tmp_path / "state.npz", route)
-    assert json.loads(str(np.load(tmp_path / "state.npz")["header"]))["map"]["identity"] == "sha256:" + "a" * 64
-    Localizer.open(load_map(tmp_path / "a")).restore(tmp_path / "state.npz")
-    raises_one_line("a localiser state for another map (identity", Localizer.open(load_map(tmp_path / "b")).restore,
+    mine, other = load_map(route / "map"), load_map(route / "other")
+    assert (mine.info.count, mine.info.dim, mine.info.created) == (other.info.count, other.info.dim, other.info.created)
+    assert mine.info.identity and other.info.identity and mine.info.identity != other.info.identity
+    state_of(route / "map", tmp_path / "state.npz", route)
+    assert json.loads(str(np.load(tmp_path / "state.npz")["header"]))["map"]["identity"] == mine.info.identity
+    Localizer.open(mine).restore(tmp_path / "state.npz")
+    raises_one_line("a localiser state for another map (identity", Localizer.open(other).restore,
                     tmp_path / "state.npz")
 
 
 def test_a_calibration_records_its_map_and_is_refused_for_another(route, tmp_path):
-    shutil.copytree(route / "map", tmp_path / "m")
-    set_identity(tmp_path / "m", "sha256:" + "a" * 64)
+    for name in ("map", "other"):
+        shutil.copytree(route / name, tmp_path / name)
     settings = LocalizerSettings()
-    store_calibration(tmp_path / "m", settings, RECORD)
-    stored = json.loads((tmp_path / "m" / "localizer.json").read_text())
-    assert stored["map"] == "sha256:" + "a" * 64 and stored_threshold(tmp_path / "m", settings)[0] == 0.3
-    set_identity(tmp_path / "m", "sha256:" + "b" * 64)  # the folder now holds another map
-    raises_one_line("localizer.json: calibrated for another map", read_calibrations, tmp_path / "m")
-    raises_one_line("calibrated for another map", Localizer.open, tmp_path / "m")
-    store_calibration(tmp_path / "m", LocalizerSettings(method="hmm"), {**RECORD, "threshold": 0.6})
-    entries = read_calibrations(tmp_path / "m")  # calibrating again replaces the other map's thresholds
+    store_calibration(tmp_path / "map", settings, RECORD)
+    stored = json.loads((tmp_path / "map" / "localizer.json").read_text())
+    assert stored["map"] == load_map(tmp_path / "map").info.identity
+    assert stored_threshold(tmp_path / "map", settings)[0] == 0.3
+    shutil.copy(tmp_path / "map" / "localizer.json", tmp_path / "other" / "localizer.json")  # onto another map
+    raises_one_line("localizer.json: calibrated for another map", read_calibrations, tmp_path / "other")
+    raises_one_line("calibrated for another map", Localizer.open, tmp_path / "other")
+    store_calibration(tmp_path / "other", LocalizerSettings(method="hmm"), {**RECORD, "threshold": 0.6})
+    entries = read_calibrations(tmp_path / "other")  # calibrating again replaces the other map's thresholds
     assert [e["threshold"] for e in entries] == [0.6]
 
 
 def test_a_calibration_file_from_before_map_identities_still_reads(route, tmp_path):
     shutil.copytree(route / "map", tmp_path / "m")
-    set_identity(tmp_path / "m", "sha256:" + "a" * 64)
     entry = {"settings": LocalizerSettings().key(), **RECORD}
     (tmp_path / "m" / "localizer.json").write_text(json.dumps(
         {"format": "seqvpr-localizer", "version": 1, "calibrations": [entry]}))
