@@ -49,4 +49,4 @@ def test_bad_folders_are_one_line_errors(tmp_path):
     raises_one_line("unknown model format 'someone-elses'", load_trained_model, tmp_path / "x")
     save_seqnet(tmp_path / "s", SeqNet(6, 5, 2), {})
     (tmp_path / "s" / "model.safetensors").write_bytes(b"garbage")
-    raises_one_line("not a readable safetensors file", load_trained_model, tmp_path / "s")
+    raises_one_line("model.safetensors: its content is not what", load_trained_model, tmp_path / "s")

@@ -113,9 +113,13 @@ def test_model_loading_errors_are_one_line(tmp_path):
     raises_one_line("no such model folder", load_seqmatchnet, tmp_path / "absent")
     save_seqmatchnet(tmp_path / "m", FrameTransform(TransformConfig(4)), {})
     (tmp_path / "m" / ckpt.MODEL_FILE).write_bytes(b"garbage")
-    raises_one_line("not a readable safetensors file", load_seqmatchnet, tmp_path / "m")
+    raises_one_line(f"{ckpt.MODEL_FILE}: its content is not what", load_seqmatchnet, tmp_path / "m")
     config = json.loads((tmp_path / "m" / ckpt.CONFIG_FILE).read_text())
+    del config["files"]  # a folder from before the weights' digest was recorded: the file itself is read
+    (tmp_path / "m" / ckpt.CONFIG_FILE).write_text(json.dumps(config))
+    raises_one_line("not a readable safetensors file", load_seqmatchnet, tmp_path / "m")
     save_seqmatchnet(tmp_path / "m2", FrameTransform(TransformConfig(4)), {})
+    config = json.loads((tmp_path / "m2" / ckpt.CONFIG_FILE).read_text())
     config["transform"]["in_dim"] = 5
     (tmp_path / "m2" / ckpt.CONFIG_FILE).write_text(json.dumps(config))
     raises_one_line("do not fit the config", load_seqmatchnet, tmp_path / "m2")

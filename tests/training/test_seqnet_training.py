@@ -197,7 +197,7 @@ def test_bad_input_is_one_line(tmp_path):
     raises_one_line("no such model folder", load_seqnet, tmp_path / "absent")
     save_seqnet(tmp_path / "m", SeqNet(4, 4, 2), {})
     (tmp_path / "m" / ckpt.MODEL_FILE).write_bytes(b"garbage")
-    raises_one_line("not a readable safetensors file", load_seqnet, tmp_path / "m")
+    raises_one_line("its content is not what", load_seqnet, tmp_path / "m")
     from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
 
     save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(4)), {})

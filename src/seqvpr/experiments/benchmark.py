@@ -41,6 +41,9 @@ A method that fails is reported in its row and the others go on.
 
 from __future__ import annotations
 
+import json
+import shutil
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -49,7 +52,7 @@ from typing import Any
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, parse_frame_range
-from seqvpr.errors import SeqvprError, reading
+from seqvpr.errors import SeqvprError, SeqvprWarning, reading
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.methods import METHODS
 from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match
@@ -281,11 +284,12 @@ def load_splits(spec: DatasetSpec, progress=None) -> Splits:
 class MethodRunner:
     """Runs the methods on one dataset through ``run_method``; each model kind a method uses is trained once on the
     train split (selected on the select split) and shared (SeqMatchNet and SeqNet also feed HVPR); a re-run into
-    the same folder reuses the finished runs."""
+    the same folder reuses the finished runs trained on the same data and split (``drop_stale_run``)."""
 
     def __init__(self, splits: Splits, config: BenchmarkConfig, out: Path, monitors: MonitorFactory | None = None) -> None:
         self.splits, self.config, self.out, self.monitors = splits, config, out, monitors
         self._cache: dict[str, Any] = {}
+        self.models_used: dict[str, dict[str, Any]] = {}  # kind -> folder and weights' digest
 
     def _once(self, name: str, make: Callable[[], Any]) -> Any:
         if name not in self._cache:
@@ -299,6 +303,7 @@ class MethodRunner:
 
             monitor = self.monitors(kind) if self.monitors else None
             folder = train_kind(kind, self.splits, self.config, self.out / kind, monitor)
+            self.models_used[kind] = model_identity(folder)
             return load_trained_model(folder, _device(self.config, kind))
 
         return self._once(kind, make)
@@ -332,6 +337,7 @@ def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, mo
     if kind == "jist" and any(t.image_paths is None for t in splits.train):
         raise NotApplicable("needs images (this dataset has descriptor files only)")
     data = training_data(kind, splits.train, splits.select, splits.radius)
+    drop_stale_run(out, data)
     spec = SequenceSpec(config.seq_len)
     if kind == "seqmatchnet":
         from seqvpr.models.seqmatchnet import TransformConfig
@@ -350,6 +356,47 @@ def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, mo
     return train_jist(data, model_config, settings, out, resume=True, monitor=monitor).folder
 
 
+def drop_stale_run(out: Path, data) -> None:
+    """A run in ``out`` trained on other data (another file, other content, another train/select split) is not
+    reused: a warning says why, the run is removed and the model trained again. Runs from before the data was
+    recorded are reused as they are."""
+    from seqvpr.training.resume import check_same_data, data_records, recorded_data
+    from seqvpr.training.state import STATE_JSON
+
+    recorded = recorded_data(out)
+    if recorded is None:
+        return
+    try:
+        check_same_data(recorded, data_records(data), out / STATE_JSON)
+    except SeqvprError as error:
+        warnings.warn(f"{error}; training it again", SeqvprWarning)
+        shutil.rmtree(out)
+
+
+def split_records(splits: Splits) -> dict[str, dict[str, Any]]:
+    """What a dataset's results rest on: each split's reference and query (source, file digest, frames, content)."""
+    from seqvpr.data.identity import traversal_record
+
+    pairs = {"train": splits.train, "select": splits.select, "test": splits.test}
+    return {name: {"reference": traversal_record(r), "query": traversal_record(q)} for name, (r, q) in pairs.items()}
+
+
+def model_identity(folder: Path) -> dict[str, Any]:
+    """A trained model's folder and identity (its weights' digest, as its config records it)."""
+    from seqvpr.models.files import MODEL_FILE, read_model_config
+
+    return {"folder": str(folder), "weights": (read_model_config(folder).get("files") or {}).get(MODEL_FILE)}
+
+
+def write_provenance(out: Path, provenance: dict[str, Any]) -> Path:
+    """``run.json``: per dataset, the data identities and splits the results rest on, and the models used."""
+    from seqvpr.io import atomic_write
+
+    with atomic_write(out / "run.json") as handle:
+        json.dump({"datasets": provenance}, handle, indent=2)
+    return out / "run.json"
+
+
 def _device(config: BenchmarkConfig, kind: str) -> str:
     table = {"seqmatchnet": config.training, "seqnet": config.seqnet, "jist": config.jist}[kind]
     return str(table.get("device", "cpu"))
@@ -363,6 +410,7 @@ def run_benchmark(
     ``monitors(method)`` gives each training run its progress monitor."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     rows: list[Row] = []
+    provenance: dict[str, Any] = {}
     for spec in config.datasets:
         try:
             splits = load_splits(spec, progress)
@@ -371,6 +419,7 @@ def run_benchmark(
             echo(f"{spec.name}: failed to load: {one_line(error)}")
             continue
         runner = MethodRunner(splits, config, out / spec.name, monitors)
+        provenance[spec.name] = {"splits": split_records(splits), "models": runner.models_used}
         gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
         plan = [(m, config.seq_len) for m in config.methods]
         plan += [(m, n) for n in config.lengths for m in config.methods if METHODS[m].length is None and n != config.seq_len]
@@ -384,6 +433,7 @@ def run_benchmark(
             except Exception as error:  # noqa: BLE001 - reported in the method's row
                 rows.append(Row(spec.name, method, length, None, one_line(error)))
                 echo(f"{spec.name}: {method} L={length} failed: {one_line(error)}")
+    write_provenance(out, provenance)
     return rows
 
 

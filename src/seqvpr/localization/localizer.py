@@ -27,6 +27,10 @@ from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
+from seqvpr.localization.saved import (
+    CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
+    read_calibration_file,
+)
 from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.progress import LOGGER
 from seqvpr.sequences.filter import FilterSettings
@@ -40,7 +44,6 @@ Status = Literal["warming up", "localised", "uncertain", "lost"]
 LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
 #: thresholds used when the map has no calibration for the settings (``seqvpr localize --calibrate`` sets one)
 DEFAULT_THRESHOLDS = {"matching": 0.1, "single": 0.1, "seqmatchnet": 0.1, "hmm": 0.5}
-STATE_FORMAT = "seqvpr-localizer-state"
 LONG_OPEN = 100_000  # maps from this many frames take seconds to open: say so
 
 
@@ -241,7 +244,7 @@ class Localizer:
 
     def save_state(self, path: str | Path) -> None:
         """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``)."""
-        header = {"format": STATE_FORMAT, "version": 1, "map": _map_identity(self.saved),
+        header = {"format": STATE_FORMAT, "version": STATE_VERSION, "map": map_record(self.saved.info),
                   "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
                   "since_reset": self.since_reset}
         arrays = {f"matcher_{k}": v for k, v in self.matcher.state().items()}
@@ -251,20 +254,18 @@ class Localizer:
             np.savez(handle, header=np.array(json.dumps(header)), **arrays)
 
     def restore(self, path: str | Path) -> None:
-        """Go on from a state ``save_state`` wrote, for this map and these settings; anything else is one line."""
+        """Go on from a state ``save_state`` wrote, for this map (by its identity) and these settings, its counters
+        and arrays sound (``localization.saved``); anything else is one line and leaves the localiser as it was."""
         from seqvpr.arrays import open_npz
 
         with reading(path, "a localiser state"):
             with open_npz(path) as data:
                 header = json.loads(str(data["header"]))
                 arrays = {k: data[k] for k in data.files}
-            if not isinstance(header, dict) or header.get("format") != STATE_FORMAT \
-                    or header.get("map") != _map_identity(self.saved):
-                raise SeqvprError(f"{path}: a localiser state for another map (or not one)")
+            check_state_header(path, header, self.saved.info)
             if header.get("settings") != self.settings.key():
                 raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
-            if any(a.dtype.kind == "f" and np.isnan(a).any() for a in arrays.values()):
-                raise SeqvprError(f"{path}: a localiser state holding NaN (damaged)")
+            check_state_arrays(path, arrays, self.saved.info.dim)
             self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
                                      if k.startswith("matcher_")})
             self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))
@@ -350,14 +351,7 @@ def _sharded_matcher(sharded, world, settings: LocalizerSettings):
     return ShardedExactMatcher(sharded, world, settings.window, settings.k, settings.exclusion)
 
 
-def _map_identity(saved: SavedMap) -> dict[str, Any]:
-    return {"count": saved.info.count, "dim": saved.info.dim, "created": saved.info.created}
-
-
 # --- calibrated thresholds, kept with the map ---------------------------------------------------------------------
-
-CALIBRATION_FILE = "localizer.json"
-
 
 def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> tuple[float, str]:
     """The threshold ``seqvpr localize --calibrate`` stored for these settings, else the method's default; with
@@ -388,19 +382,14 @@ def calibration_source(entry: dict[str, Any]) -> str:
 
 
 def read_calibrations(folder: str | Path) -> list[dict[str, Any]]:
-    path = Path(folder) / CALIBRATION_FILE
-    if not path.exists():
-        return []
-    try:
-        return list(json.loads(path.read_text())["calibrations"])
-    except (ValueError, KeyError, TypeError) as error:
-        raise SeqvprError(f"{path}: malformed ({type(error).__name__}: {error})") from None
+    """The calibrations in the map's ``localizer.json``, checked (``localization.saved``)."""
+    return read_calibration_file(folder)
 
 
 def store_calibration(folder: str | Path, settings: LocalizerSettings, record: dict[str, Any]) -> None:
     """Keep a calibrated threshold with the map (replacing one for the same settings), atomically."""
-    kept = [e for e in read_calibrations(folder) if e.get("settings") != settings.key()]
+    kept = [e for e in read_calibration_file(folder, replacing=True) if e.get("settings") != settings.key()]
     kept.append({"settings": settings.key(), **record})
     with atomic_write(Path(folder) / CALIBRATION_FILE) as handle:
-        json.dump({"format": "seqvpr-localizer", "version": 1, "calibrations": kept}, handle, indent=2)
+        json.dump(calibration_file(kept, folder), handle, indent=2)
 

@@ -82,11 +82,12 @@ def window_vectors(descriptors, segments: np.ndarray, length: int, method: str, 
 
 
 def model_record(folder: str | Path) -> dict[str, str]:
-    """The folder and weights' sha256 of the model an index over windows was built with."""
+    """The folder and weights' sha256 of a model (what a map or an index over windows was built with): its
+    identity, compared by content, never by kind or shape (remembered per file, so a second look costs a stat)."""
+    from seqvpr.identity import file_digest
     from seqvpr.models.files import MODEL_FILE
-    from seqvpr.models.published import file_sha256
 
-    return {"folder": str(folder), "sha256": file_sha256(Path(folder) / MODEL_FILE)}
+    return {"folder": str(folder), "sha256": file_digest(Path(folder) / MODEL_FILE).split(":", 1)[1]}
 
 
 def index_model(saved: SavedMap):

@@ -15,7 +15,6 @@ the source file and its sha256.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import pickle
 import struct
@@ -27,6 +26,7 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
+from seqvpr.identity import digest_file
 
 PREFIXES = (("module.", ""), ("pool.module.", "pool."))
 KINDS_KEYS = {
@@ -149,11 +149,8 @@ def check_flag(flags: dict[str, Any], name: str, value: int, path: Path, flags_p
 
 
 def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    """The file's sha256 as plain hex (``seqvpr.identity.digest_file`` without its prefix)."""
+    return digest_file(path).split(":", 1)[1]
 
 
 def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path | None = None) -> ImportedModel:

@@ -6,8 +6,8 @@ the learner mines triplets with the current model (``learner.mine``, no gradient
 ``learner.batch_loss``, one optimiser step each. After each epoch the learner validates the model on its own split;
 the best epoch by validation Recall@``select_k`` is saved to ``out_dir``. Every epoch leaves a complete resumable
 state (model, optimizer, scheduler, the learner's own state such as a miner cache, trainable loss parameters,
-history), committed by an atomically written pointer (``train_state.json``), so a killed run resumed with the same
-settings reaches the same weights.
+history) and the best model, committed together by one atomic swap of the folder (``training.resume``), so a killed
+run resumed with the same settings and data reaches the same weights.
 
 What differs between models lives behind ``SequenceLearner``: building the model (and a loss with parameters),
 the optimiser, mining, the loss of a batch, validation, and the model folder.
@@ -31,11 +31,13 @@ from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_rad
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
+from seqvpr.io import check_replaceable
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
 from seqvpr.training.history import EpochRecord
 from seqvpr.training.mining import Triplet
 from seqvpr.training.parallel import StepLoss, data_parallel_step, single_process_step
 from seqvpr.training.resume import RunState
+from seqvpr.training.state import STATE_JSON
 
 __all__ = [
     "EpochRecord", "LoopSettings", "SequenceLearner", "SilentMonitor", "Step", "TrainingContext", "TrainingData",
@@ -292,6 +294,7 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
         run = _Run(data, learner, settings)
         if run.state.exists(out) and not resume:
             raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
+        check_replaceable(out, STATE_JSON)  # each epoch replaces the folder whole: say now if it cannot
         return run, resume and run.state.exists(out)
 
     # every rank set up (or all fail with the first failure's line) and looked at out before rank 0 writes
@@ -306,9 +309,7 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
         best_epoch, best_recall = -1, {k: -1.0 for k in history[0].recall}  # below any recall: epoch 1 replaces it
         if settings.select_untrained or settings.epochs == 0:
             best_epoch, best_recall = 0, history[0].recall
-            if root:
-                run.state.save_best(out, 0, best_recall)
-        if root:
+        if root:  # the best model (when this epoch is it) and the state, committed as one
             run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(history[0])
     select = run.settings.select_k
@@ -317,8 +318,6 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
         history.append(record)
         if record.recall[select] > best_recall[select]:
             best_epoch, best_recall = epoch, record.recall
-            if root:
-                run.state.save_best(out, epoch, best_recall)
         if root:
             run.state.save(out, history, best_epoch, best_recall)
         monitor.end_epoch(record)
