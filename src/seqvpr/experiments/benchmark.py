@@ -137,7 +137,11 @@ def _read_config(path: Path) -> BenchmarkConfig:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib
+    from seqvpr.arrays import check_regular_file
+
     path = Path(path)
+    if path.exists():  # a FIFO or a device is one line, never a wait
+        check_regular_file(path, "a benchmark description")
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

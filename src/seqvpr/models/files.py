@@ -37,8 +37,10 @@ def save_json(path: Path, values: dict[str, Any]) -> None:
 
 
 def read_json(path: Path) -> dict[str, Any]:
+    from seqvpr.arrays import check_regular_file
+
     try:
-        return json.loads(path.read_text())
+        return json.loads(check_regular_file(path, "a JSON file").read_text())
     except FileNotFoundError:
         raise SeqvprError(f"{path}: no such file") from None
     except json.JSONDecodeError as error:
