@@ -316,7 +316,7 @@ def test_a_bag_map_names_its_frames_by_stamp_reports_its_topics_and_outlives_the
     assert code == 0 and json.loads(out)["recall"]["1"] == 1.0, err
     localizer = Localizer.open(tmp_path / "m", seq_len=1)
     estimate = localizer.update(images[4])
-    assert estimate.name == names[4] and not (tmp_path / "cache").exists()
+    assert estimate.name == names[4] and not (tmp_path / "cache" / "bag-frames").exists()
 
 
 def image_folder_with_fixes(folder, images, lat, lon):
