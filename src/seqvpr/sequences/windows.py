@@ -134,7 +134,9 @@ def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]
     count = int((hi - lo) / step + 0.5) + 1
     if count > MAX_VELOCITIES:
         raise SeqvprError(f"{what} {text!r}: {count} velocities, at most {MAX_VELOCITIES} (widen the step)")
-    return tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
+    velocities = tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
+    check_velocities(velocities, what)
+    return velocities
 
 
 def check_velocities(velocities: tuple[float, ...], what: str = "velocities") -> None:
