@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from tests.helpers import run_cli, write_route_files
@@ -105,4 +104,4 @@ def test_a_k_past_the_reference_is_clipped_to_it(world, tmp_path, monkeypatch, c
     assert code == 0, err
     widths = {len(row.split(",")[2].split()) for row in (tmp_path / "k" / "predictions.csv").read_text().splitlines()[1:]}
     assert max(widths) <= 80
-    assert np.isclose(json.loads(out)["recall"]["1000000000"], 1.0) or json.loads(out)["recall"]["1000000000"] <= 1
+    assert 0 <= json.loads(out)["recall"]["1000000000"] <= 1
