@@ -2,13 +2,21 @@
 and a gather that fails every rank with the failing rank's error (so no rank waits forever and none writes output).
 
 Run without torchrun, the world is one process and nothing here touches torch.distributed.
+
+A rank waits at most ``$SEQVPR_RANK_TIMEOUT`` seconds (default 300) for the others, to join the group and at each
+collective: a rank started alone, or left alone, ends with one line. SIGTERM ends a rank waiting on the others at
+once (a wait inside torch.distributed does not return to Python, where the CLI's handler would run).
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import datetime
 import os
+import signal
+import socket
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TypeVar
@@ -16,6 +24,10 @@ from typing import TypeVar
 from seqvpr.errors import SeqvprError
 
 T = TypeVar("T")
+
+TIMEOUT_VARIABLE = "SEQVPR_RANK_TIMEOUT"
+DEFAULT_TIMEOUT_S = 300.0
+MAX_TIMEOUT_S = 86_400.0  # a day: past that a wait is a hang
 
 
 @dataclass(frozen=True)
@@ -68,10 +80,66 @@ def process_group(device: str = "cpu") -> Iterator[World]:
             import torch
 
             torch.cuda.set_device(world.local_rank)
-        dist.init_process_group("nccl" if str(device).startswith("cuda") else "gloo")
+        timeout = rank_timeout()
+        end_waits_on_sigterm()
+        try:
+            dist.init_process_group("nccl" if str(device).startswith("cuda") else "gloo",
+                                    timeout=datetime.timedelta(seconds=timeout))
+        except RuntimeError as error:  # torch's store and network errors: the other ranks never came
+            raise SeqvprError(f"rank {world.rank} of {world.size}: the other ranks did not join within {timeout:g} s "
+                              f"(${TIMEOUT_VARIABLE}; {str(error).splitlines()[0][:120]})") from None
         atexit.register(_leave)
     _current = world
     yield world
+
+
+def rank_timeout() -> float:
+    """Seconds a rank waits for the others (``$SEQVPR_RANK_TIMEOUT``, default 300); a bad value is one line."""
+    text = os.environ.get(TIMEOUT_VARIABLE, "").strip()
+    if not text:
+        return DEFAULT_TIMEOUT_S
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 0 < seconds <= MAX_TIMEOUT_S:  # False for NaN
+        raise SeqvprError(f"${TIMEOUT_VARIABLE}={text!r}: expected seconds in (0, {MAX_TIMEOUT_S:g}]")
+    return seconds
+
+
+_sigterm_watch: threading.Thread | None = None
+#: set by whoever reports a SIGTERM itself (the CLI), so the watch adds no second line
+sigterm_reported = threading.Event()
+SIGTERM_GRACE_S = 2.0
+
+
+def end_waits_on_sigterm() -> None:
+    """Watch for SIGTERM beside the main thread (through Python's signal wake-up fd): where the main thread has not
+    ended the process ``SIGTERM_GRACE_S`` after it (stuck in a wait on other ranks), one line and exit 143. Only
+    where a Python handler takes SIGTERM (the CLI's); without one SIGTERM ends the process anyway."""
+    global _sigterm_watch
+    if _sigterm_watch is not None or threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, signal.SIG_IGN, None):
+        return
+    reader, writer = socket.socketpair()
+    writer.setblocking(False)
+    try:
+        signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+    except ValueError:  # not the main thread of the main interpreter
+        return
+    _sigterm_watch = threading.Thread(target=_watch_sigterm, args=(reader, writer), daemon=True,
+                                      name="seqvpr-sigterm")
+    _sigterm_watch.start()
+
+
+def _watch_sigterm(reader: socket.socket, writer: socket.socket) -> None:
+    """Wait for SIGTERM's byte on the wake-up fd; then, unless the process ends or reports it first, end it."""
+    while reader.recv(1) != bytes([signal.SIGTERM]):
+        pass
+    if not sigterm_reported.wait(SIGTERM_GRACE_S):
+        os.write(2, b"seqvpr: terminated (SIGTERM) while waiting for the other ranks\n")
+        os._exit(143)
 
 
 def _leave() -> None:
@@ -95,7 +163,7 @@ def everywhere(work: Callable[[], T], world: World | None = None) -> T:
     except Exception as failure:  # reported to every rank below, then raised on each
         error = str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"
     errors: list[str | None] = [None] * world.size
-    dist.all_gather_object(errors, error)
+    _wait(dist.all_gather_object, world, errors, error)
     failed = [(rank, text) for rank, text in enumerate(errors) if text is not None]
     if failed:
         rank, text = failed[0]
@@ -113,7 +181,7 @@ def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T]
 
     value = everywhere(work, world)
     values: list[T] | None = [None] * world.size if world.is_root else None  # type: ignore[list-item]
-    dist.gather_object(value, values, dst=0)
+    _wait(dist.gather_object, world, value, values, dst=0)
     return values
 
 
@@ -127,7 +195,7 @@ def gather_everywhere(work: Callable[[], T], world: World | None = None) -> list
 
     value = everywhere(work, world)
     values: list = [None] * world.size
-    dist.all_gather_object(values, value)
+    _wait(dist.all_gather_object, world, values, value)
     return values
 
 
@@ -144,7 +212,7 @@ def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
             message = [work(), None]
         except Exception as failure:  # sent to every rank below, then raised on each
             message = [None, str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"]
-    dist.broadcast_object_list(message, src=0)
+    _wait(dist.broadcast_object_list, world, message, src=0)
     if message[1] is not None:
         raise SeqvprError(f"rank 0 of {world.size} failed: {message[1]}")
     return message[0]
@@ -159,7 +227,7 @@ def sum_over_ranks(values: list[float], world: World | None = None) -> list[floa
     import torch.distributed as dist
 
     total = torch.tensor(values, dtype=torch.float64)
-    dist.all_reduce(total)
+    _wait(dist.all_reduce, world, total)
     return total.tolist()
 
 
@@ -169,4 +237,13 @@ def barrier(world: World | None = None) -> None:
     if world.size > 1:
         import torch.distributed as dist
 
-        dist.barrier()
+        _wait(dist.barrier, world)
+
+
+def _wait(collective: Callable, world: World, *args, **kwargs) -> None:
+    """Run a collective; a rank that times out waiting (``$SEQVPR_RANK_TIMEOUT``) or loses the others is one line."""
+    try:
+        collective(*args, **kwargs)
+    except RuntimeError as error:
+        raise SeqvprError(f"rank {world.rank} of {world.size}: waiting for the other ranks failed (a rank stopped, or "
+                          f"none answered within ${TIMEOUT_VARIABLE} s: {str(error).splitlines()[0][:120]})") from None

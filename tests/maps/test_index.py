@@ -34,7 +34,7 @@ def test_index_specs_parse_and_bad_ones_are_one_line():
     assert parse_index_spec("IVF:1024,pq:32") == IndexSpec("ivf", nlist=1024, pq=32)
     assert str(parse_index_spec("ivf:64,pq:8")) == "ivf:64,pq:8"
     for bad in ("ivf", "hnsw:0", "ivf:16,pq", "pq:8", "lsh"):
-        raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 1", parse_index_spec, bad)
+        raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 2", parse_index_spec, bad)
 
 
 @settings(max_examples=80, deadline=None)

@@ -67,7 +67,9 @@ def with_threads_option(command: click.Command) -> click.Command:
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.version_option(package_name="seqvpr")
 def cli() -> None:
-    """Sequence-based visual place recognition: match a query traversal against a reference traversal."""
+    """Sequence-based visual place recognition: match a query traversal against a reference traversal.
+
+    Under torchrun a rank waits at most $SEQVPR_RANK_TIMEOUT seconds (default 300) for the others."""
 
 
 def _command_path(ctx: click.Context | None) -> str:
@@ -131,6 +133,9 @@ def main() -> None:
         click.echo(f"seqvpr: interrupted (SIGINT); {INTERRUPTED}", err=True)
         sys.exit(130)
     except Terminated:
+        from seqvpr.distributed import sigterm_reported
+
+        sigterm_reported.set()
         click.echo(f"seqvpr: terminated (SIGTERM); {INTERRUPTED}", err=True)
         sys.exit(143)
     except click.UsageError as error:  # a bad option or value: one line naming it, as every bad input gets

@@ -49,7 +49,7 @@ Examples:
               help="Folder for the rendered world, the descriptor cache, the model and the report.")
 @click.option("--quick", is_flag=True, help="A smaller world (200 frames per traversal) and a short training run.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the world and of training.")
-@click.option("--frames", "n_frames", type=COUNT, help="Frames per traversal.  [default: 600; --quick: 200]")
+@click.option("--frames", "n_frames", type=COUNT, help="Frames per traversal, 50 to 20000.  [default: 600; --quick: 200]")
 @click.option("--condition", type=click.Choice(list(CONDITIONS)), default="night", show_default=True,
               help="The query drive's condition (the reference is driven by day).")
 @click.option("--epochs", type=NONNEGATIVE, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")

@@ -49,7 +49,7 @@ Examples:
 @click.option("--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
               help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
 @click.option("--min-step", type=NONNEGATIVE, default=0, show_default=True, help="hmm: fewest map frames moved per frame.")
-@click.option("--max-step", type=NONNEGATIVE, default=2, show_default=True, help="hmm: most map frames moved per frame.")
+@click.option("--max-step", type=NONNEGATIVE, default=2, show_default=True, help="hmm: most map frames moved per frame (at most 1000).")
 @click.option("--floor", type=FRACTION, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
 @click.option("--sharpness", type=POSITIVE, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
 @click.option("--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")

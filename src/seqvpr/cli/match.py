@@ -57,7 +57,8 @@ Examples:
 @click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
               help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
 @click.option("--velocities", default="1", show_default=True,
-              help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes).")
+              help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes); at "
+                   "most 1000 velocities (cone, hybrid: trajectories), each in (0, 100].")
 @click.option("--steps", default="1:2", show_default=True,
               help="--method adaptive: the fewest and most reference frames a query frame may move (MIN:MAX).")
 @click.option("--contrast-window", type=Number(int, 2), default=10, show_default=True,
@@ -97,7 +98,8 @@ Examples:
 @click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
 @click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--memory-budget", default="2G", show_default=True,
-              help="Most bytes of distance matrix held at once (e.g. 512M); 'none' for the whole matrix.")
+              help="Most bytes of distance matrix held at once (e.g. 512M; at least 1K, at most 1P); 'none' for the "
+                   "whole matrix.")
 @click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
               help="Folder for predictions.csv and run.json.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
@@ -134,6 +136,7 @@ def match(**o: Any) -> None:
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     if o["msls_subtask"]:
         query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
+    _check_length(o["seq_len"] or run_length(METHODS[method], models), reference, query)
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"],
                               layout=o["gt_layout"])
     has_images = reference.image_paths is not None
@@ -163,6 +166,14 @@ def _msls_subtask(query: str, subtask: str, frames: str | None):
     if not is_msls_side(Path(query)):
         raise SeqvprError(f"--msls-subtask needs an MSLS query folder (seq_info.csv, images/): {query} is not one")
     return slice_frame_range(load_msls_side(query, subtask), frames)
+
+
+def _check_length(length: int, reference, query) -> None:
+    """-L longer than every segment of either traversal is one line before any image is described."""
+    from seqvpr.sequences.windows import check_length
+
+    for side, traversal in (("reference", reference), ("query", query)):
+        check_length(length, traversal.segment_ids, f"{side} {traversal.source or traversal.name}")
 
 
 def _top_k(k_values: tuple[int, ...], uniqueness: int | None) -> int:
@@ -219,6 +230,7 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
     descriptor = sharded.open_shard(0).info.description["descriptor"]
     _check_map_options(o, descriptor)
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    _check_length(o["seq_len"] or run_length(METHODS[method], models), map_table(sharded), query)
     gt = resolve_ground_truth(map_table(sharded), query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
@@ -251,6 +263,7 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     saved = open_map(o["map_dir"])
     _check_map_options(o, saved.info.description["descriptor"])
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    _check_length(o["seq_len"] or run_length(METHODS[method], models), saved.frames, query)
     gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],

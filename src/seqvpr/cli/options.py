@@ -241,16 +241,24 @@ def parse_ks(text: str) -> tuple[int, ...]:
     return ks
 
 
-def parse_size(text: str | None) -> int | None:
-    """``512M``, ``2G`` or plain bytes -> bytes; ``none`` -> no budget."""
+MIN_BUDGET, MAX_BUDGET = 1024, 1024**5  # --memory-budget bounds: 1K (a few rows) to 1P (past any machine)
+
+
+def parse_size(text: str | None, option: str = "--memory-budget") -> int | None:
+    """``512M``, ``2G`` or plain bytes -> bytes, from 1K to 1P; ``none`` -> no budget. NaN, infinities, zero,
+    negative and absurd sizes are one line naming the option."""
     if text is None or text.lower() == "none":
         return None
-    units = {"k": 1024, "m": 1024**2, "g": 1024**3}
+    units = {"k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4, "p": 1024**5}
+    message = f"{option} {text!r}: expected bytes from 1K to 1P such as 512M or 2G, or none"
     try:
         scale = units.get(text[-1].lower(), 1)
-        return int(float(text[:-1] if text[-1].lower() in units else text) * scale)
+        size = float(text[:-1] if text[-1].lower() in units else text) * scale
     except (ValueError, IndexError):
-        raise SeqvprError(f"--memory-budget {text!r}: expected bytes such as 512M or 2G") from None
+        raise SeqvprError(message) from None
+    if not MIN_BUDGET <= size <= MAX_BUDGET:  # False for NaN
+        raise SeqvprError(message)
+    return int(size)
 
 
 def parse_thumbnail(text: str, option: str = "--thumbnail") -> tuple[int, int]:

@@ -60,7 +60,7 @@ def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetS
         click.option("--margin", default=defaults.margin, show_default=True, type=POSITIVE,
                      help="Triplet margin on sequence distances (default sqrt(0.1), as the reference)."),
         click.option("--negatives", default=defaults.negatives, show_default=True, type=COUNT,
-                     help="Hard negatives per query."),
+                     help="Hard negatives per query (at most 1000)."),
         click.option("--negative-pool", default=pool, show_default=True,
                      help="Random negative candidates per query (plus its previous negatives), or 'all'."),
         click.option("--refresh-every", default=defaults.refresh_every, show_default=not per_epoch, type=COUNT,
@@ -90,7 +90,7 @@ def sequence_training_options(kind: str, defaults: SeqMatchNetSettings | SeqNetS
 
 
 training_options = sequence_training_options("seqmatchnet", SeqMatchNetSettings(), [
-    click.option("--out-dim", type=COUNT, help="Output dimension of the transform (default: input dimension)."),
+    click.option("--out-dim", type=COUNT, help="Output dimension of the transform, at most 65536 (default: input dimension)."),
     click.option("--hidden", default="", help="Hidden layer sizes for the deeper MLP variant, e.g. 4096."),
     click.option("--init", type=click.Choice(["reference", "identity"]), default="reference", show_default=True,
                  help="PyTorch default initialisation (as the reference code) or identity W, zero B."),
@@ -99,7 +99,7 @@ training_options = sequence_training_options("seqmatchnet", SeqMatchNetSettings(
 seqnet_options = sequence_training_options("seqnet", SeqNetSettings(), [
     click.option("--w", "w", default=SeqNetSettings.w, show_default=True, type=COUNT,
                  help="Temporal kernel width of SeqNet's Conv1d (at most -L)."),
-    click.option("--out-dim", type=COUNT, help="Output dimension of the sequence descriptor (default: input dimension)."),
+    click.option("--out-dim", type=COUNT, help="Output dimension of the sequence descriptor, at most 65536 (default: input dimension)."),
 ])
 
 run_options = with_options([
@@ -231,7 +231,7 @@ jist_options = with_options([
     click.option("--trainable-stages", help="Comma list of backbone stages to train (ResNet: stem, layer1..layer4; "
                  "efficientnet-lite0: stem, stage1..stage7, head).  [default: the backbone's last stage: layer4; "
                  "efficientnet-lite0: stage7,head]"),
-    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=COUNT, help="Frame descriptor size."),
+    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=COUNT, help="Frame descriptor size (at most 65536)."),
     click.option("--seq-len", "-L", default=JIST_DEFAULTS.seq_length, show_default=True, type=COUNT,
                  help="Frames per sequence window."),
     click.option("--epochs", default=JIST_RUN.epochs, show_default=True, type=NONNEGATIVE),

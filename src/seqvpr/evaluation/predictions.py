@@ -136,17 +136,23 @@ def save_correspondences(path: str | Path, result: MatchResult, pairs: tuple[np.
     """The top-1 matches' per-frame correspondences as CSV, one row per pair: the query (source frame index of the
     frame whose window it is), the pair's position in the window, the query and reference source frames, and
     ``correct`` (1 / 0; empty where that query frame has no positive). Queries without a match are not written."""
-    q_rows, r_rows = (np.asarray(a) for a in pairs)
-    q_frames, r_frames = result.query.frame_index, result.reference.frame_index
-    has_positive = gt.has_positive()
+    table = correspondence_rows(result, pairs, gt)
     with atomic_write(path, newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(CORRESPONDENCE_COLUMNS)
-        for i in np.flatnonzero((q_rows >= 0).any(1)):
-            for position in np.flatnonzero((q_rows[i] >= 0) & (r_rows[i] >= 0)):
-                q, r = int(q_rows[i, position]), int(r_rows[i, position])
-                correct = str(int(gt.contains(np.array([q]), np.array([r]))[0])) if has_positive[q] else ""
-                writer.writerow([int(q_frames[i]), int(position), int(q_frames[q]), int(r_frames[r]), correct])
+        writer.writerows(table)
+
+
+def correspondence_rows(result: MatchResult, pairs: tuple[np.ndarray, np.ndarray], gt: GroundTruth) -> list[list]:
+    """The rows of ``save_correspondences`` (query by query, window position in order), found with one
+    ground-truth lookup for all pairs: per-pair lookups cost many times the matching at tens of thousands of queries."""
+    q_rows, r_rows = (np.asarray(a, dtype=np.int64) for a in pairs)
+    query, position = np.nonzero((q_rows >= 0) & (r_rows >= 0))
+    q, r = q_rows[query, position], r_rows[query, position]
+    correct = np.where(gt.has_positive()[q], gt.contains(q, r).astype(np.int64).astype(str), "")
+    columns = (result.query.frame_index[query], position, result.query.frame_index[q],
+               result.reference.frame_index[r])
+    return [[*row, flag] for row, flag in zip(np.stack(columns, 1).astype(np.int64).tolist(), correct.tolist())]
 
 
 def evaluate_predictions(

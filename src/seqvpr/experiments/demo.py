@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 TRAVERSALS = ("train_reference", "train_query", "test_reference", "test_query")
 CURVE_KS = tuple(range(1, 21))
 SEQSLAM_VELOCITIES = (0.8, 0.9, 1.0, 1.1, 1.2)  # OpenSeqSLAM2's v_min:v_step:v_max
+MAX_DEMO_FRAMES = 20_000  # frames a traversal of the demo world may have: rendering is the cost
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,8 @@ class DemoSettings:
     examples: int = 6
 
     def __post_init__(self) -> None:
-        if self.frames < 50:
-            raise SeqvprError(f"--frames must be at least 50, got {self.frames}")
+        if not 50 <= self.frames <= MAX_DEMO_FRAMES:  # each frame is two rendered images
+            raise SeqvprError(f"--frames must be at least 50 and at most {MAX_DEMO_FRAMES}, got {self.frames}")
         if self.epochs < 1:
             raise SeqvprError(f"--epochs must be at least 1, got {self.epochs}")
 

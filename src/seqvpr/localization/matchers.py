@@ -86,7 +86,7 @@ class ShortlistMatcher:
 
     def __init__(self, saved: SavedMap, index, length: int, k: int, exclusion: int, shortlist: int, history: int):
         self.saved, self.index, self.length, self.k, self.exclusion = saved, index, length, k, exclusion
-        self.shortlist, self.history = shortlist, history
+        self.shortlist, self.history = min(shortlist, max(index.ntotal, 1)), history  # more finds nothing more
         self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
         self.window_exists = window_starts(saved.frames.segment_ids, length, length - 1, "drop") >= 0

@@ -94,7 +94,7 @@ class ShardedShortlistMatcher(_Stateless):
         from seqvpr.maps.shards import shard_index_over, shard_numbers
 
         self.world, self.length, self.k, self.exclusion = world, length, k, exclusion
-        self.shortlist, self.count = shortlist, sharded.count
+        self.shortlist, self.count = min(shortlist, max(sharded.count, 1)), sharded.count  # more finds nothing more
         self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
         for number in range(len(sharded.shards)):  # all, on every rank: each fails alike, none waits for another

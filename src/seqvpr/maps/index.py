@@ -26,6 +26,8 @@ ADD_BLOCK = 65_536  # map rows added to an index at a time (a memory-mapped map 
 TRAIN_PER_LIST = 64  # training rows per IVF list (faiss asks for at least 39)
 DEFAULT_NPROBE = 16
 DEFAULT_EF_SEARCH = 64
+MAX_HNSW_M = 256  # links an HNSW node keeps: memory grows with M a frame, and faiss fails below 2
+PQ_CENTROIDS = 256  # codes of one PQ byte: its k-means needs at least this many training frames
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,9 @@ def parse_index_spec(text: str) -> IndexSpec:
     if spec == "flat":
         return IndexSpec("flat")
     if match := re.fullmatch(r"hnsw:(\d+)", spec):
-        return IndexSpec("hnsw", m=_positive(match.group(1), text))
+        if not 2 <= int(match.group(1)) <= MAX_HNSW_M:
+            raise SeqvprError(f"--index {text!r}: hnsw:M needs M at least 2 and at most {MAX_HNSW_M} (links a node)")
+        return IndexSpec("hnsw", m=int(match.group(1)))
     if match := re.fullmatch(r"ivf:(\d+)(?:,pq:(\d+))?", spec):
         return IndexSpec("ivf", nlist=_positive(match.group(1), text), pq=_positive(match.group(2) or "0", text, 0))
     raise SeqvprError(f"--index {text!r}: expected flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
@@ -110,10 +114,7 @@ def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, p
     import faiss
 
     n, dim = descriptors.shape
-    if spec.kind == "ivf" and spec.nlist > n:
-        raise SeqvprError(f"--index {spec}: {spec.nlist} lists for {n} frames (use at most one list per frame)")
-    if spec.pq and dim % spec.pq:
-        raise SeqvprError(f"--index {spec}: pq:{spec.pq} must divide the dimension {dim}")
+    check_index_spec(spec, n, dim)
     index = _empty_index(faiss, spec, dim)
     if spec.kind == "ivf":
         index.cp.seed = seed
@@ -125,6 +126,18 @@ def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, p
         if tick:
             tick(min(ADD_BLOCK, n - begin))
     return index
+
+
+def check_index_spec(spec: IndexSpec, n: int, dim: int) -> None:
+    """One line, before any training, when ``spec`` does not fit ``n`` vectors of ``dim``: more IVF lists than
+    vectors, PQ bytes that do not divide the dimension, or fewer vectors than PQ's k-means needs."""
+    if spec.kind == "ivf" and spec.nlist > n:
+        raise SeqvprError(f"--index {spec}: {spec.nlist} lists for {n} frames (use at most one list per frame)")
+    if spec.pq and dim % spec.pq:
+        raise SeqvprError(f"--index {spec}: pq:{spec.pq} must divide the dimension {dim}")
+    if spec.pq and n < PQ_CENTROIDS:
+        raise SeqvprError(f"--index {spec}: PQ trains {PQ_CENTROIDS} codes a byte and needs at least {PQ_CENTROIDS} "
+                          f"frames; the map has {n} (use ivf:NLIST without pq)")
 
 
 def _empty_index(faiss, spec: IndexSpec, dim: int):

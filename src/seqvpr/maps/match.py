@@ -182,10 +182,26 @@ def shortlist_match(
     (``frame_shortlist``, up to (L + history) x S); over windows: each query window's ``shortlist`` nearest ones."""
     query, settings = shortlist_query(frames, method, settings)
     over = index_over(saved, history)
+    vectors = int(saved.info.index.get("ntotal", saved.info.count))
+    shortlist, history = shortlist_size(shortlist, history, vectors, len(frames), settings)
     found = index_neighbours(saved, query, frames.segment_ids, shortlist, nprobe)
     candidates = shortlist_candidates(found, over, frames.segment_ids, settings.sequence, saved.info.count, history)
     top = rerank_candidates(saved, query, candidates, settings, frames.segment_ids)
     return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
+
+
+def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, settings: MatchSettings
+                   ) -> tuple[int, int]:
+    """The shortlist S and history H a search uses: S clipped to the index's ``vectors`` and H to the query's
+    frames (more finds nothing more: the result is the same), then the candidate table, n_query x (L + H) x S rows,
+    checked against ``settings.memory_budget`` before any search (one line naming the options)."""
+    shortlist, history = min(shortlist, max(vectors, 1)), min(history, n_query)
+    cost = n_query * (settings.sequence.length + history) * shortlist * 8 * 3  # neighbours, candidates, sorting
+    if settings.memory_budget is not None and cost > settings.memory_budget:
+        raise SeqvprError(f"--shortlist {shortlist} with --shortlist-history {history} and -L "
+                          f"{settings.sequence.length}: the candidates of {n_query} queries need {cost / 2**20:.0f} "
+                          f"MiB, over the --memory-budget of {settings.memory_budget / 2**20:.0f} MiB (lower them)")
+    return shortlist, history
 
 
 def shortlist_query(frames: Traversal, method: str, settings: MatchSettings):

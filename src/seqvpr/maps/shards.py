@@ -242,12 +242,13 @@ def shortlist_sharded_map(sharded: ShardedMap, numbers: Sequence[int], prepared:
     ``shortlist`` rows a query frame (or window) into the candidates and sends them out, each rank re-ranks the
     candidates its shards own, and rank 0 merges the top-K. With flat indexes this is the unsharded shortlist."""
     from seqvpr import distributed
-    from seqvpr.maps.match import shortlist_candidates, shortlist_query
+    from seqvpr.maps.match import shortlist_candidates, shortlist_query, shortlist_size
     from seqvpr.pipeline import MatchResult
 
     frames = prepared.frames
     query, settings = shortlist_query(frames, prepared.method, settings)
     over = distributed.everywhere(lambda: _shards_index(sharded, prepared, history))  # every shard checked
+    shortlist, history = shortlist_size(shortlist, history, sharded.count, len(frames), settings)
     shards = {n: sharded.open_shard(n) for n in numbers}
     found = distributed.gather_to_root(
         lambda: [_shard_neighbours(shards[n], sharded.shards[n], query, frames, shortlist, nprobe) for n in numbers])

@@ -13,6 +13,16 @@ from seqvpr.errors import SeqvprError
 Init = Literal["reference", "identity"]
 
 
+#: the largest descriptor a model may output: a layer to it holds input x output weights
+MAX_DIM = 65_536
+
+
+def check_dim(dim: int, option: str) -> None:
+    """One line when a model's output dimension ``dim`` is above ``MAX_DIM`` (before any weight is allocated)."""
+    if dim > MAX_DIM:
+        raise SeqvprError(f"{option} {dim}: at most {MAX_DIM} dimensions")
+
+
 @dataclass(frozen=True)
 class TransformConfig:
     """Shape and initialisation of the transform.
@@ -34,6 +44,7 @@ class TransformConfig:
         if any(int(d) != d or d < 1 for d in dims):
             raise SeqvprError(f"transform dimensions must be positive integers, got in={self.in_dim} "
                               f"out={self.out_dim} hidden={self.hidden}")
+        check_dim(self.output_dim, "--out-dim")
         if self.init not in ("reference", "identity"):
             raise SeqvprError(f"init must be 'reference' or 'identity', got {self.init!r}")
 
@@ -102,6 +113,7 @@ class JistConfig:
             value = getattr(self, name)
             if int(value) != value or value < 1:
                 raise SeqvprError(f"{name} must be a positive integer, got {value}")
+        check_dim(self.out_dim, "--out-dim")
         for name in ("triplet_weight", "classification_weight", "margin"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

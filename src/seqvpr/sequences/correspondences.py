@@ -77,6 +77,8 @@ def trajectory_correspondences(query: torch.Tensor, reference, best: np.ndarray,
     if velocities is None:
         return None
     q_seg, r_seg = np.asarray(query_segments), np.asarray(reference_segments)
+    if scorer is None:  # the kernel's own mean distance: every query at once
+        return kernel_trajectories(query, reference, best, spec, q_seg, r_seg)
     if hasattr(scorer, "prepare"):
         scorer = scorer.prepare(query, reference, q_seg, r_seg, memory_budget)
     q_starts = window_starts(q_seg, spec.length, spec.offset, spec.boundary)
@@ -100,3 +102,43 @@ def trajectory_correspondences(query: torch.Tensor, reference, best: np.ndarray,
         q_rows[i] = frames
         r_rows[i] = starts[chosen][j] + velocity_steps(spec.length, chosen)
     return q_rows, r_rows
+
+
+def kernel_trajectories(query: torch.Tensor, reference, best: np.ndarray, spec: SequenceSpec, query_segments: np.ndarray,
+                        reference_segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``trajectory_correspondences`` for the kernel's constant-velocity means, vectorised over the queries: each
+    velocity's trajectory through each query's match is scored by its mean frame distance and the first best kept
+    (a per-query loop cost many times the matching it followed). Reference rows are read for a block of queries at
+    a time (a saved map's rows are never read whole)."""
+    q_starts = window_starts(query_segments, spec.length, spec.offset, spec.boundary)
+    matched = np.flatnonzero((q_starts >= 0) & (best >= 0))
+    frames = window_frames(q_starts[matched], spec.length)  # [m, L]
+    trajectories = []
+    for velocity in spec.velocities:
+        steps = velocity_steps(spec.length, velocity)
+        starts = window_starts(reference_segments, int(steps[-1]) + 1, int(steps[spec.offset]), spec.boundary)
+        start = starts[best[matched]]
+        trajectories.append(np.where(start[:, None] >= 0, start[:, None] + steps[None, :], -1))
+    paths = np.stack(trajectories, 1)  # [m, V, L]
+    block = max(1, 2**22 // (len(spec.velocities) * spec.length * query.shape[1]))
+    scores = np.concatenate([_trajectory_means(query, reference, frames[b : b + block], paths[b : b + block])
+                             for b in range(0, len(matched), block)] or [np.zeros((0, len(spec.velocities)))])
+    chosen = scores.argmin(1)
+    found = np.isfinite(scores[np.arange(len(matched)), chosen])
+    q_rows = np.full((len(best), spec.length), -1, dtype=np.int64)
+    r_rows = np.full_like(q_rows, -1)
+    q_rows[matched[found]] = frames[found]
+    r_rows[matched[found]] = paths[np.arange(len(matched)), chosen][found]
+    return q_rows, r_rows
+
+
+def _trajectory_means(query: torch.Tensor, reference, frames: np.ndarray, paths: np.ndarray) -> np.ndarray:
+    """Mean Euclidean frame distance [b, V] of each query window ``frames`` [b, L] along each trajectory ``paths``
+    [b, V, L] of reference rows (+inf where a trajectory is -1: it has no window there)."""
+    at = np.maximum(paths, 0)
+    needed, where = np.unique(at, return_inverse=True)
+    rows = reference[torch.as_tensor(needed)] if isinstance(reference, torch.Tensor) else reference[needed]
+    rows = torch.as_tensor(np.asarray(rows) if not isinstance(rows, torch.Tensor) else rows, dtype=query.dtype)
+    pairs = query[torch.as_tensor(frames)][:, None, :, :] - rows[torch.as_tensor(where.reshape(at.shape))]
+    means = pairs.square().sum(-1).sqrt().mean(-1).numpy()
+    return np.where(paths[:, :, 0] >= 0, means, np.inf)

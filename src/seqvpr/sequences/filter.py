@@ -20,6 +20,10 @@ from seqvpr.sequences.online import best_k
 from seqvpr.sequences.windows import segment_bounds
 
 
+#: the most map frames the filter lets one query frame move (each step is a pass over the belief)
+MAX_STEP = 1000
+
+
 @dataclass(frozen=True)
 class FilterSettings:
     """Steps a query frame may move the state (``min_step``..``max_step`` reference frames, equally likely), the
@@ -35,6 +39,8 @@ class FilterSettings:
     def __post_init__(self) -> None:
         if self.min_step > self.max_step:
             raise SeqvprError(f"filter steps: min_step {self.min_step} is above max_step {self.max_step}")
+        if self.max_step > MAX_STEP:  # each step a frame is a pass over the belief
+            raise SeqvprError(f"filter steps: --max-step {self.max_step} is above {MAX_STEP} map frames per frame")
         if not 0.0 <= self.floor < 1.0:
             raise SeqvprError(f"filter floor must be in [0, 1), got {self.floor}")
         if not self.sharpness > 0 or self.radius < 0:

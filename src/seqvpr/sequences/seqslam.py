@@ -24,7 +24,7 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import WindowScorer, max_span, sequence_rows
-from seqvpr.sequences.windows import SequenceSpec, segment_bounds, velocity_steps, window_starts
+from seqvpr.sequences.windows import MAX_VELOCITIES, SequenceSpec, segment_bounds, velocity_steps, window_starts
 
 CONTRAST_WINDOW = 10  # OpenSeqSLAM2's default r_window
 MIN_STD = 1e-6  # a flat neighbourhood (identical frames) is not divided by zero
@@ -92,6 +92,10 @@ def velocity_grid(spec: SequenceSpec) -> tuple[float, ...]:
     if h == 0:
         return (1.0,)
     low, high = (int(np.floor(h * v + 0.5)) for v in (min(spec.velocities), max(spec.velocities)))
+    if high - max(low, 1) + 1 > MAX_VELOCITIES:
+        raise SeqvprError(f"--velocities {min(spec.velocities):g}:{max(spec.velocities):g} with -L {spec.length}: "
+                          f"{high - max(low, 1) + 1} trajectories, at most {MAX_VELOCITIES} (narrow the range or "
+                          "shorten -L)")
     return tuple(k / h for k in range(max(low, 1), high + 1)) or (1.0,)
 
 

@@ -19,6 +19,11 @@ from seqvpr.errors import SeqvprError
 Align = Literal["centered", "causal"]
 Boundary = Literal["drop", "shift"]
 
+#: the most straight trajectories a search tries per window (each one is a pass over the distance matrix)
+MAX_VELOCITIES = 1000
+#: the fastest slope searched, in reference frames per query frame
+MAX_VELOCITY = 100.0
+
 
 @dataclass(frozen=True)
 class SequenceSpec:
@@ -42,6 +47,7 @@ class SequenceSpec:
             raise SeqvprError(f"boundary must be 'drop' or 'shift', got {self.boundary!r}")
         if not self.velocities or any(not np.isfinite(v) or v <= 0 for v in self.velocities):
             raise SeqvprError(f"velocities must be positive numbers, got {self.velocities}")
+        check_velocities(self.velocities)
 
     @property
     def offset(self) -> int:
@@ -102,17 +108,46 @@ def require_windows(starts: np.ndarray, span: int, what: str, segment_ids: np.nd
     )
 
 
+def check_length(length: int, segment_ids: np.ndarray, what: str) -> None:
+    """Fail before any work when no window of ``length`` frames fits ``what``'s segments (each window lies inside
+    one segment, whatever the boundary policy)."""
+    seg_start, seg_end = segment_bounds(np.asarray(segment_ids))
+    longest = int((seg_end - seg_start).max(initial=0))
+    if length > longest:
+        raise SeqvprError(f"-L {length}: longer than every segment of {what} (longest segment: {longest} frames)")
+
+
 def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]:
-    """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities; ``what`` names the option or key."""
+    """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities; ``what`` names the option or key.
+    A range is counted before it is made: more than ``MAX_VELOCITIES`` is one line, not millions of trajectories."""
     try:
-        if ":" in text:
-            lo, hi, step = (float(x) for x in text.split(":"))
-            if step <= 0 or hi < lo:
-                raise ValueError
-            return tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
-        return tuple(float(x) for x in text.split(","))
+        numbers = tuple(float(x) for x in text.split(":" if ":" in text else ","))
+        if ":" in text and not (len(numbers) == 3 and numbers[2] > 0 and numbers[0] <= numbers[1]):
+            raise ValueError
     except ValueError:
         raise SeqvprError(f"{what} {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
+    if ":" not in text:
+        check_velocities(numbers, what)
+        return numbers
+    lo, hi, step = numbers
+    check_velocities((lo, hi), what)
+    count = int((hi - lo) / step + 0.5) + 1
+    if count > MAX_VELOCITIES:
+        raise SeqvprError(f"{what} {text!r}: {count} velocities, at most {MAX_VELOCITIES} (widen the step)")
+    velocities = tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
+    check_velocities(velocities, what)
+    return velocities
+
+
+def check_velocities(velocities: tuple[float, ...], what: str = "velocities") -> None:
+    """One line unless there are at most ``MAX_VELOCITIES`` velocities, each positive and at most ``MAX_VELOCITY``
+    (a trajectory count or a slope past these costs passes and windows no match needs)."""
+    if len(velocities) > MAX_VELOCITIES:
+        raise SeqvprError(f"{what}: {len(velocities)} velocities, at most {MAX_VELOCITIES} (widen the step)")
+    if any(not (0 < v <= MAX_VELOCITY) for v in velocities):
+        bad = next(v for v in velocities if not 0 < v <= MAX_VELOCITY)
+        raise SeqvprError(f"{what}: velocities must be in (0, {MAX_VELOCITY:g}] reference frames per query frame, "
+                          f"got {bad!r}")
 
 
 def parse_steps(text: str, what: str = "--steps") -> tuple[int, int]:

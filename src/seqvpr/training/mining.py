@@ -55,6 +55,9 @@ def mining_kernel(method: SequenceMethod, spec: SequenceSpec, reference_segments
     raise SeqvprError(f"mining must be 'seqmatch' or 'single', got {method!r}")
 
 
+MAX_NEGATIVES = 1000  # hard negatives mined a query
+
+
 @dataclass(frozen=True)
 class MiningConfig:
     """n hardest negatives from a pool (``pool`` random candidates plus the query's previous negatives; None =
@@ -66,8 +69,8 @@ class MiningConfig:
     only_violating: bool = True
 
     def __post_init__(self) -> None:
-        if self.negatives < 1:
-            raise SeqvprError(f"negatives must be >= 1, got {self.negatives}")
+        if not 1 <= self.negatives <= MAX_NEGATIVES:  # the negative cache holds this many a query
+            raise SeqvprError(f"--negatives must be from 1 to {MAX_NEGATIVES}, got {self.negatives}")
         if self.pool is not None and self.pool < 1:
             raise SeqvprError(f"negative pool must be >= 1 (or all), got {self.pool}")
 

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 from seqvpr.errors import SeqvprError
+from seqvpr.models.configs import check_dim
 from seqvpr.sequences.windows import SequenceSpec
 
 SequenceMethod = Literal["seqmatch", "single"]
@@ -186,6 +187,8 @@ class SeqNetSettings(SettingsRecord):
             raise SeqvprError(f"seqnet: sequence descriptors use velocity 1 only, got {self.sequence.velocities}")
         if self.out_dim is not None and self.out_dim < 1:
             raise SeqvprError(f"seqnet: out_dim must be >= 1, got {self.out_dim}")
+        if self.out_dim is not None:
+            check_dim(self.out_dim, "--out-dim")
 
 
 @dataclass(frozen=True)
