@@ -193,7 +193,7 @@ def test_config_errors_are_one_line(tmp_path):
     raises_one_line("hvpr_shortlist 'netvlad' is not one of seqnet, seqgem", read_config, bad)
     for table, message in [("[match]\nvelocity = '1'", "[match] has unknown keys velocity"),
                            ("[match]\nvelocities = '1:0.5:0.1'", "[match] velocities '1:0.5:0.1': expected"),
-                           ("[match]\nvelocities = '-1'", "[match] velocities must be positive"),
+                           ("[match]\nvelocities = '-1'", "velocities must be in (0, 100]"),
                            ("[match.adaptive]\nsteps = '2:1'", "[match.adaptive] steps '2:1': expected"),
                            ("[match]\ncontrast_window = 1", "contrast_window must be a whole number of at least 2"),
                            ("[match.graph]\nsteps = '0:2'", "[match] has tables for graph, which [benchmark] methods")]:
