@@ -107,28 +107,13 @@ Examples:
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    from seqvpr.sequences.windows import SequenceSpec, parse_steps, parse_velocities
+    from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
-    k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
-    parse_steps(o["steps"])  # a bad --steps fails before any data is read
-    if o["pca_dim"] < 0:
-        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
-    from seqvpr.io import check_replaceable
-
-    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("reference", "query", "map_dir", "gt_file",
-                                                                     "cache_dir")] + list(o["model_dirs"]))
-    if o["seq_len"] is not None:
-        SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)  # bad options fail before any data is read
+    k_values, speeds, budget = _checked_options(o)
     from seqvpr.data.sources import load_pair
     from seqvpr.methods import image_model, run_length, run_method
     from seqvpr.pipeline import MatchSettings, evaluate_match, ground_truth_of_kept, resolve_ground_truth
 
-    if bool(o["map_dir"]) == bool(o["reference"]):
-        raise SeqvprError("give the reference as --reference or as --map (one of them)")
-    if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
-        raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
-    if o["history"] < 0 or (o["history"] and not o["shortlist"]):
-        raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
     models, method = _models_and_method(o)
     sharded = _sharded_reference(o["map_dir"])
     if o["map_dir"]:
@@ -156,6 +141,29 @@ def match(**o: Any) -> None:
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (reference, query))
+
+
+def _checked_options(o: dict[str, Any]):
+    """The options checked before any data is read: the K values, velocities and memory budget parsed, --out
+    replaceable (and holding none of the inputs), the sequence and shortlist options coherent."""
+    from seqvpr.io import check_replaceable
+    from seqvpr.sequences.windows import SequenceSpec, parse_steps, parse_velocities
+
+    k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
+    parse_steps(o["steps"])
+    if o["pca_dim"] < 0:
+        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
+    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("reference", "query", "map_dir", "gt_file",
+                                                                     "cache_dir")] + list(o["model_dirs"]))
+    if o["seq_len"] is not None:
+        SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)
+    if bool(o["map_dir"]) == bool(o["reference"]):
+        raise SeqvprError("give the reference as --reference or as --map (one of them)")
+    if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
+        raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
+    if o["history"] < 0 or (o["history"] and not o["shortlist"]):
+        raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
+    return k_values, speeds, budget
 
 
 def _msls_subtask(query: str, subtask: str, frames: str | None):
