@@ -56,3 +56,15 @@ def spawn_ranks(function, args: tuple, ranks: int = 2, timeout: float = 120.0) -
             for process in context.processes:
                 process.kill()
             raise AssertionError(f"{ranks} ranks of {function.__name__} still running after {timeout:.0f} s")
+
+
+def run_bad_case(monkeypatch, capsys, args, fragment: str, world, out) -> str:
+    """Run one bad-input table case (``{w}``/``{out}`` in ``args`` filled in) and check the promise: exit 2, one
+    ``seqvpr: error`` line containing ``fragment`` and no traceback, nothing under ``out``. The stderr, returned."""
+    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
+    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
+    assert code == 2, f"exit {code}: {err}"
+    assert len(lines) == 1 and "Traceback" not in err, err  # progress lines and warnings may come before it
+    assert fragment in lines[0], lines[0]
+    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    return err

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -75,12 +75,7 @@ CASES = {
 def test_a_size_past_its_bound_is_one_line_exit_2_and_no_partial_output(world, tmp_path, monkeypatch, capsys, case):
     args, fragment = CASES[case]
     out = tmp_path / "out"
-    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
-    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
-    assert code == 2, f"exit {code}: {err}"
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert fragment in lines[0], lines[0]
-    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    run_bad_case(monkeypatch, capsys, args, fragment, world, out)
 
 
 def _predictions(monkeypatch, capsys, out, *args) -> str:

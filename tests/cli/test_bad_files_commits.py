@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -53,12 +53,7 @@ def test_bad_output_is_one_line_exit_2_and_no_partial_output(world, tmp_path, mo
     args, fragment = CASES[case]
     out = tmp_path / "out"
     before = {p: p.read_bytes() for p in world.rglob("*") if p.is_file() and "map" not in p.parts}
-    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
-    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
-    assert code == 2, f"exit {code}: {err}"
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert fragment in lines[0], lines[0]
-    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    run_bad_case(monkeypatch, capsys, args, fragment, world, out)
     after = {p: p.read_bytes() for p in world.rglob("*") if p.is_file() and "map" not in p.parts}
     assert after == before
     assert sorted(p.name for p in (world / "sets").iterdir()) == ["route_query.npy"]

@@ -13,7 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import run_bad_case, run_cli, write_route_files
 from tests.test_arrays import write_function_handle_mat
 
 
@@ -142,12 +142,7 @@ CASES = {
 def test_a_pickle_is_one_line_naming_the_file_and_never_runs(world, tmp_path, monkeypatch, capsys, case):
     args, fragment = CASES[case]
     out = tmp_path / "out"
-    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
-    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
-    assert code == 2, f"exit {code}: {err}"
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert fragment in lines[0], lines[0]
-    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    run_bad_case(monkeypatch, capsys, args, fragment, world, out)
     assert not (world / "PWNED").exists(), "the payload ran"
 
 

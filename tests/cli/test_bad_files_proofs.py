@@ -17,7 +17,7 @@ import pytest
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings
 from seqvpr.maps import load_map
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import run_bad_case, run_cli, write_route_files
 
 TRAIN = ("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames",
          "0:50", "--val-frames", "50:80", "-L", "3", "--epochs", "1", "--negative-pool", "10")
@@ -195,12 +195,7 @@ def test_a_file_that_is_not_what_it_claims_is_one_line_exit_2_and_changes_nothin
     args, fragment = CASES[case]
     out = tmp_path / "out"
     before = snapshot(world)
-    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
-    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
-    assert code == 2, f"exit {code}: {err}"
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert fragment in lines[0], lines[0]
-    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    run_bad_case(monkeypatch, capsys, args, fragment, world, out)
     assert snapshot(world) == before
 
 

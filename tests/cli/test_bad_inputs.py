@@ -12,7 +12,7 @@ from PIL import Image
 
 from seqvpr.data.sources import save_traversal_npz
 from seqvpr.data.traversal import Traversal
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -214,12 +214,7 @@ def test_bad_input_is_one_line_exit_2_and_no_partial_output(world, tmp_path, mon
     args, fragment = CASES[case]
     out = tmp_path / "out"
     before = (world / "afile").read_text()
-    code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
-    lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
-    assert code == 2, f"exit {code}: {err}"
-    assert len(lines) == 1 and "Traceback" not in err, err  # progress lines and warnings may come before it
-    assert fragment in lines[0], lines[0]
-    assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
+    run_bad_case(monkeypatch, capsys, args, fragment, world, out)
     assert (world / "afile").read_text() == before
 
 
