@@ -17,6 +17,13 @@ def raises_one_line(match: str, fn, *args, **kwargs) -> str:
     return message
 
 
+class QuietCapsys:
+    """A stand-in for pytest's capsys where a module-scoped fixture runs the CLI (output left where it went)."""
+
+    def readouterr(self) -> tuple[str, str]:
+        return "", ""
+
+
 def run_cli(monkeypatch, capsys, *args) -> tuple[int, str, str]:
     """Run ``seqvpr ARGS`` in-process as a user would; return (exit status, stdout, stderr)."""
     from seqvpr.cli import main

@@ -14,7 +14,7 @@ import pytest
 
 from seqvpr import distributed
 from seqvpr.errors import SeqvprError
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_cli, write_route_files
 from tests.test_distributed import free_port
 
 
@@ -25,14 +25,10 @@ def sharded(tmp_path_factory):
     monkeypatch = pytest.MonkeyPatch()
     for args in (("map", "build", folder / "ref.npz", "--out", folder / "map"),
                  ("map", "shard", folder / "map", "--shards", "2", "--out", folder / "sharded")):
-        assert run_cli(monkeypatch, _Quiet(), *args)[0] == 0
+        assert run_cli(monkeypatch, QuietCapsys(), *args)[0] == 0
     monkeypatch.undo()
     return folder / "sharded"
 
-
-class _Quiet:
-    def readouterr(self):
-        return "", ""
 
 
 def _lone_rank(sharded, rank: int, timeout: str | None) -> subprocess.Popen:

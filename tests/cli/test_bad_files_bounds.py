@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from tests.helpers import run_bad_case, run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -16,15 +16,11 @@ def world(tmp_path_factory):
     """Traversals of 80 frames and a map of them with an IVF index."""
     w = write_route_files(tmp_path_factory.mktemp("bounds"), 80, 16, 2)
     monkeypatch = pytest.MonkeyPatch()
-    code = run_cli(monkeypatch, _Quiet(), "map", "build", w / "ref.npz", "--index", "ivf:4", "--out", w / "map")[0]
+    code = run_cli(monkeypatch, QuietCapsys(), "map", "build", w / "ref.npz", "--index", "ivf:4", "--out", w / "map")[0]
     monkeypatch.undo()
     assert code == 0
     return w
 
-
-class _Quiet:
-    def readouterr(self):
-        return "", ""
 
 
 M = ("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--out", "{out}")

@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from tests.helpers import run_bad_case, run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -23,13 +23,9 @@ def world(tmp_path_factory):
     (w / "prev" / "run.json").write_text("{}")
     shutil.copy(w / "ref.npz", w / "prev" / "ref.npz")
     (w / "sets" / "route_query.npy").mkdir(parents=True)
-    assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
+    assert run_cli(pytest.MonkeyPatch(), QuietCapsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     return w
 
-
-class _Capsys:
-    def readouterr(self):
-        return "", ""
 
 
 M = ("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m")

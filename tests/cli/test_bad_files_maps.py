@@ -17,7 +17,7 @@ import pytest
 
 from seqvpr.data.sources import save_traversal_npz
 from seqvpr.synthetic.routes import generate_route
-from tests.helpers import raises_one_line, run_cli, write_route_files
+from tests.helpers import QuietCapsys, raises_one_line, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def world(tmp_path_factory):
     write_route_files(w, 300, 16, 2)
     other, _ = generate_route(n_frames=300, dim=16, seed=9)
     save_traversal_npz(w / "other.npz", other)
-    mp, cp = pytest.MonkeyPatch(), _Quiet()
+    mp, cp = pytest.MonkeyPatch(), QuietCapsys()
     for name, source in (("good", "ref.npz"), ("other", "other.npz")):
         for suffix, extra in (("", ()), ("_sq8", ("--dtype", "sq8")), ("_pq", ("--dtype", "pq:4")),
                               ("_idx", ("--index", "flat")), ("_sh", ("--shards", "2", "--overlap", "4"))):
@@ -35,10 +35,6 @@ def world(tmp_path_factory):
             assert run_cli(mp, cp, *args)[0] == 0
     return w
 
-
-class _Quiet:
-    def readouterr(self):
-        return "", ""
 
 
 def _resave(path, change) -> None:

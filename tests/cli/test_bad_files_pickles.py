@@ -13,7 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.helpers import run_bad_case, run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 from tests.test_arrays import write_function_handle_mat
 
 
@@ -26,10 +26,6 @@ class Payload:
     def __reduce__(self):
         return (open, (self.path, "w"))
 
-
-class _Capsys:
-    def readouterr(self):
-        return "", ""
 
 
 def objects(marker, shape) -> np.ndarray:
@@ -91,7 +87,7 @@ def world(tmp_path_factory):
         Image.fromarray(np.zeros((24, 32, 3), np.uint8)).save(w / "imgs" / f"{i}.png")
     exported_with_payload(w / "evil.pt2", marker)
     np.savez(w / "evil_state.npz", header=np.array("{}"), matcher_x=objects(marker, (3,)))
-    assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
+    assert run_cli(pytest.MonkeyPatch(), QuietCapsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     evil_map(w, "map_desc", "descriptors.npy")
     evil_map(w, "map_seg", "segments.npy")
     describe(w, "desc.toml", "evil.npy")

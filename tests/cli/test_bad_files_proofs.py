@@ -17,7 +17,7 @@ import pytest
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings
 from seqvpr.maps import load_map
-from tests.helpers import run_bad_case, run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 
 TRAIN = ("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames",
          "0:50", "--val-frames", "50:80", "-L", "3", "--epochs", "1", "--negative-pool", "10")
@@ -25,13 +25,9 @@ MATCH = ("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "
 LOCALIZE = ("localize", "-q", "{w}/qry.npz", "--out", "{out}")
 
 
-class _Capsys:
-    def readouterr(self):
-        return "", ""
-
 
 def cli(*args) -> None:
-    code = run_cli(pytest.MonkeyPatch(), _Capsys(), *map(str, args))[0]
+    code = run_cli(pytest.MonkeyPatch(), QuietCapsys(), *map(str, args))[0]
     assert code == 0, args
 
 

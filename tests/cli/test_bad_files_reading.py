@@ -12,12 +12,8 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.helpers import run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_cli, write_route_files
 
-
-class _Capsys:
-    def readouterr(self):
-        return "", ""
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +40,7 @@ def world(tmp_path_factory):
         with archive.open(info, "w", force_zip64=True) as member:
             member.write(b"\0" * (1 << 16))
         archive.filelist[0].file_size = 1 << 40  # claims a TiB
-    assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
+    assert run_cli(pytest.MonkeyPatch(), QuietCapsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     return w
 
 

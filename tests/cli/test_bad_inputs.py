@@ -12,7 +12,7 @@ from PIL import Image
 
 from seqvpr.data.sources import save_traversal_npz
 from seqvpr.data.traversal import Traversal
-from tests.helpers import run_bad_case, run_cli, write_route_files
+from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -79,13 +79,9 @@ def world(tmp_path_factory):
     (w / "bench_typo.toml").write_text((w / "bench.toml").read_text().replace('ks = ["one"]', "kz = [1]"))
     (w / "escape.toml").write_text((w / "bench.toml").read_text().replace('name = "a"', 'name = "../../escape"')
                                    .replace('ks = ["one"]', "ks = [1]"))
-    assert run_cli(pytest.MonkeyPatch(), _Capsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
+    assert run_cli(pytest.MonkeyPatch(), QuietCapsys(), "map", "build", w / "ref.npz", "--out", w / "map")[0] == 0
     return w
 
-
-class _Capsys:
-    def readouterr(self):
-        return "", ""
 
 
 M = ("match", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m")
