@@ -372,7 +372,6 @@ def _lock_holder(lock: Path) -> int | None:
     """The live process holding a lock file, or None when it is gone (or the file is unreadable)."""
     try:
         pid = int(lock.read_text().strip() or "0")
-        os.kill(pid, 0)
     except (ValueError, OSError):
         return None
-    return pid if pid != os.getpid() else None
+    return pid if pid > 0 and pid != os.getpid() and _alive(pid) else None  # another user's live process counts
