@@ -58,11 +58,36 @@ def spawn_ranks(function, args: tuple, ranks: int = 2, timeout: float = 120.0) -
 
     context = mp.spawn(function, args=args, nprocs=ranks, join=False)
     deadline = time.monotonic() + timeout
-    while not context.join(timeout=1.0):
-        if time.monotonic() > deadline:
-            for process in context.processes:
-                process.kill()
-            raise AssertionError(f"{ranks} ranks of {function.__name__} still running after {timeout:.0f} s")
+    try:
+        while not context.join(timeout=1.0):
+            if time.monotonic() > deadline:
+                for process in context.processes:
+                    process.kill()
+                raise AssertionError(f"{ranks} ranks of {function.__name__} still running after {timeout:.0f} s")
+    except mp.ProcessRaisedException as first:
+        raise _own_failure(context, first) from None
+
+
+#: what a rank raises when a peer's process ended under it (the peer's own error is the one that matters)
+PEER_GONE = ("Connection closed by peer", "Connection reset by peer")
+
+
+def _own_failure(context, first):
+    """The error of the rank that failed by itself, not of a rank that lost its connection to it: which of the two
+    ``join`` reports first depends on which process the OS ends first (every rank has ended when it raises)."""
+    import os
+    import pickle
+
+    import torch.multiprocessing as mp
+
+    for index, path in enumerate(context.error_files):
+        if os.access(path, os.R_OK) and os.path.getsize(path):
+            with open(path, "rb") as handle:
+                text = pickle.load(handle)  # torch's own traceback file from a rank this test spawned
+            if not any(mark in text for mark in PEER_GONE):
+                return mp.ProcessRaisedException(f"\n\n-- Process {index} terminated with the following error:\n{text}",
+                                                 index, context.processes[index].pid)
+    return first
 
 
 def run_bad_case(monkeypatch, capsys, args, fragment: str, world, out) -> str:
