@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import BLOCK_BYTES, block_shape, merge_topk, frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.matching import BLOCK_BYTES, block_shape, frame_distances, sequence_distance_matrix, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
 
@@ -115,25 +115,6 @@ def test_block_shape_keeps_blocks_efficient_and_within_the_budget():
     assert 2 * 4 * (rows + 8) * (columns + 10) <= 100_000
     with pytest.raises(SeqvprError, match="too small"):
         block_shape(10, 10, spec, 4, 100)
-
-
-@settings(max_examples=60, deadline=None)
-@given(st.integers(1, 8), st.integers(1, 12), st.integers(0, 2**32 - 1))
-def test_the_scan_and_the_stable_merge_keep_the_same_topk_with_ties(k, width, seed):
-    rng = np.random.default_rng(seed)
-    rows = torch.tensor(rng.integers(0, 4, size=(5, 30)).astype(np.float32))  # many ties
-    rows[rng.random(rows.shape) < 0.2] = float("inf")
-    results = []
-    for scan in (True, False):
-        values, picked = np.full((5, k), np.inf), np.full((5, k), -1, dtype=np.int64)
-        for first in range(0, 30, width):
-            merge_topk(rows[:, first : first + width].contiguous(), first, values, picked, scan=scan)
-        results.append((values, picked))
-    np.testing.assert_array_equal(results[0][0], results[1][0])
-    np.testing.assert_array_equal(results[0][1], results[1][1])
-    for i in range(5):  # sorted by (value, row): the plain-loop definition
-        order = sorted((float(v), j) for j, v in enumerate(rows[i].tolist()) if np.isfinite(v))[:k]
-        assert [j for _, j in order] == [j for j in results[0][1][i].tolist() if j >= 0]
 
 
 def test_fused_and_strided_agree_on_a_large_matrix():

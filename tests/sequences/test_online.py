@@ -1,12 +1,12 @@
 """Incremental causal sequence matching against the plain-loop oracle, frame by frame, over random shapes,
-segments and restarts; the top-K and score helpers against sorting and loops."""
+segments and restarts."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.online import DiagonalSums, best_k, uniqueness
+from seqvpr.sequences.online import DiagonalSums
 from tests import oracles
 from tests.helpers import raises_one_line
 
@@ -50,27 +50,6 @@ def test_saved_sums_go_on_where_they_stopped():
         np.testing.assert_array_equal(whole.push(row), resumed.push(row))
     raises_one_line("this map and L need", DiagonalSums(np.zeros(30), 3).load_state, half.state())
     raises_one_line("expected distances to the 30", whole.push, np.zeros(29))
-
-
-@settings(max_examples=100, deadline=None)
-@given(st.lists(st.sampled_from([0.5, 1.0, 2.0, np.inf]), min_size=1, max_size=30), st.integers(1, 8))
-def test_best_k_is_a_stable_sort(values, k):
-    values = np.array(values)
-    rows, best = best_k(values, k)
-    order = np.argsort(values, kind="stable")[: min(k, len(values))]
-    expected_rows = np.where(np.isfinite(values[order]), order, -1)
-    np.testing.assert_array_equal(rows, expected_rows)
-    np.testing.assert_array_equal(best, values[order])
-
-
-@settings(max_examples=100, deadline=None)
-@given(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=25), st.integers(0, 6))
-def test_uniqueness_is_one_minus_best_over_the_best_elsewhere(values, exclusion):
-    values = np.array(values)
-    best = int(np.argmin(values))
-    elsewhere = [v for j, v in enumerate(values) if abs(j - best) > exclusion]
-    expected = 1.0 if not elsewhere else max(0.0, 1.0 - values[best] / min(elsewhere))
-    assert abs(uniqueness(values, best, exclusion) - expected) < 1e-12
 
 
 def test_a_window_longer_than_any_reference_segment_never_matches():

@@ -131,10 +131,10 @@ def uniqueness_margins(indices: np.ndarray, distances: np.ndarray, exclusion: in
     ``exclusion`` frames of it (the K-th when none in the list is outside: a bound), so lower is more unique and it
     ranks like a distance for PR curves. A margin, not OpenSeqSLAM2's ratio min1/min2: contrast-enhanced distances
     can be negative, where the ratio means nothing. +inf where a query has no match."""
-    best = indices[:, :1]
-    outside = (np.abs(indices - best) > exclusion) & (indices >= 0) & np.isfinite(distances)
-    outside[:, 0] = False
-    first = np.where(outside.any(1), outside.argmax(1), distances.shape[1] - 1)
+    from seqvpr.sequences.topk import other_place
+
+    column = other_place(indices, distances, exclusion)
+    first = np.where(column >= 0, column, distances.shape[1] - 1)
     second = distances[np.arange(len(distances)), first]
     matched = (indices[:, 0] >= 0) & np.isfinite(distances[:, 0])
     margin = np.full(len(distances), np.inf)

@@ -20,7 +20,8 @@ from seqvpr.errors import SeqvprError
 from seqvpr.maps.files import SavedMap
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, map_distance_scale
 from seqvpr.sequences.matching import distances_to_reference, reference_squared_norms
-from seqvpr.sequences.online import DiagonalSums, best_k, uniqueness
+from seqvpr.sequences.online import DiagonalSums
+from seqvpr.sequences.topk import best_k, best_of, uniqueness
 from seqvpr.sequences.windows import window_starts
 
 
@@ -69,9 +70,9 @@ class ExactMatcher(FullMapPass):
         means = self.sums.push(distances)
         if means is None:
             return None
-        indices, values = best_k(means, self.k)
-        score = uniqueness(means, int(indices[0]), self.exclusion)
-        return Scored(indices, values, score, distance_ms, elapsed_ms(measured))
+        indices, values = best_k(means, max(self.k, 2 * self.exclusion + 2))  # holds the best other place
+        score = uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, distance_ms, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.sums.state()
@@ -108,7 +109,7 @@ class ShortlistMatcher:
         indices, values = self._rerank(self._candidates())
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
-        score = candidate_uniqueness(indices, values, self.exclusion)
+        score = uniqueness(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def _candidates(self) -> np.ndarray:
@@ -118,8 +119,7 @@ class ShortlistMatcher:
         """Candidates with a window, ascending by exact causal sequence distance (ties: lower row)."""
         candidates = candidates[self.window_exists[candidates]]
         values = window_distances(self.saved.descriptors, self.frames, candidates - (self.length - 1))
-        order = np.lexsort((candidates, values))
-        return candidates[order], values[order]
+        return best_of(candidates, values)
 
     def state(self) -> dict[str, np.ndarray]:
         width = self.shortlist
@@ -154,17 +154,6 @@ def window_distances(descriptors, frames, starts: np.ndarray) -> np.ndarray:
     rows = starts[:, None] + np.arange(length)[None, :]
     gathered = np.asarray(descriptors[rows.ravel()], np.float32).reshape(len(starts), length, -1)
     return np.linalg.norm(gathered - window[None], axis=2).mean(axis=1).astype(np.float64)
-
-
-def candidate_uniqueness(indices: np.ndarray, values: np.ndarray, exclusion: int) -> float:
-    """``uniqueness`` over re-ranked candidates (ascending): the best against the first candidate outside its
-    neighbourhood (1 when no other place was shortlisted)."""
-    if not len(indices) or indices[0] < 0:
-        return 0.0
-    others = values[(np.abs(indices - indices[0]) > exclusion) & (indices >= 0)]
-    if not len(others) or not np.isfinite(others[0]):
-        return 1.0
-    return float(np.clip(1.0 - values[0] / others[0], 0.0, 1.0)) if others[0] > 0 else 0.0
 
 
 class FilterMatcher(FullMapPass):

@@ -16,9 +16,10 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.localization.matchers import (
-    FullMapPass, Scored, candidate_uniqueness, elapsed_ms, found_candidates, window_distances,
+    FullMapPass, Scored, elapsed_ms, found_candidates, window_distances,
 )
-from seqvpr.sequences.online import DiagonalSums, best_k
+from seqvpr.sequences.online import DiagonalSums
+from seqvpr.sequences.topk import TopK, best_k, best_of, merge_topks, uniqueness
 from seqvpr.sequences.windows import window_starts
 
 
@@ -57,8 +58,6 @@ class ShardedExactMatcher(_Stateless):
 
     def push(self, query: torch.Tensor) -> Scored | None:
         from seqvpr import distributed
-        from seqvpr.maps.shards import merge_topks
-        from seqvpr.sequences.matching import TopK
 
         found, warming, distance_ms = [], False, 0.0
         for full, sums, owned, first in self.parts:
@@ -79,7 +78,7 @@ class ShardedExactMatcher(_Stateless):
         found = [part for rank_parts in gathered for part in rank_parts]
         merged = merge_topks([TopK(r[None], v[None], np.ones(1, bool)) for r, v in found], len(found) * self.keep)
         rows, values = merged.indices[0], merged.distances[0]
-        score = candidate_uniqueness(rows, values, self.exclusion) if rows[0] >= 0 else 0.0
+        score = uniqueness(rows, values, self.exclusion)
         return Scored(rows[: self.k], values[: self.k], score, distance_ms, elapsed_ms(started))  # sequence: sums, gather and merge
 
 
@@ -113,8 +112,6 @@ class ShardedShortlistMatcher(_Stateless):
 
     def push(self, query: torch.Tensor) -> Scored | None:
         from seqvpr import distributed
-        from seqvpr.maps.shards import merge_topks
-        from seqvpr.sequences.matching import TopK
 
         started = time.perf_counter()
         nearest = distributed.gather_everywhere(lambda: self._nearest(query.numpy()[None]), self.world)
@@ -130,11 +127,10 @@ class ShardedShortlistMatcher(_Stateless):
             return None
         rows = np.concatenate([r for r, _ in gathered])
         values = np.concatenate([v for _, v in gathered])
-        order = np.lexsort((rows, values))
-        indices, values = rows[order], values[order]
+        indices, values = best_of(rows, values)
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
-        score = candidate_uniqueness(indices, values, self.exclusion)
+        score = uniqueness(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def _nearest(self, vector: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

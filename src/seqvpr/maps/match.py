@@ -20,7 +20,7 @@ from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
-    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.topk import TopK
 
 
 def check_map_models(info: MapInfo, folder: str, method: str, models: Mapping[str, TrainedModel]) -> None:
@@ -155,7 +155,8 @@ def indexed_retrieval(saved: SavedMap, frames: Traversal, settings: MatchSetting
     import torch
 
     from seqvpr.maps.index import open_frame_index, window_search
-    from seqvpr.sequences.matching import TopK, unit_rows
+    from seqvpr.sequences.matching import unit_rows
+    from seqvpr.sequences.topk import TopK
 
     query = unit_rows(torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32)))
     index = open_frame_index(saved, nprobe)
@@ -232,7 +233,7 @@ def index_neighbours(saved: SavedMap, query, segments, width: int, nprobe: int) 
     """The ``width`` nearest map rows of each query frame (an index over frames) or window (over windows), by the
     map's index: rows and Euclidean distances, -1 / +inf where none."""
     from seqvpr.maps.index import open_frame_index, search_frames, window_search
-    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.topk import TopK
 
     index = open_frame_index(saved, nprobe)
     if saved.info.index["over"] == "frames":
@@ -246,7 +247,7 @@ def shortlist_candidates(found: TopK, over: str, segments, spec, count: int, his
     """The candidate windows of each query: from its frames' neighbours (``frame_shortlist``, an index over frames)
     or its window's own (over windows)."""
     from seqvpr.sequences.hierarchical import frame_shortlist
-    from seqvpr.sequences.matching import TopK
+    from seqvpr.sequences.topk import TopK
     from seqvpr.sequences.windows import window_starts
 
     starts = window_starts(segments, spec.length, spec.offset, spec.boundary)

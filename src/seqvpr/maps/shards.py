@@ -31,7 +31,7 @@ from seqvpr.maps.files import (
     SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, ShardedMap, ShardRecord, map_table, open_map, open_sharded_map,
     write_map_rows,
 )
-from seqvpr.sequences.matching import TopK
+from seqvpr.sequences.topk import TopK, merge_topks
 
 if TYPE_CHECKING:
     from seqvpr.maps.files import SavedMap
@@ -165,17 +165,6 @@ def _pad(values: np.ndarray, k: int, fill) -> np.ndarray:
     if values.shape[1] >= k:
         return values
     return np.concatenate([values, np.full((len(values), k - values.shape[1]), fill, dtype=values.dtype)], 1)
-
-
-def merge_topks(parts: Sequence[TopK], k: int) -> TopK:
-    """The best ``k`` of several top-K lists over disjoint rows: by distance, ties to the lower row (the kernel's
-    order), so the merge of a sharded match is the unsharded one."""
-    rows = np.concatenate([p.indices for p in parts], 1)
-    distances = np.concatenate([p.distances for p in parts], 1)
-    order = np.lexsort((np.where(rows >= 0, rows, np.iinfo(np.int64).max), distances), axis=1)[:, :k]
-    picked, values = np.take_along_axis(rows, order, 1), np.take_along_axis(distances, order, 1)
-    picked[~np.isfinite(values)] = -1
-    return TopK(picked, values, parts[0].has_window)
 
 
 def shard_numbers(shards: int, rank: int, world: int) -> list[int]:

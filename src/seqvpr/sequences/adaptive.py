@@ -140,7 +140,8 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
     """A shortlist's candidates re-ordered by adaptive distance (CaseVPR's hierarchy: sequence-descriptor start
     points, then adaptive frame matching inside each candidate stretch). Each candidate's reachable stretch is cut
     from the reference and the stretches are scored together as separate segments, so no path crosses two."""
-    from seqvpr.sequences.matching import TopK, frame_distances
+    from seqvpr.sequences.matching import frame_distances
+    from seqvpr.sequences.topk import TopK, best_of
     from seqvpr.sequences.windows import window_frames, window_starts
 
     q_starts = window_starts(np.asarray(query_segments), spec.length, spec.offset, "drop")
@@ -162,8 +163,7 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
                         labels, spec)[0].double().numpy()
         anchors = np.cumsum([0] + [hi - lo for lo, hi in spans[:-1]]) + (candidates - [lo for lo, _ in spans])
         values = scored[anchors]
-        order = np.lexsort((candidates, values))[:keep]
-        order = order[np.isfinite(values[order])]
-        indices[i, : len(order)], distances[i, : len(order)] = candidates[order], values[order]
+        rows, best = best_of(candidates, values, keep)
+        indices[i, : len(rows)], distances[i, : len(rows)] = rows, best
     return TopK(indices, distances, (q_starts >= 0) & shortlist.has_window)
 

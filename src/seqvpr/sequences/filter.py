@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import ReferenceRows, TopK, distances_to_reference
-from seqvpr.sequences.online import best_k
+from seqvpr.sequences.matching import ReferenceRows, distances_to_reference
+from seqvpr.sequences.topk import TopK, best_k
 from seqvpr.sequences.windows import segment_bounds
 
 

@@ -20,7 +20,8 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.adaptive import same_segment_masks, steps_min
-from seqvpr.sequences.matching import TopK, frame_distances
+from seqvpr.sequences.topk import TopK
+from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import segment_bounds
 
 HIDDEN_QUANTILE = 0.8  # the hidden node costs this quantile of the frame distances (measured: 0.8 on Nordland and GP)

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import TopK, aligned_sequence_distances
+from seqvpr.sequences.topk import TopK, best_of
+from seqvpr.sequences.matching import aligned_sequence_distances
 from seqvpr.sequences.windows import SequenceSpec, window_frames, window_starts
 
 
@@ -56,11 +57,7 @@ def rerank(
         valid = starts >= 0
         d = _candidate_distances(query, reference, q_starts[batch], starts, spec.length)
         d[~valid] = np.inf
-        lower_first = np.where(picked >= 0, picked, np.iinfo(np.int64).max)
-        order = np.lexsort((lower_first, d), axis=1)[:, :keep]  # ties to the lower row, as the kernel (and shards) break them
-        best = np.take_along_axis(d, order, axis=1)
-        indices[batch] = np.where(np.isfinite(best), np.take_along_axis(picked, order, axis=1), -1)
-        distances[batch] = best
+        indices[batch], distances[batch] = best_of(picked, d, keep)
     return TopK(indices, distances, has_window)
 
 

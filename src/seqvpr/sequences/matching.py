@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from typing import Any, Protocol
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
+from seqvpr.sequences.topk import TopK, TopKMerge
 from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_steps, window_frames, window_starts
 
 ProgressFn = Callable[[int], None]
@@ -241,15 +241,6 @@ def max_span(spec: SequenceSpec) -> int:
     return max(int(velocity_steps(spec.length, v)[-1]) + 1 for v in spec.velocities)
 
 
-@dataclass(frozen=True)
-class TopK:
-    """The K best references per query: indices (-1 where fewer exist) and sequence distances (+inf there)."""
-
-    indices: np.ndarray
-    distances: np.ndarray
-    has_window: np.ndarray
-
-
 def sequence_topk(
     query: torch.Tensor,
     reference: ReferenceRows,
@@ -347,40 +338,19 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None
     its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference."""
     n_r, halo = len(reference), (scorer.span(spec) if scorer is not None else max_span(spec))
     valid = np.flatnonzero(starts >= 0)
-    values = np.full((len(valid), k), np.inf, dtype=np.float64)
-    picked = np.full((len(valid), k), -1, dtype=np.int64)
+    merged = TopKMerge(len(valid), k)
     workspace = Workspace()
     for first in range(0, n_r, columns):
         last = min(first + columns, n_r)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
         block = _reference_block(reference, lo, hi, query)
         rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer, lo)
-        rows = rows[:, first - lo : last - lo]
-        merge_topk(rows, first, values, picked)
+        merged.push_columns(rows[:, first - lo : last - lo], first)
+    values, picked = merged.values, merged.rows
     all_values = np.full((len(starts), k), np.inf)
     all_picked = np.full((len(starts), k), -1, dtype=np.int64)
     all_values[valid], all_picked[valid] = values, picked
     return all_values, all_picked
-
-
-def merge_topk(rows: torch.Tensor, first: int, values: np.ndarray, picked: np.ndarray, scan: bool | None = None) -> None:
-    """Merge a chunk's sequence distances into the running top-K (in place): one numba scan (``scan``, the default
-    on CPU); else the chunk's own top-K, then a stable merge that keeps the lower row on ties (same result)."""
-    if scan if scan is not None else rows.device.type == "cpu":
-        from seqvpr.sequences._fused import topk_update_
-
-        topk_update_(rows.numpy(), first, values, picked)
-        return
-    k = min(values.shape[1], rows.shape[1])
-    chunk_values, chunk_rows = torch.sort(rows, dim=1, stable=True)  # ties in row order, as the scan keeps them
-    chunk_values, chunk_rows = chunk_values[:, :k], chunk_rows[:, :k]
-    both_values = np.concatenate([values, chunk_values.double().cpu().numpy()], 1)
-    both_rows = np.concatenate([picked, chunk_rows.cpu().numpy() + first], 1)
-    both_rows[~np.isfinite(both_values)] = np.iinfo(np.int64).max
-    order = np.lexsort((both_rows, both_values), axis=1)[:, : values.shape[1]]
-    values[:] = np.take_along_axis(both_values, order, 1)
-    picked[:] = np.take_along_axis(both_rows, order, 1)
-    picked[~np.isfinite(values)] = -1
 
 
 def _reference_block(reference: ReferenceRows, lo: int, hi: int, like: torch.Tensor) -> torch.Tensor:

@@ -57,31 +57,3 @@ class DiagonalSums:
             raise SeqvprError(f"saved sums have shape {state['partial'].shape}, this map and L need {self.partial.shape}")
         self.partial[:] = state["partial"]
         self.count = int(state["count"])
-
-
-def best_k(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` smallest finite values and their rows, ascending (ties: the lower row first); -1/+inf pad."""
-    k = min(k, len(values))
-    if k < len(values):  # every row below the k-th value, then the lowest rows equal to it (a stable cut)
-        kth = np.partition(values, k - 1)[k - 1]
-        below = np.flatnonzero(values < kth)
-        picked = np.concatenate([below, np.flatnonzero(values == kth)[: k - len(below)]])
-    else:
-        picked = np.arange(len(values))
-    order = np.lexsort((picked, values[picked]))
-    rows, best = picked[order], values[picked[order]]
-    finite = np.isfinite(best)
-    return np.where(finite, rows, -1), np.where(finite, best, np.inf)
-
-
-def uniqueness(values: np.ndarray, best: int, exclusion: int) -> float:
-    """How much the best value stands out: 1 - best / (the best outside ``exclusion`` rows of it), in [0, 1]
-    (SeqSLAM's ratio test as a score: 0 when another place is as good, near 1 when none comes close)."""
-    if best < 0 or not np.isfinite(values[best]):
-        return 0.0
-    lo, hi = max(best - exclusion, 0), best + exclusion + 1
-    others = [part.min() for part in (values[:lo], values[hi:]) if len(part)]
-    second = min(others) if others else np.inf
-    if not np.isfinite(second) or second <= 0:
-        return 1.0 if not np.isfinite(second) else 0.0
-    return float(np.clip(1.0 - values[best] / second, 0.0, 1.0))

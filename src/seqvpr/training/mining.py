@@ -17,6 +17,7 @@ import torch
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import sequence_distance_rows
+from seqvpr.sequences.topk import rank_order
 from seqvpr.sequences.windows import SequenceSpec, window_starts
 from seqvpr.training.losses import DEFAULT_MARGIN, SequenceMethod
 
@@ -134,7 +135,7 @@ class SequenceMiner:
         if len(negatives) == 0:
             return None
         pool = self._pool(query, negatives, rng)
-        order = np.lexsort((pool, distances[pool]))[: self.config.negatives]
+        order = rank_order(pool, distances[pool], self.config.negatives)
         chosen = pool[order]
         self.cache[query] = chosen
         d_p = float(distances[best])

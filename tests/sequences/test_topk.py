@@ -1,0 +1,92 @@
+"""The one top-K rule (by distance, ties to the lower row, empty entries last) against a plain sort: the dense scan,
+the candidate merge, any chunking and any sharding give the same list; uniqueness against a loop."""
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from seqvpr.sequences.topk import TopK, TopKMerge, best_k, merge_topks, other_place, uniqueness
+
+
+def sorted_oracle(values: np.ndarray, k: int) -> list[int]:
+    """The plain-loop definition: finite entries sorted by (value, row), the first k rows."""
+    return [j for _, j in sorted((float(v), j) for j, v in enumerate(values) if np.isfinite(v))[:k]]
+
+
+def rows_of(picked: np.ndarray) -> list[int]:
+    return [int(j) for j in picked if j >= 0]
+
+
+tied_matrices = st.tuples(st.integers(1, 8), st.integers(1, 40), st.integers(0, 2**32 - 1)).map(
+    lambda a: (a[0], _tied(a[1], a[2])))
+
+
+def _tied(width: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, 4, size=(5, width)).astype(np.float64)  # many ties
+    values[rng.random(values.shape) < 0.2] = np.inf
+    return values
+
+
+@settings(max_examples=60, deadline=None)
+@given(tied_matrices, st.data())
+def test_scan_and_merge_keep_the_sorted_topk_under_any_chunking(case, data):
+    k, values = case
+    cuts = sorted(set(data.draw(st.lists(st.integers(1, values.shape[1] - 1), max_size=6)))) if values.shape[1] > 1 else []
+    bounds = [0, *cuts, values.shape[1]]
+    for scan in (True, False):
+        merged = TopKMerge(len(values), k)
+        for lo, hi in zip(bounds, bounds[1:]):
+            merged.push_columns(torch.tensor(values[:, lo:hi]).contiguous(), lo, scan=scan)
+        top = merged.result(np.ones(len(values), bool))
+        for i in range(len(values)):
+            assert rows_of(top.indices[i]) == sorted_oracle(values[i], k)
+
+
+@settings(max_examples=60, deadline=None)
+@given(tied_matrices, st.integers(1, 5), st.integers(0, 2**32 - 1))
+def test_merging_shards_in_any_order_is_the_whole_topk(case, shards, seed):
+    k, values = case
+    rng = np.random.default_rng(seed)
+    owner = rng.integers(0, shards, values.shape[1])  # any split of the rows, not only runs
+    parts = []
+    for shard in rng.permutation(shards):
+        columns = np.flatnonzero(owner == shard)
+        rows = np.broadcast_to(columns, (len(values), len(columns)))
+        parts.append(TopK(np.array(rows), values[:, columns], np.ones(len(values), bool)))
+    top = merge_topks(parts, k)
+    assert top.indices.shape == (len(values), k)
+    for i in range(len(values)):
+        assert rows_of(top.indices[i]) == sorted_oracle(values[i], k)
+        assert np.isinf(top.distances[i][top.indices[i] < 0]).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from([0.5, 1.0, 2.0, np.inf]), min_size=1, max_size=30), st.integers(1, 8))
+def test_best_k_of_a_dense_vector_is_the_sorted_list(values, k):
+    values = np.array(values)
+    rows, best = best_k(values, k)
+    assert rows_of(rows) == sorted_oracle(values, k)
+    assert len(rows) == min(k, len(values))
+    np.testing.assert_array_equal(best, np.sort(values)[: min(k, len(values))])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=25), st.integers(0, 6))
+def test_uniqueness_is_one_minus_best_over_the_best_elsewhere(values, exclusion):
+    values = np.array(values)
+    best = int(np.argmin(values))
+    elsewhere = [v for j, v in enumerate(values) if abs(j - best) > exclusion]
+    expected = 1.0 if not elsewhere else max(0.0, 1.0 - values[best] / min(elsewhere))
+    rows, ranked = best_k(values, 2 * exclusion + 2)  # enough to hold the best other place
+    assert abs(uniqueness(rows, ranked, exclusion) - expected) < 1e-12
+
+
+def test_other_place_skips_the_best_ones_neighbours_and_empty_entries():
+    indices = np.array([[10, 11, 9, 30], [5, -1, 6, 7], [3, 4, 2, 1]])
+    distances = np.array([[0.1, 0.2, 0.3, 0.4], [0.1, np.inf, 0.2, 0.3], [0.1, 0.2, 0.3, 0.4]])
+    np.testing.assert_array_equal(other_place(indices, distances, 2), [3, -1, -1])
+    np.testing.assert_array_equal(other_place(indices, distances, 1), [3, 3, 3])
+    assert uniqueness(np.array([-1]), np.array([np.inf]), 1) == 0.0
+    assert uniqueness(indices[2], distances[2], 5) == 1.0
