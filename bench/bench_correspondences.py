@@ -31,8 +31,10 @@ def main() -> None:
     parser.add_argument("--seq-len", type=int, default=5)
     args = parser.parse_args()
     from seqvpr.evaluation.predictions import save_correspondences
-    from seqvpr.pipeline import MatchSettings, _as_tensor, match_correspondences, resolve_ground_truth, top1_pairs
-    from seqvpr.pipeline import MatchResult
+    from seqvpr.matchers.base import MatchResult, MatchSettings
+    from seqvpr.matchers.frames import query_rows
+    from seqvpr.matchers.sequence import top1_pairs
+    from seqvpr.pipeline import match_correspondences, resolve_ground_truth
     from seqvpr.sequences.matching import sequence_topk
     from seqvpr.sequences.windows import SequenceSpec, parse_velocities
     from seqvpr.synthetic.routes import generate_route
@@ -40,7 +42,7 @@ def main() -> None:
     reference, query = generate_route(args.queries, 64, 0)
     gt = resolve_ground_truth(reference, query, "25m", None)
     settings = MatchSettings(SequenceSpec(args.seq_len, velocities=parse_velocities(args.velocities)), 20)
-    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    ref, qry = query_rows(reference, settings), query_rows(query, settings)
     started = time.perf_counter()
     topk = sequence_topk(qry, ref, settings.sequence, settings.k, query.segment_ids, reference.segment_ids)
     matched = time.perf_counter()

@@ -34,12 +34,12 @@ from seqvpr.data.groundtruth import parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
+from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.pipeline import (
     MatchSettings,
     describe,
     evaluate_match,
     ground_truth,
-    match_traversals,
     netvlad_extractor,
     whiten_pair,
 )
@@ -131,7 +131,7 @@ def main() -> None:
             ref, qry, gt = described_pair(data, descriptor, args.cache_dir)
             cells = []
             for length in (1, 5):
-                result = match_traversals(ref, qry, replace(MatchSettings(), sequence=SequenceSpec(length)))
+                result = SequenceMatcher(replace(MatchSettings(), sequence=SequenceSpec(length))).topk(ref, qry)
                 recall = evaluate_match(result, gt, (1, 5, 20)).recall
                 cells += [f"{recall[k]:.3f}" for k in (1, 5, 20)]
             print(f"| {descriptor.name} | {ref.descriptors.shape[1]} | " + " | ".join(cells) + " |", flush=True)

@@ -8,7 +8,7 @@ Run from the repository root (CPU; about 10 minutes on 2 cores):
 Each measurement is a fresh process (so the policy is chosen at its start, as a command's is) that runs one
 workload through the public Python entry points and times the work alone (not the imports):
 * describe: 24 images of 320x240 through EfficientNet-Lite0 (``pipeline.describe``, the map builder's path).
-* match: sequence matching (``match_traversals``, L = 5, top-20) of 1,000 query frames against 4,000 map
+* match: sequence matching (``SequenceMatcher``, L = 5, top-20) of 1,000 query frames against 4,000 map
   frames, 512-D.
 * localise: ``Localizer.update`` of 200 frames, one at a time, over a 20,000-frame 512-D map (exact causal
   matching, L = 5), and of 16 camera images one at a time through the map's EfficientNet-Lite0 (a robot's frames).
@@ -59,12 +59,14 @@ def _describe(work: Path) -> None:
 
 def _match(work: Path) -> None:
     from seqvpr.data.traversal import Traversal
-    from seqvpr.pipeline import MatchSettings, SequenceSpec, match_traversals
+    from seqvpr.matchers.sequence import SequenceMatcher
+    from seqvpr.pipeline import MatchSettings
+    from seqvpr.sequences.windows import SequenceSpec
 
     rng = np.random.default_rng(1)
     reference = Traversal.from_descriptors(rng.standard_normal((4000, DIM)).astype(np.float32), "reference")
     query = Traversal.from_descriptors(rng.standard_normal((1000, DIM)).astype(np.float32), "query")
-    match_traversals(reference, query, MatchSettings(SequenceSpec(length=5), k=20))
+    SequenceMatcher(MatchSettings(SequenceSpec(length=5), k=20)).topk(reference, query)
 
 
 def _localise(work: Path) -> None:

@@ -1,5 +1,5 @@
-"""One record per method and one ``run_method``: every family against the stage functions it strings together, the
-method/model rules, and one set of method names for the CLI, the benchmark and the registry."""
+"""One record per method and one ``build_matcher``: every family against the matchers it puts together, the
+method/model rules, and one set of method names for the CLI, the benchmark, the localiser and the registry."""
 
 from __future__ import annotations
 
@@ -12,14 +12,18 @@ import pytest
 from seqvpr.cli.match import match
 from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
 from seqvpr.experiments.benchmark import read_config
+from seqvpr.matchers.hierarchical import HierarchicalMatcher
+from seqvpr.matchers.retrieval import RetrievalMatcher
+from seqvpr.matchers.frames import transform_traversal
+from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.methods import (
-    IMAGE_MODELS, IMPLIED_METHODS, METHODS, MODEL_TITLES, check_models, implied_method, models_used, run_length,
-    run_method,
+    IMAGE_MODELS, IMPLIED_METHODS, METHODS, MODEL_TITLES, build_matcher, check_models, implied_method, matcher_class,
+    models_used, run_length, run_method,
 )
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
 from seqvpr.models.seqmatchnet import FrameTransform
-from seqvpr.pipeline import MatchSettings, match_traversals, rerank_match, retrieve_traversals, transform_traversal
+from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route
@@ -58,14 +62,23 @@ def test_method_names_are_one_set_for_cli_benchmark_and_registry(tmp_path):
     raises_one_line("unknown methods magic", read_config, config)  # ... and nothing else
 
 
+def test_every_record_builds_the_class_it_names():
+    models = {"seqmatchnet": SMN, "seqnet": SEQNET}
+    for name, method in METHODS.items():
+        if method.needs == "jist":
+            continue
+        used = {kind: model for kind, model in models.items() if method.accepts(kind) or kind == method.needs}
+        assert isinstance(build_matcher(name, SETTINGS, used), matcher_class(method)), name
+
+
 def test_matching_family(pair):
     reference, query = pair
-    same(run_method("matching", reference, query, SETTINGS), match_traversals(reference, query, SETTINGS))
+    same(run_method("matching", reference, query, SETTINGS), SequenceMatcher(SETTINGS).topk(reference, query))
     single = run_method("single", reference, query, SETTINGS)
     assert single.settings.sequence.length == 1
-    same(single, match_traversals(reference, query, replace(SETTINGS, sequence=SequenceSpec(1))))
+    same(single, SequenceMatcher(replace(SETTINGS, sequence=SequenceSpec(1))).topk(reference, query))
     transformed = (transform_traversal(reference, SMN.module), transform_traversal(query, SMN.module))
-    expected = match_traversals(*transformed, SETTINGS)
+    expected = SequenceMatcher(SETTINGS).topk(*transformed)
     same(run_method("seqmatchnet", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
     same(run_method("matching", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
 
@@ -85,15 +98,17 @@ def test_one_frame_methods_score_one_frame_a_query_whatever_length_is_asked(pair
 
 def test_retrieval_and_hierarchical_families(pair):
     reference, query = pair
-    same(run_method("delta", reference, query, SETTINGS), retrieve_traversals(reference, query, "delta", SETTINGS))
+    same(run_method("delta", reference, query, SETTINGS), RetrievalMatcher(SETTINGS, "delta").topk(reference, query))
     same(run_method("seqnet", reference, query, SETTINGS, {"seqnet": SEQNET}),
-         retrieve_traversals(reference, query, "seqnet", SETTINGS, model=SEQNET.module))
+         RetrievalMatcher(SETTINGS, "seqnet", SEQNET.module).topk(reference, query))
     # HVPR: the SeqNet shortlist over the frames as described, re-ranked over SeqMatchNet-transformed frames
-    shortlist = retrieve_traversals(reference, query, "seqnet", replace(SETTINGS, k=20), model=SEQNET.module)
-    transformed = replace(shortlist, reference=transform_traversal(reference, SMN.module),
-                          query=transform_traversal(query, SMN.module))
+    shortlist = RetrievalMatcher(replace(SETTINGS, k=20), "seqnet", SEQNET.module).topk(reference, query)
+    transformed = (transform_traversal(reference, SMN.module), transform_traversal(query, SMN.module))
     hvpr = run_method("hvpr", reference, query, SETTINGS, {"seqnet": SEQNET, "seqmatchnet": SMN})
-    same(hvpr, rerank_match(transformed, SETTINGS))
+    same(hvpr, SequenceMatcher(SETTINGS).rerank(*transformed, shortlist.topk))
+    composed = HierarchicalMatcher(RetrievalMatcher(SETTINGS, "seqnet", SEQNET.module),
+                                   SequenceMatcher(SETTINGS, transform=SMN.module))
+    same(hvpr, composed.topk(reference, query))
     seqgem = run_method("hvpr", reference, query, SETTINGS, shortlist="seqgem")
     same(seqgem, run_method("seqgem", reference, query, SETTINGS, rerank=20))
     gt = ground_truth_within_radius(query, reference, Radius(4, "m"))

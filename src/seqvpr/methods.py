@@ -16,9 +16,10 @@ CLI's ``--method`` choices and the benchmark's accepted methods are ``METHODS``.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -26,22 +27,32 @@ from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
+    from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
     from seqvpr.models.registry import TrainedModel
-    from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
+    from seqvpr.progress import ProgressFactory
 
-Family = Literal["matching", "retrieval", "hierarchical", "filter"]
+Family = Literal["matching", "retrieval", "hierarchical", "filter", "graph"]
+#: the matcher class of each family (``module:Class``), unless a record names its own
+FAMILY_MATCHERS = {
+    "matching": "seqvpr.matchers.sequence:SequenceMatcher",
+    "retrieval": "seqvpr.matchers.retrieval:RetrievalMatcher",
+    "hierarchical": "seqvpr.matchers.hierarchical:HierarchicalMatcher",
+    "filter": "seqvpr.matchers.filter:FilterMatcher",
+    "graph": "seqvpr.matchers.graph:GraphMatcher",
+}
 MODEL_TITLES = {"seqmatchnet": "SeqMatchNet", "seqnet": "SeqNet", "jist": "JIST", "cosplace": "CosPlace"}
 #: the method each model kind implies, the first kind given in this order deciding (the registry's ``method``)
 IMPLIED_METHODS = {"jist": "jist", "seqnet": "seqnet", "seqmatchnet": "seqmatchnet", "cosplace": "single"}
 #: the kinds that describe the images themselves (the registry's ``consumes="images"``); one per run at most
 IMAGE_MODELS = ("jist", "cosplace")
-HVPR_SHORTLIST = 20  # HVPR's default shortlist length (the top N re-ranked)
 
 
 @dataclass(frozen=True)
 class Method:
-    """A method: its family, the model kind it needs (if any), the sequence-descriptor pooling it retrieves with,
-    a fixed sequence length (``single``: 1), and a line saying what it is."""
+    """A method: its family (and so its matcher class, unless ``matcher`` names another as ``module:Class``), the
+    model kind it needs (if any), the sequence-descriptor pooling it retrieves with, a fixed sequence length
+    (``single``: 1), its window search (``seqvpr.matchers.sequence.SequenceSearch``), the score threshold a
+    localiser uses before one is calibrated, and a line saying what it is."""
 
     name: str
     family: Family
@@ -49,7 +60,14 @@ class Method:
     needs: str | None = None
     pooling: str | None = None
     length: int | None = None
-    scorer: str | None = None  # a matching method's window distance other than the kernel's constant velocity
+    search: str = "velocity"  # how a window is scored: the kernel's constant velocity, adaptive, SeqSLAM's
+    threshold: float = 0.1  # the localiser's default score threshold (``seqvpr localize --calibrate`` sets one)
+    matcher: str | None = None
+
+    @property
+    def matcher_path(self) -> str:
+        """``module:Class`` of the matcher that runs this method."""
+        return self.matcher or FAMILY_MATCHERS[self.family]
 
     def accepts(self, kind: str) -> bool:
         """Whether a model of ``kind`` can be given to this method: its own, a CosPlace encoder describing the
@@ -67,14 +85,14 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("matching", "matching", "sequence matching: mean of order-aligned frame distances over L frames"),
     Method("seqmatchnet", "matching", "sequence matching over SeqMatchNet-transformed frames", needs="seqmatchnet"),
     Method("adaptive", "matching", "adaptive sequence matching: each query frame moves the reference by --steps "
-           "MIN:MAX frames (stops, speed changes; DTW-like)", scorer="adaptive"),
+           "MIN:MAX frames (stops, speed changes; DTW-like)", search="adaptive"),
     Method("seqslam", "matching", "SeqSLAM: local contrast enhancement of the distance matrix (10 reference frames), "
-           "then sequence matching (OpenSeqSLAM2's trajectory search: --velocities 0.8:1.2:0.1)", scorer="seqslam"),
+           "then sequence matching (OpenSeqSLAM2's trajectory search: --velocities 0.8:1.2:0.1)", search="seqslam"),
     Method("seqslam-cone", "matching", "OpenSeqSLAM2's cone search: the share of the window's frames whose single-image "
            "best match lies between the slowest and fastest --velocities trajectories (votes, no distances)",
-           scorer="seqslam-cone"),
+           search="seqslam-cone"),
     Method("seqslam-hybrid", "matching", "OpenSeqSLAM2's hybrid search: contrast enhancement, then the best of the "
-           "--velocities trajectories that pass through some frame's single-image best match", scorer="seqslam-hybrid"),
+           "--velocities trajectories that pass through some frame's single-image best match", search="seqslam-hybrid"),
     Method("smoothing", "retrieval", "window mean of the frames (smoothing), faiss search", pooling="smoothing"),
     Method("delta", "retrieval", "Delta descriptors, faiss search", pooling="delta"),
     Method("concat", "retrieval", "the concatenated window, faiss search", pooling="concat"),
@@ -87,12 +105,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            needs="jist", pooling="seqgem"),
     Method("hvpr", "hierarchical", "hierarchical: a SeqNet (or SeqGeM) shortlist re-ranked by sequence matching"),
     Method("casevpr", "hierarchical", "CaseVPR's hierarchy: a SeqNet (or SeqGeM) shortlist of start points re-ranked "
-           "by adaptive matching inside each candidate stretch (--steps)", scorer="adaptive"),
+           "by adaptive matching inside each candidate stretch (--steps)", search="adaptive"),
     Method("hmm", "filter", "topological filter (HMM forward pass) over reference frames: stops and speed changes",
-           length=1),
-    Method("graph", "filter", "GISM-style graph matching: the cheapest whole path through the distance matrix, "
-           "moving 0..--steps MAX reference frames a query frame, with a hidden node for jumps (offline)", length=1,
-           scorer="graph"),
+           length=1, threshold=0.5),
+    Method("graph", "graph", "GISM-style graph matching: the cheapest whole path through the distance matrix, "
+           "moving 0..--steps MAX reference frames a query frame, with a hidden node for jumps (offline)", length=1),
 )}
 
 
@@ -159,92 +176,37 @@ def models_used(name: str, shortlist: str = "seqnet") -> tuple[str, ...]:
     return () if method.needs is None else (method.needs,)
 
 
-def run_method(
+def matcher_class(method: Method) -> type[Matcher]:
+    """The class a method's record names (imported when first asked: ``import seqvpr`` stays light)."""
+    module, _, name = method.matcher_path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def build_matcher(
     name: str,
-    reference: Traversal,
-    query: Traversal,
     settings: MatchSettings,
     models: Mapping[str, TrainedModel] | None = None,
     *,
-    index: str = "flat",
-    rerank: int = 0,
-    shortlist: str | None = None,
     progress: ProgressFactory | None = None,
-    rerank_scorer=None,
-) -> MatchResult:
-    """Top-K reference frames per query frame by method ``name`` over described traversals.
-
-    ``rerank`` N > 0 re-ranks the top N of a retrieval method by exact sequence distance (HVPR; ``hvpr`` itself
-    defaults to N = 20 and to the ``shortlist`` method ``seqnet`` when a SeqNet model is given, else ``seqgem``).
-    """
+    **conf: Any,
+) -> Matcher:
+    """The matcher of method ``name`` under ``settings`` with these models, its family's own settings from ``conf``
+    (``steps``, ``contrast_window``, ``index``, ``rerank`` N, ``shortlist`` method, ``filter``, ``seed``). A method
+    of fixed length (``single``, ``hmm``, ``graph``) matches one frame a query, whatever length was asked."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
-    from seqvpr.pipeline import match_traversals, rerank_match, retrieve_traversals
-
     models = dict(models or {})
-    method = check_run(name, models, rerank)
-    if method.length is not None:  # single, hmm, graph: one frame a query, whatever length was asked
+    if conf.pop("accepted_only", False):  # a part of another method's matcher: the models this one takes
+        models = {kind: model for kind, model in models.items() if get_method(name).accepts(kind)}
+    method = check_run(name, models, conf.get("rerank") or 0)
+    if method.length is not None:
         settings = replace(settings, sequence=SequenceSpec(method.length))
-    if method.family == "hierarchical":
-        first = shortlist or ("seqnet" if "seqnet" in models else "seqgem")
-        if get_method(first).family != "retrieval":
-            raise SeqvprError(f"hvpr: the shortlist must be a retrieval method, got {first!r}")
-        used = {kind: models[kind] for kind in models if get_method(first).accepts(kind)}
-        return run_method(first, reference, query, settings, used, index=index, rerank=rerank or HVPR_SHORTLIST,
-                          rerank_scorer=window_scorer(method, settings))
-    if method.family == "filter" and method.scorer == "graph":
-        from seqvpr.pipeline import graph_traversals
-
-        return graph_traversals(*transformed_frames(reference, query, models, settings.device), settings)
-    if method.family == "filter":
-        from seqvpr.pipeline import filter_traversals
-
-        return filter_traversals(*transformed_frames(reference, query, models, settings.device), settings)
-    if method.family == "matching":
-        return match_traversals(*transformed_frames(reference, query, models, settings.device), settings, progress,
-                                scorer=window_scorer(method, settings))
-    shortlist_settings = replace(settings, k=max(rerank, settings.k))
-    result = retrieve_traversals(reference, query, method.pooling, shortlist_settings, index=index,
-                                 model=_pooling_module(method, models))
-    if not rerank:
-        return result
-    ref, qry = transformed_frames(reference, query, models, settings.device)
-    return rerank_match(replace(result, reference=ref, query=qry), settings, scorer=rerank_scorer)
+    return matcher_class(method).from_method(method, settings, models, build_matcher, progress=progress, **conf)
 
 
-def window_scorer(method: Method, settings: MatchSettings):
-    """The window distance a matching method uses: None for the kernel's constant velocity, else its scorer."""
-    if method.scorer == "adaptive":
-        from seqvpr.sequences.adaptive import AdaptiveScorer
-
-        return AdaptiveScorer(*settings.steps)
-    if method.scorer in ("seqslam", "seqslam-cone", "seqslam-hybrid"):
-        from seqvpr.sequences.seqslam import ConeScorer, ContrastScorer, HybridScorer
-
-        if method.scorer == "seqslam-cone":  # it counts votes: the enhanced distances would go unread
-            return ConeScorer()
-        return ContrastScorer(settings.contrast_window, HybridScorer() if method.scorer == "seqslam-hybrid" else None)
-    return None
-
-
-def _pooling_module(method: Method, models: Mapping[str, TrainedModel]):
-    """The learned pooling a retrieval method uses: SeqNet itself, JIST's SeqGeM, or none."""
-    if method.needs == "seqnet":
-        return models["seqnet"].module
-    if method.needs == "jist":
-        return models["jist"].module.sequence_pool
-    return None
-
-
-def transformed_frames(
-    reference: Traversal, query: Traversal, models: Mapping[str, TrainedModel], device: str = "cpu"
-) -> tuple[Traversal, Traversal]:
-    """Both traversals through a SeqMatchNet model's per-frame transform when one is given; else unchanged."""
-    if "seqmatchnet" not in models:
-        return reference, query
-    from seqvpr.pipeline import transform_traversal
-
-    module = models["seqmatchnet"].module
-    return transform_traversal(reference, module, device), transform_traversal(query, module, device)
+def run_method(name: str, reference, query: Traversal, settings: MatchSettings,
+               models: Mapping[str, TrainedModel] | None = None, **conf: Any) -> MatchResult:
+    """Top-K reference frames per query frame by method ``name`` (``build_matcher``'s matcher's ``topk``)."""
+    return build_matcher(name, settings, models, **conf).topk(reference, query)
 
 
 def image_model(models: Mapping[str, TrainedModel]) -> TrainedModel | None:

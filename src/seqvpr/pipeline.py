@@ -1,20 +1,18 @@
-"""Stage functions from traversals to scores; the CLI is a thin layer over these.
+"""Stage functions around a match: describing traversals, ground truth, scoring a result.
 
     reference, query = load_traversal(...), load_traversal(...)
     reference, query = describe(reference), describe(query)      # images -> descriptors when needed
-    result = match_traversals(reference, query, MatchSettings(SequenceSpec(length=5)))
+    result = build_matcher("matching", MatchSettings(SequenceSpec(length=5))).topk(reference, query)
     scores = evaluate_match(result, ground_truth(reference, query, parse_radius("2f")))
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
@@ -32,57 +30,14 @@ from seqvpr.features.extraction import (
 )
 from seqvpr.features.patchnorm import PatchNormConfig, patchnorm_extraction
 from seqvpr.features.whitening import fit_pca_whitening
-from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, filter_topk, map_distance_scale
-from seqvpr.sequences.matching import (
-    WindowScorer,
-    unit_rows,
-    TopK,
-    frame_distances,
-    reference_squared_norms,
-    sequence_distance_matrix,
-    sequence_topk,
-)
-from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.matchers.base import MatchResult, MatchSettings
+from seqvpr.matchers.frames import query_rows
+from seqvpr.sequences.matching import frame_distances, sequence_distance_matrix
 from seqvpr.progress import ProgressFactory
 from seqvpr.threads import ensure_policy
 
-if TYPE_CHECKING:
-    from seqvpr.sequences.graph import GraphSettings
-    from seqvpr.models.seqmatchnet import FrameTransform
-
 DESCRIPTORS = ("patchnorm", *BACKBONES)
 TORCHSCRIPT_PREFIX = f"{TORCHSCRIPT}:"  # ``torchscript:PATH``: a user's exported encoder
-
-
-@dataclass(frozen=True)
-class MatchSettings:
-    """Everything that decides a match: sequences, K, normalisation, numeric type, device and memory budget."""
-
-    sequence: SequenceSpec = field(default_factory=SequenceSpec)
-    k: int = 20
-    normalize: bool = True
-    dtype: str = "float32"
-    device: str = "cpu"
-    memory_budget: int | None = 2 * 1024**3
-    steps: tuple[int, int] = (1, 2)  # adaptive matching: the fewest and most reference frames per query frame
-    contrast_window: int = 10  # seqslam: reference frames each distance is standardised against (r_window)
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class MatchResult:
-    """Top-K reference rows per query row, with the traversals they index."""
-
-    reference: Traversal
-    query: Traversal
-    topk: TopK
-    settings: MatchSettings
-    shortlist: TopK | None = None  # the candidates a shortlisted match re-ranked (None: exhaustive)
-    #: per-frame correspondences of the top-1 matches, (query rows, reference rows) [n_query, L], when the matcher
-    #: is not the constant-velocity window alignment (adaptive); None: the windows' own alignment
-    correspondences: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def describe(
@@ -210,197 +165,10 @@ def whiten_pair(reference: Traversal, query: Traversal, dim: int) -> tuple[Trave
             query.with_descriptors(whitening.apply(query.descriptors)), used)
 
 
-def transform_traversal(traversal: Traversal, model: "FrameTransform", device: str = "cpu") -> Traversal:
-    """The traversal with its descriptors passed through a learned per-frame transform (e.g. SeqMatchNet)."""
-    from seqvpr.models.seqmatchnet import apply_transform
-
-    if traversal.descriptors is None:
-        raise SeqvprError(f"{traversal.source or traversal.name}: no descriptors to transform")
-    dim = traversal.descriptors.shape[1]
-    if dim != model.config.in_dim:
-        raise SeqvprError(
-            f"{traversal.source or traversal.name}: the model expects {model.config.in_dim}-D descriptors, "
-            f"these are {dim}-D"
-        )
-    return traversal.with_descriptors(apply_transform(model, traversal.descriptors, device=device))
-
-
-def _as_tensor(traversal: Traversal, settings: MatchSettings) -> torch.Tensor:
-    """Descriptors as a tensor on the settings' device, L2-normalised per frame when asked."""
-    if traversal.descriptors is None:
-        raise SeqvprError(f"{traversal.source or traversal.name}: no descriptors (describe() the images first)")
-    dtype = {"float32": torch.float32, "float64": torch.float64}.get(settings.dtype)
-    if dtype is None:
-        raise SeqvprError(f"dtype must be float32 or float64, got {settings.dtype!r}")
-    try:
-        array = traversal.descriptors
-        if not isinstance(array, np.ndarray):  # a saved map's coded rows, decoded
-            array = array[:]
-        array = np.ascontiguousarray(array) if array.flags.writeable else np.array(array)  # a read-only map: a copy
-        tensor = torch.as_tensor(array, dtype=dtype).to(settings.device)
-    except (RuntimeError, AssertionError) as error:
-        raise SeqvprError(f"device {settings.device!r} is not usable here ({str(error).splitlines()[0]})") from None
-    if settings.normalize:
-        tensor = unit_rows(tensor)
-    return tensor
-
-
-def stored_rows(descriptors) -> bool:
-    """Whether descriptors are a saved map's rows (memory-mapped, or coded), read by the kernel chunk by chunk."""
-    return isinstance(descriptors, np.memmap) or (descriptors is not None and not isinstance(descriptors, np.ndarray))
-
-
-def _frame_rows(traversal: Traversal, settings: MatchSettings) -> torch.Tensor | np.ndarray:
-    """A saved map's memory-mapped float rows as they are (stored normalised as ``settings`` ask, which
-    ``seqvpr.maps`` checks; read a batch at a time), or the traversal's descriptors as a normalised tensor."""
-    rows = traversal.descriptors
-    usable = isinstance(rows, np.memmap) and rows.flags.writeable and rows.dtype == np.float32
-    return rows if usable and settings.dtype == "float32" and settings.device == "cpu" else _as_tensor(traversal, settings)
-
-
-def match_traversals(
-    reference: Traversal,
-    query: Traversal,
-    settings: MatchSettings = MatchSettings(),
-    progress: ProgressFactory | None = None,
-    scorer: WindowScorer | None = None,
-) -> MatchResult:
-    """Top-K reference frames per query frame by sequence distance (windows respect both traversals' segments).
-    A memory-mapped reference (a saved map's) is read chunk by chunk, as stored: ``seqvpr.maps`` checks that it
-    was normalised as ``settings`` ask. ``scorer``: another window distance on the same blocks (adaptive)."""
-    ensure_policy()  # the one thread policy (seqvpr.threads)
-    ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
-    qry = _as_tensor(query, settings)
-    if ref.shape[1] != qry.shape[1]:
-        raise SeqvprError(
-            f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
-            f"{query.source or query.name} has {qry.shape[1]}"
-        )
-    tick = progress(len(query), "match") if progress else None
-    topk = sequence_topk(
-        qry,
-        ref,
-        settings.sequence,
-        settings.k,
-        query.segment_ids,
-        reference.segment_ids,
-        memory_budget=settings.memory_budget,
-        progress=tick,
-        scorer=scorer,
-    )
-    pairs = top1_pairs(qry, ref, topk, settings, scorer, query.segment_ids, reference.segment_ids)
-    return MatchResult(reference, query, topk, settings, correspondences=pairs)
-
-
-def top1_pairs(qry: torch.Tensor, ref, topk: TopK, settings: MatchSettings, scorer, q_seg: np.ndarray,
-               r_seg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The matcher's own per-frame pairs of the top-1 matches: the adaptive path, or the straight trajectory that
-    won (any velocity search); None where the windows' slope-1 alignment is the answer (``match_correspondences``)
-    or the matcher pairs no frames (the cone)."""
-    from seqvpr.sequences.adaptive import AdaptiveScorer
-    from seqvpr.sequences.correspondences import (
-        adaptive_correspondences, trajectory_correspondences, trajectory_velocities,
-    )
-
-    best = topk.indices[:, 0]
-    if isinstance(scorer, AdaptiveScorer):
-        return adaptive_correspondences(qry, ref, best, settings.sequence, scorer, q_seg, r_seg)
-    velocities = trajectory_velocities(scorer, settings.sequence)
-    if velocities is None or tuple(velocities) == tuple(settings.sequence.velocities) == (1.0,):
-        return None
-    return trajectory_correspondences(qry, ref, best, settings.sequence, scorer, q_seg, r_seg, settings.memory_budget)
-
-
-def filter_traversals(
-    reference: Traversal,
-    query: Traversal,
-    settings: MatchSettings = MatchSettings(),
-    filter_settings: FilterSettings = FilterSettings(),
-    seed: int = 0,
-) -> MatchResult:
-    """Top-K reference frames per query frame by a topological filter run forward over the query (``hmm``), its
-    likelihood scale calibrated on the reference (``seed`` draws the sample frames). Distances are 1 - belief mass."""
-    ref = reference.descriptors if stored_rows(reference.descriptors) else _as_tensor(reference, settings)
-    qry = _as_tensor(query, settings)
-    if ref.shape[1] != qry.shape[1]:
-        raise SeqvprError(f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
-                          f"{query.source or query.name} has {qry.shape[1]}")
-    norms = reference_squared_norms(ref)
-    scale = map_distance_scale(ref, norms, filter_settings, seed=seed)
-    topological = TopologicalFilter(reference.segment_ids, scale, filter_settings)
-    return MatchResult(reference, query, filter_topk(qry, ref, norms, topological, settings.k, query.segment_ids),
-                       settings)
-
-
-def graph_traversals(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings(),
-                     graph: GraphSettings | None = None) -> MatchResult:
-    """Top-K reference frames per query frame by the cheapest whole path through them (``graph``: GISM-style
-    best path with bounded jumps over the whole query, offline), fanout from ``settings.steps``' maximum."""
-    from seqvpr.sequences.graph import GraphSettings, graph_topk
-
-    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
-    if ref.shape[1] != qry.shape[1]:
-        raise SeqvprError(f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
-                          f"{query.source or query.name} has {qry.shape[1]}")
-    chosen = graph or GraphSettings(fanout=settings.steps[1], min_step=settings.steps[0])
-    top = graph_topk(qry, ref, settings.k, query.segment_ids, reference.segment_ids, chosen, settings.memory_budget)
-    return MatchResult(reference, query, top, settings)
-
-
-def retrieve_traversals(
-    reference: Traversal,
-    query: Traversal,
-    method: str,
-    settings: MatchSettings = MatchSettings(),
-    *,
-    index: str = "flat",
-    model: torch.nn.Module | None = None,
-) -> MatchResult:
-    """Top-K reference frames per query frame by one sequence descriptor per window (smoothing, Delta, SeqGeM,
-    ``seqgem-signed`` for descriptors with negative entries, SeqNet with ``model``...) and a faiss index: the
-    compact alternative to ``match_traversals``."""
-    from seqvpr.sequences.descriptors import SeqGeM, sequence_descriptors
-    from seqvpr.sequences.retrieval import retrieve
-
-    if method == "seqgem-signed":
-        method, model = "seqgem", model or SeqGeM(mode="signed")
-
-    ref, qry = _frame_rows(reference, settings), _as_tensor(query, settings)
-    if ref.shape[1] != qry.shape[1]:
-        raise SeqvprError(
-            f"descriptor dimensions differ: {reference.source or reference.name} has {ref.shape[1]}, "
-            f"{query.source or query.name} has {qry.shape[1]}"
-        )
-    spec = settings.sequence
-    ref_vectors = sequence_descriptors(ref, reference.segment_ids, spec, method, model, device=settings.device)
-    qry_vectors = sequence_descriptors(qry, query.segment_ids, spec, method, model, device=settings.device)
-    return MatchResult(reference, query, retrieve(qry_vectors, ref_vectors, settings.k, kind=index), settings)
-
-
-def rerank_match(shortlist: MatchResult, settings: MatchSettings | None = None, scorer=None) -> MatchResult:
-    """Hierarchical matching (HVPR): the shortlist's reference frames re-ordered by exact sequence distance over
-    the traversals' frame descriptors (e.g. SeqMatchNet-transformed), best ``settings.k`` kept; with an adaptive
-    ``scorer``, by adaptive distance inside each candidate's stretch (CaseVPR), with its per-frame paths."""
-    from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_rerank
-    from seqvpr.sequences.hierarchical import rerank
-
-    settings = settings or shortlist.settings
-    ref, qry = _frame_rows(shortlist.reference, settings), _as_tensor(shortlist.query, settings)
-    if isinstance(ref, np.ndarray):
-        ref = torch.from_numpy(ref)  # a view of the map: the re-ranking reads only the candidates' rows
-    q_seg, r_seg = shortlist.query.segment_ids, shortlist.reference.segment_ids
-    if isinstance(scorer, AdaptiveScorer):
-        top = adaptive_rerank(qry, ref, shortlist.topk, settings.sequence, scorer, q_seg, r_seg, settings.k)
-    else:
-        top = rerank(qry, ref, shortlist.topk, settings.sequence, q_seg, r_seg, k=settings.k)
-    pairs = top1_pairs(qry, ref, top, settings, scorer, q_seg, r_seg)
-    return MatchResult(shortlist.reference, shortlist.query, top, settings, correspondences=pairs)
-
-
 def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings = MatchSettings()) -> np.ndarray:
     """The full sequence-distance matrix [n_query, n_reference] (+inf where a window is missing), for plots and
     small traversals; ``match_traversals`` keeps only the top K and never holds it."""
-    ref, qry = _as_tensor(reference, settings), _as_tensor(query, settings)
+    ref, qry = query_rows(reference, settings), query_rows(query, settings)
     full = sequence_distance_matrix(frame_distances(qry, ref), settings.sequence, query.segment_ids, reference.segment_ids)
     return full.double().cpu().numpy()
 

@@ -17,7 +17,9 @@ from seqvpr.training.data import classification_traversals, training_data, train
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.synthetic.routes import generate_route
 from seqvpr.synthetic.world import write_demo_world
-from seqvpr.pipeline import MatchSettings, evaluate_match, rerank_match, retrieve_traversals
+from seqvpr.matchers.retrieval import RetrievalMatcher
+from seqvpr.matchers.sequence import SequenceMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
 from seqvpr.training.settings import JistTrainSettings
@@ -112,9 +114,9 @@ def seqnet_library(route, run_dir, rerank=0):
     ref, qry = (load_traversal(p, role).slice_frames(120, 150) for p, role in zip(route, ("reference", "query")))
     settings = MatchSettings(SequenceSpec(config["L"]), k=20)
     shortlist = dataclasses.replace(settings, k=max(rerank, 20))
-    result = retrieve_traversals(ref, qry, "seqnet", shortlist, model=model)
+    result = RetrievalMatcher(shortlist, "seqnet", model).topk(ref, qry)
     if rerank:
-        result = rerank_match(result, settings)
+        result = SequenceMatcher(settings).rerank(result.reference, result.query, result.topk)
     return evaluate_match(result, ground_truth_within_radius(qry, ref, Radius(5.0, "m")), (1, 5, 10, 20))
 
 
@@ -156,7 +158,7 @@ def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
     ref, qry = load_traversal(world["test_reference"], "reference"), load_traversal(world["test_query"], "query")
     model = load_jist(out)  # oracle: the model's frames, pooled by its SeqGeM, searched exactly
     ref, qry = (describe_with_jist(model, t, 64, 48) for t in (ref, qry))
-    found = retrieve_traversals(ref, qry, "seqgem", MatchSettings(SequenceSpec(3), k=10), model=model.sequence_pool)
+    found = RetrievalMatcher(MatchSettings(SequenceSpec(3), k=10), "seqgem", model.sequence_pool).topk(ref, qry)
     expected = evaluate_match(found, ground_truth_within_radius(qry, ref, Radius(25.0, "m")), KS)
     assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
     assert result["queries_evaluated"] == expected.queries_evaluated

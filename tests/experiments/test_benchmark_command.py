@@ -97,7 +97,8 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
 
 
 def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
-    from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+    from seqvpr.matchers.retrieval import RetrievalMatcher
+    from seqvpr.pipeline import MatchSettings, evaluate_match
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.models.seqnet import load_seqnet
 
@@ -114,7 +115,7 @@ def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(mo
 
     splits = load_splits(read_config(config).datasets[0])
     model, _ = load_seqnet(tmp_path / "b" / "demo" / "seqnet")
-    result = retrieve_traversals(*splits.test, "seqnet", MatchSettings(SequenceSpec(5), k=20), model=model)
+    result = RetrievalMatcher(MatchSettings(SequenceSpec(5), k=20), "seqnet", model).topk(*splits.test)
     expected = evaluate_match(result, ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius), (1, 5))
     assert float(rows["seqnet"]["R@1"]) == pytest.approx(expected.recall[1], abs=1e-4)
     assert float(rows["seqnet"]["R@5"]) == pytest.approx(expected.recall[5], abs=1e-4)
@@ -143,7 +144,8 @@ def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, caps
     from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
     from seqvpr.experiments.benchmark import load_splits, read_config
     from seqvpr.models.jist import describe_with_jist, load_jist
-    from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+    from seqvpr.matchers.retrieval import RetrievalMatcher
+    from seqvpr.pipeline import MatchSettings, evaluate_match
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.synthetic.world import write_demo_world
     from seqvpr.training.jist import jist_setup
@@ -164,8 +166,8 @@ def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, caps
     reference, query = (describe_with_jist(model, t, settings.width, settings.height) for t in splits.test)
     gt = ground_truth_within_radius(query, reference, Radius(10.0, "m"))
     for length in (5, 7):  # oracle: the saved model's frames pooled by its SeqGeM on the test split
-        found = retrieve_traversals(reference, query, "seqgem", MatchSettings(SequenceSpec(length), k=5),
-                                    model=model.sequence_pool)
+        found = RetrievalMatcher(MatchSettings(SequenceSpec(length), k=5), "seqgem", model.sequence_pool).topk(
+            reference, query)
         expected = evaluate_match(found, gt, (1, 5))
         assert float(rows[("jist", str(length))]["R@1"]) == pytest.approx(expected.recall[1], abs=1e-4)
     history = tmp_path / "b" / "demo" / "jist" / "history.csv"
@@ -206,11 +208,11 @@ def test_match_tables_set_each_methods_settings(tmp_path):
     extra = "[match]\nsteps = '0:2'\n[match.seqslam-hybrid]\nvelocities = '0.8:1.2:0.1'\ncontrast_window = 40\n"
     config.write_text(config_text('["adaptive", "seqslam-hybrid"]', extra=extra))
     parsed = read_config(config)
-    hybrid = parsed.match_settings("seqslam-hybrid", 10, 20)
+    hybrid, hybrid_search = parsed.match_settings("seqslam-hybrid", 10, 20)
     assert hybrid.sequence.velocities == (0.8, 0.9, 1.0, 1.1, 1.2) and hybrid.sequence.length == 10
-    assert hybrid.contrast_window == 40 and hybrid.steps == (0, 2) and hybrid.k == 20
-    adaptive = parsed.match_settings("adaptive", 5, 20)
-    assert adaptive.sequence.velocities == (1.0,) and adaptive.steps == (0, 2) and adaptive.contrast_window == 10
+    assert hybrid_search == {"contrast_window": 40, "steps": (0, 2)} and hybrid.k == 20
+    adaptive, adaptive_search = parsed.match_settings("adaptive", 5, 20)
+    assert adaptive.sequence.velocities == (1.0,) and adaptive_search == {"steps": (0, 2)}
 
 
 class Captured(Exception):

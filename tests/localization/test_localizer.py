@@ -19,7 +19,8 @@ from seqvpr.localization.replay import replay
 from seqvpr.maps import build_map, load_map
 from seqvpr.maps.index import IndexSpec, add_index
 from seqvpr.methods import run_method
-from seqvpr.pipeline import MatchSettings, describe, match_traversals
+from seqvpr.matchers.sequence import SequenceMatcher
+from seqvpr.pipeline import MatchSettings, describe
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import raises_one_line, write_route_files
 
@@ -58,7 +59,7 @@ def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
         if not (run.scored.any()):
             return  # no window anywhere: the offline kernel refuses such a query (L longer than every segment)
         try:
-            offline = match_traversals(saved.frames, query, MatchSettings(SequenceSpec(length, "causal"), k=4))
+            offline = SequenceMatcher(MatchSettings(SequenceSpec(length, "causal"), k=4)).topk(saved.frames, query)
         except Exception:  # the map has no window of L frames: then no frame may be localised either
             assert (run.best[run.scored] == -1).all()
             return
@@ -211,7 +212,7 @@ for row in np.load({str(route / "ref.npz")!r})["descriptors"][:8]:
     localizer.update(row.astype(np.float32))
 loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("matplotlib", "faiss", "PIL", "rosbags")
                 or m.startswith(("scipy.io", "scipy.spatial", "scipy.sparse"))  # numba imports bare scipy
-                or m.startswith(("seqvpr.models", "seqvpr.features", "seqvpr.pipeline", "seqvpr.methods",
+                or m.startswith(("seqvpr.models", "seqvpr.features", "seqvpr.pipeline",
                                  "seqvpr.training", "seqvpr.evaluation", "seqvpr.maps.build", "seqvpr.maps.match",
                                  "seqvpr.data.sources", "seqvpr.data.loaders")))
 print(sorted({{m.split(".")[0] for m in loaded}} | {{m for m in loaded if m.startswith("seqvpr")}}))

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 from seqvpr.data.groundtruth import parse_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate
-from seqvpr.pipeline import MatchSettings, ground_truth, match_traversals
+from seqvpr.matchers.sequence import SequenceMatcher
+from seqvpr.pipeline import MatchSettings, ground_truth
 from seqvpr.sequences.descriptors import (
     FIXED_POOLINGS,
     SeqGeM,
@@ -293,7 +294,7 @@ def test_smoothing_l1_retrieval_equals_single_image_matching():
     )
     reference = Traversal.from_descriptors(reference_frames, "ref", segment_ids=r_seg)
     query = Traversal.from_descriptors(query_frames, "qry", segment_ids=q_seg)
-    kernel = match_traversals(reference, query, MatchSettings(spec, k=5)).topk
+    kernel = SequenceMatcher(MatchSettings(spec, k=5)).topk(reference, query).topk
     np.testing.assert_array_equal(top.indices[:, 0], kernel.indices[:, 0])
     np.testing.assert_allclose(top.distances, kernel.distances, atol=1e-4)
     np.testing.assert_array_equal(top.has_window, kernel.has_window)

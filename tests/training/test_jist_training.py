@@ -17,7 +17,8 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import frame_positions
 from seqvpr.models.files import MODEL_FILE, read_json, read_tensors
 from seqvpr.models.jist import ImageStore, JistConfig, build_jist, describe_with_jist, load_jist
-from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+from seqvpr.matchers.retrieval import RetrievalMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.sequences.windows import window_frames
 from seqvpr.synthetic.world import write_demo_world
 from seqvpr.training.cosplace import CellGrouping, assign_classes, group_members
@@ -191,8 +192,8 @@ def test_saved_model_reloads_and_scores_its_validation_recall(data, run):
     assert all(torch.equal(loaded.state_dict()[k], saved[k]) for k in saved)
     store = ImageStore(W, H)
     reference, query = (describe_with_jist(loaded, t, W, H, store=store) for t in (data.val_reference, data.val_query))
-    result_match = retrieve_traversals(reference, query, "seqgem", MatchSettings(training_spec(3), k=5),
-                                       model=loaded.sequence_pool)
+    result_match = RetrievalMatcher(MatchSettings(training_spec(3), k=5), "seqgem", loaded.sequence_pool).topk(
+        reference, query)
     from seqvpr.data.groundtruth import ground_truth_within_radius
 
     gt = ground_truth_within_radius(query, reference, Radius(25.0, "m"))
@@ -205,8 +206,8 @@ def test_other_length_and_shuffled_frames(data, run):
     model = load_jist(result.folder, backbone=TinyBackbone())
     store = ImageStore(W, H)
     reference, query = (describe_with_jist(model, t, W, H, store=store) for t in (data.val_reference, data.val_query))
-    scored = [retrieve_traversals(reference, query, "seqgem", MatchSettings(training_spec(n), k=5),
-                                  model=model.sequence_pool).topk.has_window.sum() for n in (3, 5)]
+    scored = [RetrievalMatcher(MatchSettings(training_spec(n), k=5), "seqgem", model.sequence_pool).topk(
+        reference, query).topk.has_window.sum() for n in (3, 5)]
     assert scored[1] < scored[0]  # longer windows: fewer frames have one
     descriptors = nn.functional.normalize(torch.randn(10, 5, CONFIG.out_dim), dim=-1)
     order = np.stack([np.random.default_rng(i).permutation(5) for i in range(4)])

@@ -131,13 +131,14 @@ def match(**o: Any) -> None:
     _say_skipped(pair, (reference, query))
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget, parse_steps(o["steps"]), o["contrast_window"])
+                             budget)
+    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
     result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
-                        progress=tqdm_progress)
+                        progress=tqdm_progress, **search)
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     image = image_model(models)
     descriptor = image.kind if image else o["descriptor"] if has_images else "file"
-    run = _run_settings(o, method, models, descriptor, gt.description, settings.as_dict())
+    run = _run_settings(o, method, models, descriptor, gt.description, {**settings.as_dict(), **search})
     if image:
         run["image_size"] = list(_image_size(o) or image.image_size)
     _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (reference, query))
@@ -242,17 +243,18 @@ def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speed
     gt = resolve_ground_truth(map_table(sharded), query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget, parse_steps(o["steps"]), o["contrast_window"])
+                             budget)
+    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
     with distributed.process_group(o["device"]) as world:
         result = match_sharded_map(sharded, query, method, settings, models,
                                    progress=tqdm_progress if world.is_root else None, shortlist=o["shortlist"],
                                    history=o["history"], nprobe=o["nprobe"], cache_dir=o["cache_dir"],
-                                   skip_bad=o["skip_bad"])
+                                   skip_bad=o["skip_bad"], search=search)
     if result is None:  # another rank: rank 0 scores and writes
         return
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, descriptor, gt.description,
-                        settings.as_dict())
+                        {**settings.as_dict(), **search})
     run["map"], run["shards"], run["ranks"] = o["map_dir"], len(sharded.shards), world.size
     if o["shortlist"]:
         run["shortlist"] = _shortlist_record(o, result, gt, sharded.open_shard(0).info.index["spec"])
@@ -275,13 +277,14 @@ def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, b
     gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget, parse_steps(o["steps"]), o["contrast_window"])
+                             budget)
+    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
     result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
                        shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
-                       cache_dir=o["cache_dir"], skip_bad=o["skip_bad"])
+                       cache_dir=o["cache_dir"], skip_bad=o["skip_bad"], search=search)
     evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
-                        gt.description, settings.as_dict())
+                        gt.description, {**settings.as_dict(), **search})
     run["map"] = o["map_dir"]
     if o["shortlist"]:
         run["shortlist"] = _shortlist_record(o, result, gt, saved.info.index["spec"])

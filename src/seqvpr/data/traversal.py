@@ -40,6 +40,9 @@ class Traversal:
     names: tuple[str, ...] | None = None
     crs: str | None = None
     bag: BagReading | None = field(default=None, compare=False)
+    #: how a saved map stores these rows (``float32``, ``float16``, ``sq8``, ``pq``; ``sharded``: through its
+    #: shards), read a chunk at a time as stored; None: rows in memory, normalised when matched
+    stored: str | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.frame_index)
@@ -118,9 +121,24 @@ class Traversal:
             return None
         return list(self.names) if self.names is not None else [str(p) for p in self.image_paths]
 
+    @property
+    def dim(self) -> int:
+        """Descriptor dimensions (0 for a traversal of images not yet described)."""
+        return 0 if self.descriptors is None else int(self.descriptors.shape[1])
+
+    @property
+    def plain_rows(self) -> bool:
+        """Whether the rows are a saved map's float32 array, read as they are (no decoding)."""
+        return self.stored == "float32"
+
+    @property
+    def frames(self) -> Traversal:
+        """The frame table results index (a traversal is its own)."""
+        return self
+
     def with_descriptors(self, descriptors: np.ndarray) -> Traversal:
-        """The same frames with new descriptor rows (for instance after a learned transform)."""
-        return replace(self, descriptors=descriptors)
+        """The same frames with new descriptor rows in memory (for instance after a learned transform)."""
+        return replace(self, descriptors=descriptors, stored=None)
 
     def select(self, rows: np.ndarray) -> Traversal:
         """Keep the given rows (indices or boolean mask); removing frames from a run starts a new segment."""
@@ -134,6 +152,7 @@ class Traversal:
         new_run[1:] = (np.diff(rows) != 1) | (np.diff(kept_ids) != 0)
         return replace(
             self,
+            stored=None,
             frame_index=self.frame_index[rows],
             segment_ids=np.cumsum(new_run) - 1,
             descriptors=None if self.descriptors is None else self.descriptors[rows],

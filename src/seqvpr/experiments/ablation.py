@@ -18,7 +18,8 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_file_set
 from seqvpr.models.seqmatchnet import TransformConfig
-from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals
+from seqvpr.matchers.sequence import SequenceMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.models.seqmatchnet import load_seqmatchnet
 from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import (
@@ -70,7 +71,7 @@ def run_ablation(
     out = Path(out_dir)
     spec = settings.sequence
     baseline = evaluate_match(
-        match_traversals(test_reference, test_query, MatchSettings(spec, k=max(settings.ks), device=settings.device)),
+        SequenceMatcher(MatchSettings(spec, k=max(settings.ks), device=settings.device)).topk(test_reference, test_query),
         test_gt,
         settings.ks,
     )

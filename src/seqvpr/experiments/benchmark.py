@@ -98,11 +98,12 @@ class BenchmarkConfig:
     match: dict[str, Any] = field(default_factory=dict)  # MatchSettings fields (and velocities) for every method
     method_match: dict[str, dict[str, Any]] = field(default_factory=dict)  # the same, per method
 
-    def match_settings(self, method: str, length: int, k: int) -> MatchSettings:
-        """The settings ``method`` runs with at ``length``: the ``[match]`` table, then the method's own."""
+    def match_settings(self, method: str, length: int, k: int) -> tuple[MatchSettings, dict[str, Any]]:
+        """The settings ``method`` runs with at ``length`` and its own (steps, contrast window): the ``[match]``
+        table, then the method's own."""
         chosen = {**self.match, **self.method_match.get(method, {})}
         velocities = chosen.pop("velocities", (1.0,))
-        return MatchSettings(SequenceSpec(length, velocities=velocities), k=k, **chosen)
+        return MatchSettings(SequenceSpec(length, velocities=velocities), k=k), chosen
 
 
 @dataclass(frozen=True)
@@ -324,13 +325,14 @@ class MethodRunner:
 
     def run(self, method: str, length: int) -> MatchResult:
         """The method's top-K on the test split at sequence length ``length``."""
-        from seqvpr.methods import HVPR_SHORTLIST, models_used, run_method
+        from seqvpr.matchers.hierarchical import HVPR_SHORTLIST
+        from seqvpr.methods import models_used, run_method
 
         shortlist = self.config.hvpr_shortlist
         models = {kind: self.model(kind) for kind in models_used(method, shortlist)}
-        settings = self.config.match_settings(method, length, max(max(self.config.ks), HVPR_SHORTLIST))
+        settings, search = self.config.match_settings(method, length, max(max(self.config.ks), HVPR_SHORTLIST))
         return run_method(method, *self.test_frames(models), settings, models,
-                          shortlist=shortlist if method == "hvpr" else None)
+                          shortlist=shortlist if method == "hvpr" else None, **search)
 
 
 def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, monitor=None) -> Path:

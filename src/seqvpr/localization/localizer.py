@@ -26,25 +26,30 @@ import torch
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.io import atomic_write
-from seqvpr.localization.matchers import ExactMatcher, FilterMatcher, Scored, ShortlistMatcher
 from seqvpr.localization.saved import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
     read_calibration_file,
 )
 from seqvpr.maps.files import SavedMap, open_map
+from seqvpr.matchers.frames import frame_row
 from seqvpr.progress import LOGGER
+from seqvpr.methods import METHODS, get_method
 from seqvpr.sequences.filter import FilterSettings
-from seqvpr.sequences.matching import unit_rows
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
+    from seqvpr.matchers.stream import Scored
     from seqvpr.models.registry import TrainedModel
 
 Status = Literal["warming up", "localised", "uncertain", "lost"]
-LOCALIZER_METHODS = ("matching", "single", "seqmatchnet", "hmm")
-#: thresholds used when the map has no calibration for the settings (``seqvpr localize --calibrate`` sets one)
-DEFAULT_THRESHOLDS = {"matching": 0.1, "single": 0.1, "seqmatchnet": 0.1, "hmm": 0.5}
 LONG_OPEN = 100_000  # maps from this many frames take seconds to open: say so
+
+
+def online_methods() -> tuple[str, ...]:
+    """The methods a localiser runs: those whose matcher steps exactly, a frame at a time (constant-velocity
+    sequence matching, the filter)."""
+    return tuple(name for name, m in METHODS.items()
+                 if (m.family == "matching" and m.search == "velocity") or m.family == "filter")
 
 
 @dataclass(frozen=True)
@@ -69,10 +74,12 @@ class LocalizerSettings:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.method not in LOCALIZER_METHODS:
-            raise SeqvprError(f"a localiser runs {', '.join(LOCALIZER_METHODS)}, not --method {self.method}")
-        if self.method == "hmm" and self.shortlist:
-            raise SeqvprError("--method hmm keeps a belief over every map frame: it takes no --shortlist")
+        online = online_methods()
+        if self.method not in online:
+            get_method(self.method)  # an unknown name: one line listing the methods
+            raise SeqvprError(f"a localiser runs {', '.join(online)}, not --method {self.method}")
+        if self.shortlist and get_method(self.method).family != "matching":
+            raise SeqvprError(f"--method {self.method} keeps a belief over every map frame: it takes no --shortlist")
         if min(self.seq_len, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
             raise SeqvprError("localiser settings: seq_len, k and lost_after must be >= 1; shortlist, history and "
                               "exclusion >= 0")
@@ -81,8 +88,9 @@ class LocalizerSettings:
 
     @property
     def window(self) -> int:
-        """Frames a sequence spans: 1 for single-image retrieval and the filter, else ``seq_len``."""
-        return 1 if self.method in ("single", "hmm") else self.seq_len
+        """Frames a sequence spans: the method's own (1 for single-image retrieval and the filter), else
+        ``seq_len``."""
+        return get_method(self.method).length or self.seq_len
 
     def key(self) -> dict[str, Any]:
         """What a calibrated threshold depends on (the score's meaning), as stored in ``localizer.json``."""
@@ -133,7 +141,8 @@ class Localizer:
         self.threshold_source = threshold_source  # where the threshold came from: given, calibrated on what, default
         self.encoder = _frame_encoder(saved, self.models, device)
         self.transform = self.models.get("seqmatchnet")  # the map holds transformed frames; raw descriptors get it
-        self.matcher = _matcher(saved, settings)
+        self.matcher = map_matcher(saved, settings)
+        self.stepper = _stepper(saved, self.matcher, settings)
         self.frame, self.misses, self.since_reset = 0, 0, 0
         self.last_kept: np.ndarray | None = None
         self.last: Estimate | None = None
@@ -172,7 +181,7 @@ class Localizer:
 
     def reset(self) -> None:
         """Start over: a new drive, a kidnapping, a restart with no trusted state."""
-        self.matcher.reset()
+        self.stepper.reset()
         self.misses, self.since_reset, self.last_kept, self.last = 0, 0, None, None
 
     def update(self, frame: Any, timestamp: float | None = None) -> Estimate:
@@ -187,7 +196,7 @@ class Localizer:
             self.frame += 1
             latency = {**self.last.latency, "describe": (described - started) * 1e3}
             return replace(self.last, frame=self.frame - 1, timestamp=timestamp, latency=latency, kept=False)
-        scored = self.matcher.push(vector)
+        scored = self.stepper.push(vector)
         self.last_kept, self.since_reset = vector, self.since_reset + 1
         estimate = self._estimate(scored, timestamp, (described - started) * 1e3, started)
         self.frame += 1
@@ -209,10 +218,9 @@ class Localizer:
                               " frames")
         if not torch.isfinite(vector).all():
             raise SeqvprError("the frame's descriptor holds NaN or infinite values")
-        if self.transform is not None and is_descriptor:
-            with torch.no_grad():
-                vector = self.transform.module(vector[None])[0].float()
-        return unit_rows(vector, dim=0) if self.saved.info.normalized else vector
+        if self.transform is not None and is_descriptor:  # the map holds transformed frames
+            vector = frame_row(vector, self.transform.module, normalize=False)
+        return self.matcher.prepare_frame(vector)
 
     def _estimate(self, scored: Scored | None, timestamp: float | None, describe_ms: float, started: float) -> Estimate:
         status, self.misses = next_status(None if scored is None else scored.score, self.threshold, self.misses,
@@ -247,7 +255,7 @@ class Localizer:
         header = {"format": STATE_FORMAT, "version": STATE_VERSION, "map": map_record(self.saved.info),
                   "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
                   "since_reset": self.since_reset}
-        arrays = {f"matcher_{k}": v for k, v in self.matcher.state().items()}
+        arrays = {f"matcher_{k}": v for k, v in self.stepper.state().items()}
         if self.last_kept is not None:
             arrays["last_kept"] = self.last_kept.numpy()
         with atomic_write(path, "wb") as handle:
@@ -266,7 +274,7 @@ class Localizer:
             if header.get("settings") != self.settings.key():
                 raise SeqvprError(f"{path}: saved with other settings ({header.get('settings')})")
             check_state_arrays(path, arrays, self.saved.info.dim)
-            self.matcher.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
+            self.stepper.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
                                      if k.startswith("matcher_")})
             self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))
             self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
@@ -306,23 +314,35 @@ def next_status(score: float | None, threshold: float, misses: int, lost_after: 
     return ("lost" if misses >= lost_after else "uncertain"), misses
 
 
-def _matcher(saved: SavedMap, settings: LocalizerSettings):
-    """The per-frame step the settings ask for (over a sharded map under torchrun: each rank its shards)."""
+def map_matcher(saved: SavedMap, settings: LocalizerSettings):
+    """The settings' method as a matcher over the map's frames as stored (causal windows; normalised as the map
+    is; a SeqMatchNet map's frames already transformed, so plain sequence matching)."""
+    from seqvpr.matchers.base import MatchSettings
+    from seqvpr.methods import build_matcher
+    from seqvpr.sequences.windows import SequenceSpec
+
+    method = "matching" if settings.method == "seqmatchnet" else settings.method
+    common = MatchSettings(SequenceSpec(settings.window, "causal"), k=settings.k, normalize=saved.info.normalized)
+    return build_matcher(method, common, {}, filter=settings.filter, seed=settings.seed)
+
+
+def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
+    """The per-frame step the settings ask for: the matcher's own stream, or its shortlist over the map's index
+    (over a sharded map under torchrun: each rank its shards)."""
     from seqvpr import distributed
     from seqvpr.maps.files import is_sharded_map, open_sharded_map
 
     world = distributed.current()
     if is_sharded_map(saved.folder) and (world.size > 1 or settings.shortlist):  # one process: via its shards' indexes
         return _sharded_matcher(open_sharded_map(saved.folder), world, settings)
-    segments = saved.frames.segment_ids
-    if settings.method == "hmm":
-        return FilterMatcher(saved.descriptors, segments, settings.k, settings.filter, settings.seed)
     if settings.shortlist:
-        from seqvpr.maps.index import open_frame_index
+        from seqvpr.maps.index import open_frame_index, search_frames
+        from seqvpr.matchers.stream import ShortlistStepper
 
-        return ShortlistMatcher(saved, open_frame_index(saved, settings.nprobe), settings.window, settings.k,
-                                settings.exclusion, settings.shortlist, settings.history)
-    return ExactMatcher(saved.descriptors, segments, settings.window, settings.k, settings.exclusion)
+        index = open_frame_index(saved, settings.nprobe)
+        return ShortlistStepper(matcher, saved.frames, lambda row, width: search_frames(index, row, width)[0][0],
+                                settings.shortlist, settings.history, settings.exclusion, index.ntotal)
+    return matcher.stream(saved.frames, settings.exclusion)
 
 
 def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
@@ -359,7 +379,7 @@ def stored_threshold(folder: str | Path, settings: LocalizerSettings) -> tuple[f
     entry = stored_calibration(folder, settings)
     if entry is not None:
         return float(entry["threshold"]), calibration_source(entry)
-    return DEFAULT_THRESHOLDS[settings.method], default_source(settings.method)
+    return get_method(settings.method).threshold, default_source(settings.method)
 
 
 def default_source(method: str) -> str:

@@ -1,8 +1,8 @@
 """The localiser's per-frame step over a sharded map under ``torchrun``: each rank matches its shards and rank 0
 merges, so the stream is the one-process localiser's over the unsharded map, frame by frame.
 
-- ``ShardedExactMatcher``: exact causal sequence matching (``ExactMatcher``), each shard over the rows it owns.
-- ``ShardedShortlistMatcher``: the shortlist (``ShortlistMatcher``): each rank searches its shards' indexes, every
+- ``ShardedExactMatcher``: exact causal sequence matching (``DiagonalStepper``), each shard over the rows it owns.
+- ``ShardedShortlistMatcher``: the shortlist (``ShortlistStepper``): each rank searches its shards' indexes, every
   rank merges the nearest rows, re-ranks the candidates its shards own, and rank 0 merges the re-ranked ones.
 """
 
@@ -15,9 +15,7 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.localization.matchers import (
-    FullMapPass, Scored, elapsed_ms, found_candidates, window_distances,
-)
+from seqvpr.matchers.stream import FullPass, Scored, elapsed_ms, found_candidates, window_distances
 from seqvpr.sequences.online import DiagonalSums
 from seqvpr.sequences.topk import TopK, best_k, best_of, merge_topks, uniqueness
 from seqvpr.sequences.windows import window_starts
@@ -49,7 +47,7 @@ class ShardedExactMatcher(_Stateless):
             shard, record = sharded.open_shard(number), sharded.shards[number]
             owned = np.zeros(shard.info.count, dtype=bool)
             owned[record.own_first - record.first : record.own_last - record.first] = True
-            self.parts.append((FullMapPass(shard.descriptors), DiagonalSums(shard.frames.segment_ids, length), owned,
+            self.parts.append((FullPass(shard.descriptors), DiagonalSums(shard.frames.segment_ids, length), owned,
                                record.first))
 
     def reset(self) -> None:
@@ -83,7 +81,7 @@ class ShardedExactMatcher(_Stateless):
 
 
 class ShardedShortlistMatcher(_Stateless):
-    """``ShortlistMatcher`` over a sharded map: each rank searches its shards' indexes for the frame's ``shortlist``
+    """``ShortlistStepper`` over a sharded map: each rank searches its shards' indexes for the frame's ``shortlist``
     nearest owned rows, every rank merges them (the whole map's nearest, with flat indexes), re-ranks the candidate
     windows its shards own, and rank 0 merges those. Other ranks get None for every frame."""
 

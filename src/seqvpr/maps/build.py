@@ -30,7 +30,8 @@ from seqvpr.maps.files import (
     write_map,
 )
 from seqvpr.maps.index import model_record
-from seqvpr.methods import image_model, transformed_frames
+from seqvpr.matchers.frames import transformed_by
+from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel
 from seqvpr.pipeline import ProgressFactory, describe
 from seqvpr.sequences.matching import unit_rows
@@ -152,7 +153,7 @@ def build_map(
         if loaded is not None:
             loaded(source, traversal)
         traversal = describe_frames(traversal, description, models, device, progress, **extraction)
-        described.append(transformed_frames(traversal, traversal, models, device)[0])
+        described.append(transformed_by(traversal, models, device))
     whole = concatenate_traversals(described, Path(out).name)
     assert whole.descriptors is not None
     vectors = np.require(whole.descriptors, dtype=np.float32, requirements=["C", "W"])  # no copy if it is one

@@ -320,7 +320,7 @@ def open_map(folder: str | Path) -> SavedMap:
     paths = None if names is None else tuple(Path(name) for name in names)
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
                        column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder),
-                       names=names, crs=info.crs, **optional)
+                       names=names, crs=info.crs, stored=info.dtype, **optional)
     return SavedMap(folder, info, frames)
 
 
@@ -484,4 +484,4 @@ def map_table(sharded: ShardedMap) -> Traversal:
     return Traversal(sharded.folder.name, joined["frame_index"], joined["segment_ids"],
                      ShardedRows(sharded, shards), joined["image_paths"], joined["positions"],
                      joined["timestamps"], joined["headings"], source=str(sharded.folder), names=joined["names"],
-                     crs=shards[0].frames.crs)
+                     crs=shards[0].frames.crs, stored="sharded")

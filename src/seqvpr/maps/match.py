@@ -13,9 +13,11 @@ from seqvpr.errors import SeqvprError
 from seqvpr.maps.build import FrameDescription, describe_frames, model_records
 from seqvpr.maps.files import MapInfo, SavedMap
 from seqvpr.maps.index import model_record
-from seqvpr.methods import METHODS, check_run, run_method, transformed_frames
+from seqvpr.methods import METHODS, build_matcher, check_run
 from seqvpr.models.registry import TrainedModel
-from seqvpr.pipeline import MatchResult, MatchSettings, ProgressFactory
+from seqvpr.matchers.base import MatchResult, MatchSettings
+from seqvpr.matchers.frames import transformed_by
+from seqvpr.progress import ProgressFactory
 from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy
 
@@ -57,7 +59,7 @@ def describe_query(
     frames = query if query.descriptors is not None else describe_frames(
         query, FrameDescription.from_json(info.description), models, device, progress, **extraction)
     if "seqmatchnet" in (info.model or {}):
-        frames = transformed_frames(frames, frames, models, device)[0]
+        frames = transformed_by(frames, models, device)
     assert frames.descriptors is not None
     if frames.descriptors.shape[1] != info.dim:
         raise SeqvprError(f"{query.source or query.name} has {frames.descriptors.shape[1]}-D descriptors, "
@@ -109,6 +111,7 @@ def match_map(
     history: int = 0,
     nprobe: int = 16,
     progress: ProgressFactory | None = None,
+    search: Mapping[str, Any] | None = None,
     **extraction: Any,
 ) -> MatchResult:
     """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives; with
@@ -118,22 +121,24 @@ def match_map(
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     prepared = prepare_query(saved, query, method, settings, models, rerank, progress, **extraction)
     return match_prepared(saved, prepared, settings, index=index, rerank=rerank, shortlist=shortlist,
-                          history=history, nprobe=nprobe, progress=progress)
+                          history=history, nprobe=nprobe, progress=progress, search=search)
 
 
 def match_prepared(
     saved: SavedMap, prepared: PreparedQuery, settings: MatchSettings, *, index: str = "flat", rerank: int = 0,
     shortlist: int = 0, history: int = 0, nprobe: int = 16, progress: ProgressFactory | None = None,
+    search: Mapping[str, Any] | None = None,
 ) -> MatchResult:
-    """``match_map`` on a query already described as the map's frames (``prepare_query``)."""
+    """``match_map`` on a query already described as the map's frames (``prepare_query``); ``search``: the
+    method's own settings (steps, contrast window)."""
     frames, method, models = prepared.frames, prepared.method, prepared.models
     if shortlist:
         check_shortlist(saved, method, models)
         return shortlist_match(saved, frames, method, settings, shortlist, nprobe, history)
     if uses_window_index(saved, method, settings, models, rerank):
         return indexed_retrieval(saved, frames, settings, nprobe)
-    return run_method(method, saved.frames, frames, replace(settings), models, index=index, rerank=rerank,
-                      progress=progress)
+    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress,
+                         **(search or {})).topk(saved.frames, frames)
 
 
 def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:

@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 
 DEFAULT_OVERLAP = 63  # windows of up to 64 frames (any velocity) are never cut
 SHARDABLE_FAMILIES = ("matching", "retrieval")  # per-window scores: a shard's top-K over its own frames is exact
-WHOLE_MAP_SCORERS = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole map
+WHOLE_MAP_SEARCHES = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole map
 
 
 @dataclass(frozen=True)
@@ -128,14 +128,13 @@ def _index_like(source: SavedMap, shard_folder: Path) -> None:
               method, (record.get("model") or {}).get("folder"))
 
 
-def check_shardable(method: str, settings, sharded: ShardedMap) -> None:
+def check_shardable(method: str, settings, sharded: ShardedMap, search: Mapping[str, Any] | None = None) -> None:
     """A method whose per-window scores a shard can compute from the rows it holds: the frames its windows cover
-    (its scorer's span: adaptive paths, SeqSLAM's contrast neighbourhood) fit in the shards' overlap."""
-    from seqvpr.methods import get_method, window_scorer
-    from seqvpr.sequences.matching import max_span
+    (its matcher's span: adaptive paths, SeqSLAM's contrast neighbourhood) fit in the shards' overlap."""
+    from seqvpr.methods import build_matcher, get_method
 
     record = get_method(method)
-    if record.scorer in WHOLE_MAP_SCORERS:
+    if record.search in WHOLE_MAP_SEARCHES:
         raise SeqvprError(f"--method {method} votes with each query frame's best match over the whole map, which no "
                           "shard sees; match the unsharded map")
     family = record.family
@@ -143,8 +142,7 @@ def check_shardable(method: str, settings, sharded: ShardedMap) -> None:
         raise SeqvprError(f"--method {method} scores whole paths or shortlists over the whole map; a sharded map "
                           f"is matched by sequence matching or sequence descriptors "
                           f"({', '.join(SHARDABLE_FAMILIES)} methods)")
-    scorer = window_scorer(record, settings)
-    span = scorer.span(settings.sequence) if scorer is not None else max_span(settings.sequence)
+    span = build_matcher(method, settings, {}, **(search or {})).span()
     if span - 1 > sharded.overlap:
         raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
                           f"at most {sharded.overlap + 1}; this match needs {span} (shard it again with "
@@ -174,28 +172,30 @@ def shard_numbers(shards: int, rank: int, world: int) -> list[int]:
 
 def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settings,
                       models: Mapping[str, Any] | None = None, progress=None, *, shortlist: int = 0,
-                      history: int = 0, nprobe: int = 16, **extraction: Any) -> MatchResult | None:
+                      history: int = 0, nprobe: int = 16, search: Mapping[str, Any] | None = None,
+                      **extraction: Any) -> MatchResult | None:
     """Match ``query`` against every shard: under ``torchrun`` each rank its own shards, merged on rank 0 (other
     ranks get None); alone, all shards in turn. The result equals matching the unsharded map (shortlisted: with
-    flat indexes; each shard's own approximate index otherwise)."""
+    flat indexes; each shard's own approximate index otherwise). ``search``: the method's own settings (steps,
+    contrast window)."""
     from seqvpr import distributed
     from seqvpr.maps.match import prepare_query
 
-    check_shardable(method, settings, sharded)
+    check_shardable(method, settings, sharded, search)
     world = distributed.current()
     numbers = shard_numbers(len(sharded.shards), world.rank, world.size)
     prepared = distributed.everywhere(  # described once a rank, as the shards' (shared) description says
         lambda: prepare_query(sharded.open_shard(0), query, method, settings, models, 0, progress, **extraction))
     if shortlist:
         return shortlist_sharded_map(sharded, numbers, prepared, settings, shortlist, history, nprobe)
-    parts = distributed.gather_to_root(lambda: match_shards(sharded, numbers, prepared, settings, progress), world)
+    parts = distributed.gather_to_root(lambda: match_shards(sharded, numbers, prepared, settings, progress, search), world)
     if parts is None:
         return None
     return merge_shard_matches(sharded, [p for rank_parts in parts for p in rank_parts], prepared.frames, settings)
 
 
 def match_shards(sharded: ShardedMap, numbers: Sequence[int], prepared: PreparedQuery, settings,
-                 progress=None) -> list[ShardMatch]:
+                 progress=None, search: Mapping[str, Any] | None = None) -> list[ShardMatch]:
     """The top-K, in whole-map rows over owned frames, of each shard in ``numbers`` against the prepared query (a
     row in the whole map's top-K is in its shard's, which has fewer rivals), with the per-frame pairs of its top-1 matches where the method makes its own; a shard whose segments are all
     shorter than a window contributes nothing."""
@@ -210,7 +210,7 @@ def match_shards(sharded: ShardedMap, numbers: Sequence[int], prepared: Prepared
         if not (window_starts(shard.frames.segment_ids, max_span(spec), 0, spec.boundary) >= 0).any():
             parts.append(ShardMatch(number, _no_match(query, settings), None))
             continue
-        result = match_prepared(shard, prepared, settings, progress=progress)
+        result = match_prepared(shard, prepared, settings, progress=progress, search=search)
         pairs = None if result.correspondences is None else (
             result.correspondences[0], np.where(result.correspondences[1] >= 0, result.correspondences[1] + record.first, -1))
         parts.append(ShardMatch(number, owned_topk(result.topk, record, settings.k), pairs))

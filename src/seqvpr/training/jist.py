@@ -12,7 +12,7 @@ be wider than the negative radius (frames of one class would be negatives of eac
 ``queries_per_refresh`` random trainable queries and a pool of ``negative_pool`` reference windows: the frames
 they use are encoded once (no grad) and pooled into windows with ``model.pool``; the shared ``SequenceMiner`` picks
 the triplets with a kernel over those window descriptors. Validation is the pipeline's:
-``describe_with_jist`` then SeqGeM retrieval (``retrieve_traversals``) and Recall@K.
+``describe_with_jist`` then SeqGeM retrieval (``RetrievalMatcher``) and Recall@K.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from seqvpr.models.jist import (
     ImageStore, JistConfig, JistModel, build_jist, check_images_exist, describe_with_jist, encode_frames, save_jist,
     trainable_parameters,
 )
-from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+from seqvpr.matchers.retrieval import RetrievalMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec, window_frames
 from seqvpr.training.augment import augment_images
 from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members
@@ -381,8 +382,8 @@ class JistLearner(SequenceLearner):
         describe = lambda t: describe_with_jist(model, t, settings.width, settings.height, settings.device,  # noqa: E731
                                                 self.store, settings.infer_batch)
         match = MatchSettings(self.spec, k=max(settings.ks), device=settings.device)
-        result = retrieve_traversals(describe(data.val_reference), describe(data.val_query), "seqgem", match,
-                                     model=model.sequence_pool)
+        result = RetrievalMatcher(match, "seqgem", model.sequence_pool).topk(describe(data.val_reference),
+                                                                             describe(data.val_query))
         return evaluate_match(result, gt, settings.ks)
 
     def save_model(self, folder: Path, model: JistModel, metadata: dict[str, Any]) -> None:

@@ -22,7 +22,9 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqmatchnet, save_seqmatchnet
-from seqvpr.pipeline import MatchSettings, evaluate_match, match_traversals, transform_traversal
+from seqvpr.matchers.frames import transform_traversal
+from seqvpr.matchers.sequence import SequenceMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.losses import sequence_triplet_loss, window_part
 from seqvpr.training.settings import SeqMatchNetSettings
@@ -135,4 +137,4 @@ def evaluate_transform(
     """Recall@K of sequence matching over transformed descriptors (the core kernel, top-K)."""
     ref, qry = transform_traversal(reference, model, device), transform_traversal(query, model, device)
     settings = MatchSettings(spec, k=max(ks), device=device)
-    return evaluate_match(match_traversals(ref, qry, settings), gt, ks)
+    return evaluate_match(SequenceMatcher(settings).topk(ref, qry), gt, ks)

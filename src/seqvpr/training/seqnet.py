@@ -12,7 +12,7 @@ The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter 
   radius, kept only if they violate the margin, at most ``negatives``;
 * loss ``seqnet_triplet_loss``: the triplet hinge on Euclidean distances of SeqNet descriptors, the mean over
   every (query, positive, negative) of the batch;
-* validation: ``retrieve_traversals(..., "seqnet", model=...)`` (faiss flat index) + ``evaluate_match``;
+* validation: ``RetrievalMatcher(settings, "seqnet", model)`` (faiss flat index) + ``evaluate_match``;
 * model folder: ``models.seqnet.save_seqnet`` / ``load_seqnet``.
 """
 
@@ -29,7 +29,8 @@ import torch.nn.functional as F
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.pipeline import MatchSettings, evaluate_match, retrieve_traversals
+from seqvpr.matchers.retrieval import RetrievalMatcher
+from seqvpr.pipeline import MatchSettings, evaluate_match
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec, window_frames
@@ -165,7 +166,7 @@ class SeqNetLearner(DescriptorLearner):
 
     def validate(self, model: SeqNet, data: TrainingData, gt: GroundTruth, settings: SeqNetSettings) -> Evaluation:
         match = MatchSettings(self.spec, k=max(settings.ks), device=settings.device)
-        result = retrieve_traversals(data.val_reference, data.val_query, "seqnet", match, model=model)
+        result = RetrievalMatcher(match, "seqnet", model).topk(data.val_reference, data.val_query)
         return evaluate_match(result, gt, settings.ks)
 
     def save_model(self, folder: Path, model: SeqNet, metadata: dict[str, Any]) -> None:

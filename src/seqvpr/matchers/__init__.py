@@ -1,0 +1,4 @@
+"""One class per matching family, each with ``topk(reference, query)`` and ``stream(reference)``: frame sequence
+matching (``sequence``), retrieval by a sequence descriptor (``retrieval``), hierarchical (``hierarchical``), the
+HMM filter (``filter``) and graph matching (``graph``); what they share in ``base``, the one-frame steppers in
+``stream``. ``seqvpr.methods`` names the class of every method."""

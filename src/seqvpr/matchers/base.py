@@ -1,0 +1,98 @@
+"""What every matcher shares: the settings that decide any match, the result, the reference's and the query's rows
+as the kernel reads them, and the base class whose subclasses each write one family's search.
+
+A matcher is built once with its settings and models (``seqvpr.methods`` makes one from a method's name) and then
+answers ``topk(reference, query)`` for a whole query, or ``stream(reference)`` for one frame at a time. The
+reference is anything that follows ``seqvpr.data.reference.Reference``: a traversal, a saved map, a sharded map.
+"""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from seqvpr.data.reference import Reference
+from seqvpr.data.traversal import Traversal
+from seqvpr.progress import ProgressFactory
+from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.topk import TopK
+
+if TYPE_CHECKING:
+    from seqvpr.matchers.stream import Stepper
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """Top-K reference rows per query row, with the traversals they index."""
+
+    reference: Traversal
+    query: Traversal
+    topk: TopK
+    settings: MatchSettings
+    shortlist: TopK | None = None  # the candidates a shortlisted match re-ranked (None: exhaustive)
+    #: per-frame correspondences of the top-1 matches, (query rows, reference rows) [n_query, L], when the matcher
+    #: is not the constant-velocity window alignment (adaptive); None: the windows' own alignment
+    correspondences: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class Matcher(ABC):
+    """One family's search. A subclass writes ``topk``; ``stream`` defaults to recomputing the last window at each
+    frame (``seqvpr.matchers.stream.WindowStepper``), which a family with an incremental step replaces."""
+
+    family = ""  # the family a method record names (``seqvpr.methods``)
+
+    def __init__(self, settings: MatchSettings, progress: ProgressFactory | None = None) -> None:
+        self.settings, self.progress = settings, progress
+
+    def tick(self, total: int, what: str = "match"):
+        """A progress callback over ``total`` query frames, when the matcher was given a progress factory."""
+        return self.progress(total, what) if self.progress else None
+
+    @classmethod
+    def from_method(cls, method: Any, settings: MatchSettings, models: Mapping[str, Any], build: Callable[..., Matcher],
+                    progress: ProgressFactory | None = None, **conf: Any) -> Matcher:
+        """The matcher a method's record asks for (``seqvpr.methods.build_matcher`` calls it with the record, the
+        models by kind, itself as ``build`` for a matcher made of others, and the family's own settings in
+        ``conf``, of which each family reads what it knows). By default: the settings alone."""
+        return cls(settings, progress=progress)
+
+    @abstractmethod
+    def topk(self, reference: Reference, query: Traversal) -> MatchResult:
+        """The K best reference rows of every query frame."""
+
+    def stream(self, reference: Reference, exclusion: int = 10) -> Stepper:
+        """A stepper over ``reference`` taking one query frame at a time (causal windows)."""
+        from seqvpr.matchers.stream import WindowStepper
+
+        return WindowStepper(self, reference, exclusion)
+
+    def own_settings(self) -> dict[str, Any]:
+        """The family's own settings, for a run's record (none by default)."""
+        return {}
+
+    def prepare_frame(self, frame) -> torch.Tensor:
+        """One query frame's descriptor [D] as ``topk`` prepares a query's rows (float32, through the matcher's
+        transform, normalised if asked): what a stepper's ``push`` takes."""
+        from seqvpr.matchers.frames import frame_row
+
+        return frame_row(frame, getattr(self, "transform", None), self.settings.normalize)
+
+    def with_settings(self, settings: MatchSettings) -> Matcher:
+        """The same matcher under other common settings (K, sequences)."""
+        other = copy.copy(self)
+        other.settings = settings
+        return other
+
+    def span(self) -> int:
+        """Reference frames one window may cover (what a shard's overlap must hold)."""
+        from seqvpr.sequences.matching import max_span
+
+        return max_span(self.settings.sequence)
+
+

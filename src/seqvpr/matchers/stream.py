@@ -1,0 +1,251 @@
+"""Matching one query frame at a time: a ``Stepper`` takes each new frame's row (``Matcher.prepare_frame``: the
+descriptor as ``topk`` prepares a query's rows, transformed and normalised) and answers the K best reference rows
+of the window that ends at it, with a score, or None while the first L frames come in.
+
+- ``DiagonalStepper``: exact causal sequence matching by running diagonal sums (one distance pass a frame).
+- ``FilterStepper``: the topological filter, one distance pass a frame.
+- ``WindowStepper``: any matcher, by matching the last window's frames as a whole query (what its offline
+  ``topk`` gives for a causal window, frame for frame).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from seqvpr.data.reference import Reference
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.matchers.frames import matcher_rows, query_rows, transformed_reference
+from seqvpr.sequences.topk import best_k, best_of, uniqueness
+
+
+
+@dataclass(frozen=True)
+class Scored:
+    """One frame's answer: reference rows and distances (ascending), the score (higher: surer), milliseconds spent
+    measuring distances and stepping."""
+
+    indices: np.ndarray
+    distances: np.ndarray
+    score: float
+    distance_ms: float
+    sequence_ms: float
+
+
+class Stepper(Protocol):
+    """A matcher over one reference, a frame at a time; its state saves and restores (a restarted robot)."""
+
+    def push(self, frame: torch.Tensor) -> Scored | None: ...
+
+    def reset(self) -> None: ...
+
+    def state(self) -> dict[str, np.ndarray]: ...
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None: ...
+
+
+def elapsed_ms(since: float) -> float:
+    return (time.perf_counter() - since) * 1e3
+
+
+def ranked(values: np.ndarray, k: int, exclusion: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """The K best rows of a dense vector and the uniqueness of the best (over a list long enough to hold the best
+    other place)."""
+    indices, best = best_k(values, max(k, 2 * exclusion + 2))
+    return indices[:k], best[:k], uniqueness(indices, best, exclusion)
+
+
+class FullPass:
+    """One distance pass a frame over every reference row, the rows' squared norms computed once."""
+
+    def __init__(self, rows) -> None:
+        from seqvpr.sequences.matching import reference_squared_norms
+
+        self.rows = rows
+        self.norms = reference_squared_norms(rows)
+
+    def measure(self, frame: torch.Tensor) -> tuple[np.ndarray, float]:
+        """The frame's distances to every reference row [N], and the milliseconds they took."""
+        from seqvpr.sequences.matching import distances_to_reference
+
+        started = time.perf_counter()
+        return distances_to_reference(frame[None], self.rows, self.norms)[0], elapsed_ms(started)
+
+
+class DiagonalStepper(FullPass):
+    """Exact causal sequence matching of the last L frames against every reference row, incrementally."""
+
+    def __init__(self, matcher: Any, reference: Reference, exclusion: int = 10) -> None:
+        from seqvpr.sequences.online import DiagonalSums
+
+        super().__init__(matcher_rows(matcher, reference))
+        self.k, self.exclusion = matcher.settings.k, exclusion
+        self.sums = DiagonalSums(reference.segment_ids, matcher.settings.sequence.length)
+
+    def reset(self) -> None:
+        self.sums.reset()
+
+    def push(self, frame: torch.Tensor) -> Scored | None:
+        distances, distance_ms = self.measure(frame)
+        measured = time.perf_counter()
+        means = self.sums.push(distances)
+        if means is None:
+            return None
+        indices, values, score = ranked(means, self.k, self.exclusion)
+        return Scored(indices, values, score, distance_ms, elapsed_ms(measured))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return self.sums.state()
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.sums.load_state(state)
+
+
+class FilterStepper(FullPass):
+    """The topological filter, one distance pass a frame; its likelihood scale calibrated on the reference."""
+
+    def __init__(self, matcher: Any, reference: Reference) -> None:
+        from seqvpr.sequences.filter import TopologicalFilter, map_distance_scale
+
+        super().__init__(matcher_rows(matcher, reference))
+        self.k, settings = matcher.settings.k, matcher.filter_settings
+        scale = map_distance_scale(self.rows, self.norms, settings, seed=matcher.seed)
+        self.filter = TopologicalFilter(reference.segment_ids, scale, settings)
+
+    def reset(self) -> None:
+        self.filter.reset()
+
+    def push(self, frame: torch.Tensor) -> Scored | None:
+        distances, distance_ms = self.measure(frame)
+        measured = time.perf_counter()
+        self.filter.step(distances.astype(np.float64))
+        mass = self.filter.mass()
+        indices, values = best_k(1.0 - mass, self.k)
+        return Scored(indices, values, float(mass[indices[0]]), distance_ms, elapsed_ms(measured))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return self.filter.state()
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.filter.load_state(state)
+
+
+class WindowStepper:
+    """Any matcher a frame at a time: the last L frames matched as a whole query with causal windows, the last
+    frame's top-K kept (enough of it for the score). The reference is transformed and normalised once, as the
+    frames come, and the inner matcher does neither again."""
+
+    def __init__(self, matcher: Any, reference: Reference, exclusion: int = 10) -> None:
+        settings = matcher.settings
+        spec = replace(settings.sequence, align="causal", boundary="drop")
+        self.matcher = matcher.with_settings(replace(settings, sequence=spec, k=max(settings.k, 2 * exclusion + 2),
+                                                     normalize=False))
+        if not reference.stored:
+            reference = transformed_reference(matcher, reference)
+            reference = reference.frames.with_descriptors(query_rows(reference, settings).cpu().numpy())
+        if hasattr(self.matcher, "transform"):
+            self.matcher.transform = None
+        self.reference, self.k, self.exclusion = reference, settings.k, exclusion
+        self.frames: deque[np.ndarray] = deque(maxlen=spec.length)
+
+    def reset(self) -> None:
+        self.frames.clear()
+
+    def push(self, frame: torch.Tensor) -> Scored | None:
+        started = time.perf_counter()
+        self.frames.append(np.asarray(frame.cpu(), dtype=np.float32))
+        if len(self.frames) < self.frames.maxlen:
+            return None
+        window = Traversal.from_descriptors(np.stack(list(self.frames)), "window")
+        top = self.matcher.topk(self.reference, window).topk
+        indices, values = top.indices[-1], top.distances[-1]
+        score = uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, 0.0, elapsed_ms(started))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"frames": np.stack(list(self.frames)) if self.frames else np.zeros((0, 0), np.float32)}
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        frames = state["frames"]
+        if len(frames) > self.frames.maxlen:
+            raise SeqvprError(f"saved window holds {len(frames)} frames, this matcher keeps {self.frames.maxlen}")
+        self.reset()
+        self.frames.extend(frames)
+
+
+class ShortlistStepper:
+    """Candidates from a frame index (``neighbours(row, S)``: the S nearest reference rows of a frame, -1 padded),
+    over the window and the ``history`` frames before it carried forward, re-ranked by exact causal sequence
+    distance; the cost is independent of the reference's size."""
+
+    def __init__(self, matcher: Any, reference: Reference, neighbours, shortlist: int, history: int = 0,
+                 exclusion: int = 10, vectors: int | None = None) -> None:
+        from seqvpr.sequences.windows import window_starts
+
+        length = matcher.settings.sequence.length
+        self.reference, self.neighbours, self.length, self.k = reference, neighbours, length, matcher.settings.k
+        self.exclusion, self.count = exclusion, len(reference)
+        self.shortlist = min(shortlist, max(vectors if vectors is not None else self.count, 1))  # more finds nothing
+        self.frames: deque[torch.Tensor] = deque(maxlen=length)
+        self.found: deque[np.ndarray] = deque(maxlen=length + history)
+        self.window_exists = window_starts(reference.segment_ids, length, length - 1, "drop") >= 0
+
+    def reset(self) -> None:
+        self.frames.clear()
+        self.found.clear()
+
+    def push(self, frame: torch.Tensor) -> Scored | None:
+        started = time.perf_counter()
+        self.found.appendleft(self.neighbours(frame.numpy()[None], self.shortlist))
+        self.frames.append(frame)
+        measured = time.perf_counter()
+        if len(self.frames) < self.length:
+            return None
+        candidates = found_candidates(self.found, self.count)
+        candidates = candidates[self.window_exists[candidates]]
+        values = window_distances(self.reference.descriptors, self.frames, candidates - (self.length - 1))
+        indices, values = best_of(candidates, values)
+        if not len(indices):  # no candidate window: nothing to name (scored as a miss)
+            indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
+        score = uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
+
+    def state(self) -> dict[str, np.ndarray]:
+        found = np.array(list(self.found), np.int64).reshape(-1, self.shortlist)
+        dim = self.reference.dim
+        frames = torch.stack(list(self.frames)).numpy() if self.frames else np.zeros((0, dim), np.float32)
+        return {"found": found, "frames": frames}
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        if state["found"].shape[1:] != (self.shortlist,):
+            raise SeqvprError(f"saved shortlist holds {state['found'].shape[1:]} neighbours, this one {self.shortlist}")
+        self.reset()
+        self.found.extend(state["found"])
+        self.frames.extend(torch.from_numpy(row) for row in state["frames"])
+
+
+def found_candidates(found, count: int) -> np.ndarray:
+    """Reference rows ending a candidate window: each neighbour of the frame ``lag`` frames ago (``found[lag]``),
+    ``lag`` ahead, once each, inside the reference."""
+    rows = [neighbours[neighbours >= 0] + lag for lag, neighbours in enumerate(found)]
+    candidates = np.unique(np.concatenate(rows))
+    return candidates[candidates < count]
+
+
+def window_distances(descriptors, frames, starts: np.ndarray) -> np.ndarray:
+    """Mean order-aligned distances between the query ``frames`` (the last L, oldest first) and the reference windows
+    from ``starts``: a gather of (L + H) S x L rows at most, too few for a parallel kernel (whose threads would only
+    contend with faiss's)."""
+    if not len(starts):  # no candidate window (here): nothing to read
+        return np.zeros(0)
+    window = torch.stack(list(frames)).numpy()
+    length = len(window)
+    rows = starts[:, None] + np.arange(length)[None, :]
+    gathered = np.asarray(descriptors[rows.ravel()], np.float32).reshape(len(starts), length, -1)
+    return np.linalg.norm(gathered - window[None], axis=2).mean(axis=1).astype(np.float64)
