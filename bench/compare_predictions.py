@@ -54,9 +54,9 @@ SHORTLIST_METHODS = ("single", "matching", "seqmatchnet")
 STREAM_METHODS = ("matching", "single", "seqmatchnet", "hmm")
 MODELS_OF = {"seqmatchnet": ("seqmatchnet",), "seqnet": ("seqnet",), "jist": ("jist",),
              "hvpr": ("seqnet", "seqmatchnet"), "casevpr": ("seqnet", "seqmatchnet")}
-MAP_MODELS = ("seqmatchnet", "jist")  # models a map is built through (the others apply at match time)
+MAP_MODELS = {"seqmatchnet": "seqmatchnet", "jist": "jist"}  # method -> the model its map is built through
 QUICK_METHODS = ("single", "matching", "seqgem", "seqnet", "hmm")
-SINGLE_FRAME = ("single", "hmm")  # methods that take no -L
+SINGLE_FRAME = ("single", "hmm", "graph")  # methods that take no -L
 SHORTLIST = ("--shortlist", "10")
 KEPT = ("predictions.csv", "correspondences.csv")
 GP_DESCRIPTORS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"
@@ -229,9 +229,10 @@ def model_options(method: str, models: dict[str, Path]) -> list[str | Path]:
 
 
 def map_kind(method: str, models: dict[str, Path]) -> str:
-    """Which map a method matches: the plain one, or the one built through its seqmatchnet or jist model."""
-    kinds = [kind for kind in MODELS_OF.get(method, ()) if kind in MAP_MODELS and kind in models]
-    return kinds[-1] if kinds else "plain"
+    """Which map a method matches: the one built through its SeqMatchNet or JIST model, else the plain one (hvpr
+    and casevpr refuse a SeqMatchNet-transformed map: they apply the model themselves)."""
+    kind = MAP_MODELS.get(method, "plain")
+    return kind if kind in models else "plain"
 
 
 @dataclass
