@@ -59,6 +59,7 @@ QUICK_METHODS = ("single", "matching", "seqgem", "seqnet", "hmm")
 SINGLE_FRAME = ("single", "hmm", "graph")  # methods that take no -L
 SHORTLIST = ("--shortlist", "10")
 KEPT = ("predictions.csv", "correspondences.csv")
+JUDGED = ("predictions.csv", "estimates.csv", "refused.txt")  # a complete case holds one of these
 GP_DESCRIPTORS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"
 
 
@@ -315,19 +316,29 @@ def run_dataset(runner: Runner, dataset: Dataset, methods: tuple[str, ...], trai
     stream_cases(runner, dataset, models, maps, methods)
 
 
+def clear_cases(out: Path, names: list[str]) -> None:
+    """Remove an earlier run's case folders from OUT (only folders named DATASET.MODE.METHOD), so none is stale."""
+    if out.is_dir():
+        for folder in out.iterdir():
+            if folder.is_dir() and folder.name.count(".") == 2 and folder.name.split(".")[0] in names:
+                shutil.rmtree(folder)
+
+
 def run(src: Path, out: Path, data: Path, models: Path, threads: int, quick: bool) -> None:
     """Run every case (``quick``: a handful on Gardens Point, no models) with SRC's seqvpr into OUT."""
     runner = Runner(src.resolve(), out.resolve(), data.resolve(), models.resolve(), threads)
     runner.check_src()
     started = time.perf_counter()
     chosen = datasets(runner.data)[1:] if quick else datasets(runner.data)
+    clear_cases(runner.out, [d.name for d in datasets(runner.data)])
     for dataset in chosen:
         run_dataset(runner, dataset, QUICK_METHODS if quick else METHODS, train=not quick)
     shutil.rmtree(runner.work / "scratch", ignore_errors=True)
     cases = [p for p in runner.out.iterdir() if p.is_dir() and not p.name.startswith("_")]
     refused = sum((p / "refused.txt").exists() for p in cases)
-    print(f"{len(cases)} cases, {refused} refused, {len(runner.failures)} failed, "
-          f"{time.perf_counter() - started:.0f} s", flush=True)
+    empty = [p.name for p in cases if not any((p / name).exists() for name in JUDGED)]
+    print(f"{len(cases)} cases, {refused} refused, {len(runner.failures)} failed, {len(empty)} without an output "
+          f"{' '.join(empty)}; {time.perf_counter() - started:.0f} s", flush=True)
     if runner.failures:
         raise SystemExit("failed cases:\n" + "\n".join(runner.failures))
 
