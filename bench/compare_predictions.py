@@ -1,8 +1,8 @@
 """Proof that a refactor changes no prediction: run every method in every mode with one checkout's ``src/``, keep
 the outputs, and byte-compare two such runs case by case.
 
-Run from the repository root (CPU, one case at a time; about 15 minutes a run on 2 cores, plus about a minute to
-train the small models once; needs ../shared/data):
+Run from the repository root (CPU, one case at a time, one thread; about 13 minutes a run, plus about a minute to
+train the small models once; 150 MB in OUT; needs ../shared/data):
 
     .venv/bin/python bench/compare_predictions.py run --src /path/to/old/src --out runs/old --models runs/cmp-models
     .venv/bin/python bench/compare_predictions.py run --src src --out runs/new --models runs/cmp-models
@@ -12,7 +12,8 @@ train the small models once; needs ../shared/data):
 ``run`` calls the ``seqvpr`` CLI (``python -m seqvpr.cli``) with ``PYTHONPATH=SRC`` (the same interpreter for every
 checkout; it checks that ``seqvpr`` is imported from SRC) and ``SEQVPR_THREADS`` = ``--threads`` (default 1). Cases,
 on Nordland 64x32 (summer reference, winter query, ``--frames 17:2000``, ``--radius 1f``) and Gardens Point
-HDC-DELF descriptors (day_left reference, night_right query, ``--radius 2f``), all at ``-L 5``:
+HDC-DELF descriptors (day_left reference, night_right query, ``--radius 2f``), all at ``-L 5`` (no ``-L`` for
+single, hmm and graph, which use L = 1):
 
 * offline: every method, ``seqvpr match -r REF -q QUERY``;
 * map / sharded: every method, ``seqvpr match --map MAP`` on ``seqvpr map build`` of the reference, and on that map
@@ -23,9 +24,10 @@ HDC-DELF descriptors (day_left reference, night_right query, ``--radius 2f``), a
   exact and with ``--shortlist 10``.
 
 Methods with a model get small ones trained once into ``--models`` (fixed seeds, one epoch; about a minute in all)
-and reused: SeqMatchNet (seqmatchnet, hvpr, casevpr; its maps are built through it), SeqNet (seqnet, hvpr, casevpr)
-and, on Nordland only, JIST (it describes images; Gardens Point has descriptors only, so there jist runs without a
-model and its cases record the CLI's refusal). Each case keeps, under OUT/CASE/: predictions.csv and
+and reused: SeqMatchNet (seqmatchnet, whose maps are built through it; hvpr, casevpr on the plain map), SeqNet
+(seqnet, hvpr, casevpr) and, on Nordland only, JIST (it describes images, and its map is built through it; Gardens
+Point has descriptors only, so there jist runs without a model and its cases record the CLI's refusal). Each case
+keeps, under OUT/CASE/: predictions.csv and
 correspondences.csv (match), estimates.csv (localize: stream.csv less its ``*_ms`` latency columns, the only part
 that changes from run to run), or refused.txt (``refused: <the one error line>``, paths written as OUT, SRC, DATA,
 MODELS) where the CLI refuses the mode; failed.txt marks a crash. ``compare OLD NEW`` prints one line per case
