@@ -120,7 +120,7 @@ class Runner:
 
     def plain(self, text: str) -> str:
         """The text with this run's folders named OUT, SRC, DATA, MODELS, so two runs' refusals compare equal."""
-        for folder, name in ((self.out, "OUT"), (self.src, "SRC"), (self.models, "MODELS"), (self.data, "DATA")):
+        for folder, name in ((self.models, "MODELS"), (self.data, "DATA"), (self.out, "OUT"), (self.src, "SRC")):
             text = text.replace(str(folder.resolve()), name).replace(str(folder), name)
         return text
 
@@ -326,8 +326,9 @@ def clear_cases(out: Path, names: list[str]) -> None:
                 shutil.rmtree(folder)
 
 
-def run(src: Path, out: Path, data: Path, models: Path, threads: int, quick: bool) -> None:
-    """Run every case (``quick``: a handful on Gardens Point, no models) with SRC's seqvpr into OUT."""
+def run(src: Path, out: Path, data: Path, models: Path, threads: int, quick: bool) -> int:
+    """Run every case (``quick``: a handful on Gardens Point, no models) with SRC's seqvpr into OUT; 1 when a case
+    crashed (its stderr is printed), else 0."""
     runner = Runner(src.resolve(), out.resolve(), data.resolve(), models.resolve(), threads)
     runner.check_src()
     started = time.perf_counter()
@@ -342,7 +343,8 @@ def run(src: Path, out: Path, data: Path, models: Path, threads: int, quick: boo
     print(f"{len(cases)} cases, {refused} refused, {len(runner.failures)} failed, {len(empty)} without an output "
           f"{' '.join(empty)}; {time.perf_counter() - started:.0f} s", flush=True)
     if runner.failures:
-        raise SystemExit("failed cases:\n" + "\n".join(runner.failures))
+        print("failed cases:\n" + "\n".join(runner.failures), file=sys.stderr)
+    return 1 if runner.failures else 0
 
 
 def rows_differ(old: Path, new: Path) -> int:
@@ -379,17 +381,18 @@ def compare(old: Path, new: Path) -> int:
 
 
 def both(commit: str, new: Path, out: Path, data: Path, models: Path, threads: int, quick: bool) -> int:
-    """Check COMMIT out into a temporary worktree, run it and NEW into OUT/old and OUT/new, compare them."""
+    """Check COMMIT out into a temporary worktree, run it and NEW into OUT/old and OUT/new, compare them (1 when a
+    case differs or crashed)."""
     repo = Path(__file__).resolve().parents[1]
     tree = Path(tempfile.mkdtemp(prefix="seqvpr-old-")) / "tree"
     subprocess.run(["git", "-C", str(repo), "worktree", "add", "--detach", str(tree), commit], check=True)
     try:
-        run(tree / "src", out / "old", data, models, threads, quick)
+        crashed = run(tree / "src", out / "old", data, models, threads, quick)
     finally:
         subprocess.run(["git", "-C", str(repo), "worktree", "remove", "--force", str(tree)], check=False)
         shutil.rmtree(tree.parent, ignore_errors=True)
-    run(new, out / "new", data, models, threads, quick)
-    return compare(out / "old", out / "new")
+    crashed |= run(new, out / "new", data, models, threads, quick)
+    return compare(out / "old", out / "new") | crashed
 
 
 def main() -> None:
@@ -413,7 +416,7 @@ def main() -> None:
     sub.add_argument("new", type=Path)
     args = parser.parse_args()
     if args.command == "run":
-        run(args.src, args.out, args.data, args.models, args.threads, args.quick)
+        sys.exit(run(args.src, args.out, args.data, args.models, args.threads, args.quick))
     elif args.command == "compare":
         sys.exit(compare(args.old, args.new))
     else:
