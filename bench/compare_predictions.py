@@ -50,6 +50,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from _common import cpu_model
+
 METHODS = ("single", "matching", "seqmatchnet", "adaptive", "seqslam", "seqslam-cone", "seqslam-hybrid", "smoothing",
            "delta", "concat", "seqgem", "seqgem-signed", "seqnet", "jist", "hvpr", "casevpr", "hmm", "graph")
 SHORTLIST_METHODS = ("single", "matching", "seqmatchnet")
@@ -131,7 +133,7 @@ class Runner:
         found = Path(done.stdout.strip() or "?").resolve()
         if not found.is_relative_to(self.src.resolve()):
             raise SystemExit(f"seqvpr is imported from {found}, not from {self.src}: {done.stderr.strip()}")
-        print(f"seqvpr from {found}", flush=True)
+        print(f"{cpu_model()}, {self.threads} thread(s); seqvpr from {found}", flush=True)
 
 
 def refusal(done: subprocess.CompletedProcess) -> str | None:
