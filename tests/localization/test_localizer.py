@@ -21,7 +21,7 @@ from seqvpr.maps.index import IndexSpec, add_index
 from seqvpr.methods import run_method
 from seqvpr.pipeline import MatchSettings, describe, match_traversals
 from seqvpr.sequences.windows import SequenceSpec
-from tests.helpers import raises_one_line, write_route_files
+from tests.helpers import examples, raises_one_line, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def assert_same_as_offline(run, offline, k: int) -> None:
                                rtol=1e-5, atol=1e-6)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(st.integers(1, 30), st.integers(2, 30), st.integers(1, 6), st.integers(0, 2**31 - 1))
 def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
     rng = np.random.default_rng(seed)

@@ -19,7 +19,7 @@ from seqvpr.maps.files import open_sharded_map
 from seqvpr.maps.shards import match_sharded_map, shard_map, shard_ranges
 from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
-from tests.helpers import raises_one_line, run_cli, write_route_files
+from tests.helpers import examples, raises_one_line, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def whole(tmp_path_factory):
     return folder
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(count=st.integers(1, 500), shards=st.integers(1, 9), overlap=st.integers(0, 40))
 def test_shards_own_equal_runs_that_tile_the_map_and_store_overlap_beyond_them(count, shards, overlap):
     if shards > count:
