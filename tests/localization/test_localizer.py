@@ -201,6 +201,7 @@ def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
     np.testing.assert_array_equal(moved.index, again.index)
 
 
+@pytest.mark.slow
 def test_a_localiser_over_a_descriptor_map_imports_only_what_it_runs(route):
     code = f"""
 import sys

@@ -25,6 +25,8 @@ from tests.helpers import spawn_ranks
 from tests.training.test_seqmatchnet_training import SMALL as SMN, small_data
 from tests.training.test_seqnet_training import SMALL as SEQNET, route_data
 
+pytestmark = pytest.mark.slow  # every test spawns two gloo ranks
+
 
 def train(kind: str, out: Path, epochs: int, resume: bool = False):
     if kind == "seqmatchnet":
