@@ -1,5 +1,6 @@
 """Shared fixtures: where the real datasets live (skip cleanly when ../shared/data is absent), and a cache folder of
-the test run's own (``$SEQVPR_CACHE``), so the suite never writes into the user's home."""
+the test run's own (``$SEQVPR_CACHE``), so the suite never writes into the user's home; and hypothesis's profiles
+(``tests.helpers.examples``): few examples by default, each test's full count under ``CI=true``."""
 
 import os
 import shutil
@@ -7,9 +8,16 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+from tests.helpers import DEV_EXAMPLES, hypothesis_profile
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 _CACHE: list[str] = []
+
+settings.register_profile("dev", max_examples=DEV_EXAMPLES, deadline=None)
+settings.register_profile("ci", deadline=None)
+settings.load_profile(hypothesis_profile())
 
 
 def pytest_configure(config) -> None:

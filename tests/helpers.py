@@ -1,10 +1,28 @@
 """Small assertions shared by the test modules."""
 
+import os
 import sys
 
 import pytest
 
 from seqvpr.errors import SeqvprError
+
+#: hypothesis examples per property test in the default (``dev``) profile: a fast loop, every property still exercised
+DEV_EXAMPLES = 10
+
+
+def hypothesis_profile() -> str:
+    """``ci`` (each test's full example count) when the environment has ``CI=true`` or ``HYPOTHESIS_PROFILE=ci``,
+    else ``dev`` (at most DEV_EXAMPLES each), so the default run stays fast."""
+    if os.environ.get("CI", "").lower() == "true" or os.environ.get("HYPOTHESIS_PROFILE") == "ci":
+        return "ci"
+    return "dev"
+
+
+def examples(full: int) -> int:
+    """A property test's ``max_examples``: ``full`` under the ci profile, at most DEV_EXAMPLES otherwise (an explicit
+    ``@settings(max_examples=...)`` outranks any profile, so the count goes through here)."""
+    return full if hypothesis_profile() == "ci" else min(full, DEV_EXAMPLES)
 
 
 def raises_one_line(match: str, fn, *args, **kwargs) -> str:

@@ -128,6 +128,7 @@ def python(code: str, cwd: Path | None = None) -> str:
 LOADED = "import sys; print(sorted({m.split('.')[0] for m in sys.modules} & set(%r)))" % (HEAVY,)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args", [["--help"], ["match", "--help"], ["train", "jist", "--help"],
                                   ["train", "seqmatchnet", "--help"], ["ablate", "seqmatchnet", "--help"],
                                   ["benchmark", "--help"], ["demo", "--help"], ["extract", "--help"],
@@ -182,6 +183,7 @@ def model_folders(tmp_path_factory) -> dict[str, Path]:
     return {"root": root, **{k: root / k for k in ("seqmatchnet", "seqnet", "jist", "cosplace")}}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["seqmatchnet", "seqnet", "jist", "cosplace"])
 def test_loading_and_matching_with_any_model_imports_no_training_and_no_renderer(model_folders, kind, tmp_path):
     root = model_folders["root"]

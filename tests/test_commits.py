@@ -276,6 +276,7 @@ def child() -> None:
     main()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("writer", list(WRITERS), indirect=True)
 def test_a_killed_writer_leaves_the_old_output_and_its_temporary_is_swept(writer, tmp_path, capsys):
     """SIGKILL while the new output is being written: the folder is the old output; the next run removes the dead

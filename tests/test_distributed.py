@@ -54,6 +54,7 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fail_rank", [-1, 1])
 def test_gather_reaches_rank_0_in_order_or_fails_every_rank_with_the_failing_ranks_error(tmp_path, fail_rank):
     spawn_ranks(_rank, (free_port(), fail_rank, str(tmp_path)))

@@ -56,6 +56,7 @@ def _seqvpr_lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if line.startswith("seqvpr:")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rank", [0, 1])
 def test_a_lone_rank_ends_with_one_line_after_the_rank_timeout(sharded, rank):
     started = time.monotonic()
@@ -67,6 +68,7 @@ def test_a_lone_rank_ends_with_one_line_after_the_rank_timeout(sharded, rank):
     assert len(lines) == 1 and "did not join within 2 s" in lines[0] and "SEQVPR_RANK_TIMEOUT" in lines[0], err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rank", [0, 1])
 def test_sigterm_ends_a_rank_waiting_for_the_others_within_seconds(sharded, rank):
     process = _lone_rank(sharded, rank, None)  # the default timeout (minutes): only SIGTERM can end it here

@@ -87,6 +87,7 @@ def _snapshot(out) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command,signum", [("match", "SIGINT"), ("match", "SIGTERM"), ("extract", "SIGTERM"),
                                             ("map build", "SIGINT"), ("train", "SIGTERM")])
 def test_a_signalled_command_leaves_the_previous_output_or_none(interrupt_inputs, tmp_path, command, signum):

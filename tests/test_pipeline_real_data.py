@@ -8,6 +8,8 @@ import pytest
 
 from seqvpr.cli import main
 
+pytestmark = pytest.mark.slow  # whole real datasets: seconds each
+
 GARDENS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from seqvpr.maps import build_map
@@ -30,6 +31,7 @@ def test_build_map_reports_its_progress_on_the_seqvpr_logger(tmp_path, caplog, m
     assert any(line.startswith("describe") and "6/6 frames (100 %)" in line for line in lines), lines
 
 
+@pytest.mark.slow
 def test_the_library_says_nothing_until_logging_is_on_and_then_the_cli_lines(tmp_path):
     folder = image_folder(tmp_path / "images", 4)
     code = """

@@ -61,6 +61,7 @@ def test_busy_cores_is_the_median_of_the_kernels_runnable_count_less_this_proces
     assert threads.busy_cores(samples=1, stat=stat) is None
 
 
+@pytest.mark.slow
 def test_the_running_count_rises_with_busy_processes():
     spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     try:
@@ -108,6 +109,7 @@ print(json.dumps({{"open": after_open, "update": pool_counts()}}))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("apply, env", [("", {"SEQVPR_THREADS": "1"}),
                                         ("from seqvpr.threads import use_threads; use_threads(1)", {}),
                                         ("", {"OMP_NUM_THREADS": "1"})])
@@ -118,6 +120,7 @@ def test_the_policy_survives_the_numba_matchers_build_and_the_localisers_open(tm
     assert counts["update"] == {"torch": 1, "numba": 1, "faiss": 1}
 
 
+@pytest.mark.slow
 def test_without_the_policy_numbas_launch_resets_torch_which_is_why_it_exists():
     code = """
 import numpy as np, torch
@@ -132,6 +135,7 @@ print(torch.get_num_threads())
     assert fresh_python(code) != "1"
 
 
+@pytest.mark.slow
 def test_a_policy_applied_after_numba_started_still_holds_every_pool():
     code = """
 import json

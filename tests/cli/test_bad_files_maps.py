@@ -210,6 +210,7 @@ def test_an_index_is_never_paired_with_rows_rebuilt_since(world, tmp_path, monke
     assert open_map(tmp_path / "m").info.index is None
 
 
+@pytest.mark.slow
 def test_map_index_waits_for_no_one_while_a_build_holds_the_map(world, tmp_path, monkeypatch, capsys):
     """A concurrent ``map build`` holds the map's lock: ``map index`` is one line naming that process."""
     shutil.copytree(world / "good", tmp_path / "m")

@@ -88,6 +88,7 @@ def test_a_full_device(inputs, tmp_path, monkeypatch, capsys, kind):
         _assert_refused(code, err, "no space left on the device holding", out, folder, before, out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["map", "match"])
 def test_a_file_size_limit_is_a_line_not_a_signal(inputs, tmp_path, monkeypatch, capsys, kind):
     """Past ``ulimit -f`` the kernel sends SIGXFSZ, which would kill seqvpr with no word; it is ignored, so the

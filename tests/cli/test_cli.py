@@ -127,6 +127,7 @@ def test_malformed_predictions_file(monkeypatch, capsys, tmp_path, pair):
     assert code == 2 and "p.csv: line 2" in stderr and "\n" not in stderr.strip()
 
 
+@pytest.mark.slow
 def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypatch, capsys, tmp_path):
     import re
 

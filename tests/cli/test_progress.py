@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from seqvpr.cli.progress import line_progress
@@ -23,6 +24,7 @@ def test_a_line_every_ten_seconds_and_at_the_end():
     assert len(lines) == 5  # nothing more after the end
 
 
+@pytest.mark.slow
 def test_a_redirected_command_prints_progress_lines(tmp_path):
     folder = tmp_path / "images"
     folder.mkdir()

@@ -131,6 +131,7 @@ def recall(monkeypatch, capsys, out, reference, query):
     return json.loads(stdout)["recall"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["ros2-mcap", "ros1", "ros2-sqlite3-compressed"])
 def test_a_bag_gives_the_recall_of_its_image_folder(walking, tmp_path, monkeypatch, capsys, kind, monkeypatch_env=None):
     root, sides = walking

@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 
 from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.evaluation.predictions import correspondence_rows
+from tests.helpers import examples
 
 
 def _loop_rows(result, q_rows, r_rows, gt) -> list[list]:
@@ -26,7 +27,7 @@ def _loop_rows(result, q_rows, r_rows, gt) -> list[list]:
     return rows
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 9999), n_query=st.integers(1, 30), n_ref=st.integers(1, 30), length=st.integers(1, 6))
 def test_correspondence_rows_equal_a_plain_loop(seed, n_query, n_ref, length):
     rng = np.random.default_rng(seed)

@@ -9,6 +9,7 @@ from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_rad
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate, pr_curve
 from tests import oracles
+from tests.helpers import examples
 
 
 def random_gt(rng, n_q, n_r, density):
@@ -16,7 +17,7 @@ def random_gt(rng, n_q, n_r, density):
     return GroundTruth(sp.csr_array(dense)), dense
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=examples(80), deadline=None)
 @given(st.integers(1, 30), st.integers(1, 30), st.integers(1, 8), st.floats(0.0, 0.4), st.integers(0, 10**6))
 def test_recall_matches_loop(n_q, n_r, k, density, seed):
     rng = np.random.default_rng(seed)
@@ -51,7 +52,7 @@ def test_queries_without_window_are_not_scored():
     assert result.queries_evaluated == 2 and result.excluded_no_window == 1 and result.recall[1] == 1.0
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.tuples(st.integers(0, 5), st.booleans()), min_size=1, max_size=40), st.integers(0, 10))
 def test_pr_curve_matches_threshold_loop(matches, extra_positive):
     dist = np.array([m[0] for m in matches], dtype=float)
@@ -71,7 +72,7 @@ def test_pr_perfect_ranking():
     assert abs(curve.auc - 0.5) < 1e-12
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.integers(1, 40), st.integers(1, 40), st.floats(0.0, 20.0), st.integers(0, 10**6))
 def test_metric_radius_matches_brute_force(n_q, n_r, radius, seed):
     rng = np.random.default_rng(seed)
@@ -82,7 +83,7 @@ def test_metric_radius_matches_brute_force(n_q, n_r, radius, seed):
     assert (gt.positives.toarray() == brute).all()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.integers(0, 60), min_size=1, max_size=30), st.lists(st.integers(0, 60), min_size=1, max_size=30), st.integers(0, 4))
 def test_frame_radius_matches_brute_force(q_frames, r_frames, radius):
     q = Traversal.from_descriptors(np.zeros((len(q_frames), 1)))

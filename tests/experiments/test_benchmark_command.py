@@ -140,6 +140,7 @@ min_images = 2
 """
 
 
+@pytest.mark.slow
 def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, capsys, tmp_path):
     from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
     from seqvpr.experiments.benchmark import load_splits, read_config

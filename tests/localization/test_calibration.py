@@ -5,10 +5,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.localization.calibration import find_threshold, precision_at
-from tests.helpers import raises_one_line
+from tests.helpers import examples, raises_one_line
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(st.lists(st.tuples(st.sampled_from([0.1, 0.2, 0.3, 0.5, 0.9]), st.booleans()), min_size=1, max_size=30),
        st.sampled_from([0.5, 0.8, 0.99, 1.0]))
 def test_the_threshold_is_the_lowest_that_reaches_the_target(pairs, target):

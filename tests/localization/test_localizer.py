@@ -22,7 +22,7 @@ from seqvpr.methods import run_method
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.pipeline import MatchSettings, describe
 from seqvpr.sequences.windows import SequenceSpec
-from tests.helpers import raises_one_line, write_route_files
+from tests.helpers import examples, raises_one_line, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ def assert_same_as_offline(run, offline, k: int) -> None:
                                rtol=1e-5, atol=1e-6)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(st.integers(1, 30), st.integers(2, 30), st.integers(1, 6), st.integers(0, 2**31 - 1))
 def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
     rng = np.random.default_rng(seed)
@@ -202,6 +202,7 @@ def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
     np.testing.assert_array_equal(moved.index, again.index)
 
 
+@pytest.mark.slow
 def test_a_localiser_over_a_descriptor_map_imports_only_what_it_runs(route):
     code = f"""
 import sys

@@ -17,7 +17,7 @@ from seqvpr.maps.match import shortlist_recall
 from seqvpr.pipeline import MatchSettings, ground_truth
 from seqvpr.sequences.hierarchical import frame_shortlist
 from seqvpr.sequences.windows import SequenceSpec, window_starts
-from tests.helpers import raises_one_line, write_route_files
+from tests.helpers import examples, raises_one_line, write_route_files
 
 SETTINGS = MatchSettings(SequenceSpec(5), k=10)
 
@@ -37,7 +37,7 @@ def test_index_specs_parse_and_bad_ones_are_one_line():
         raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 2", parse_index_spec, bad)
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=examples(80), deadline=None)
 @given(st.integers(1, 6), st.integers(1, 4), st.integers(8, 30), st.sampled_from(["centered", "causal"]),
        st.integers(0, 4), st.integers(0, 2**32 - 1))
 def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align, history, seed):

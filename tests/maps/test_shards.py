@@ -19,7 +19,7 @@ from seqvpr.maps.files import open_sharded_map
 from seqvpr.maps.shards import match_sharded_map, shard_map, shard_ranges
 from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
-from tests.helpers import raises_one_line, run_cli, write_route_files
+from tests.helpers import examples, raises_one_line, run_cli, write_route_files
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def whole(tmp_path_factory):
     return folder
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(count=st.integers(1, 500), shards=st.integers(1, 9), overlap=st.integers(0, 40))
 def test_shards_own_equal_runs_that_tile_the_map_and_store_overlap_beyond_them(count, shards, overlap):
     if shards > count:
@@ -130,6 +130,7 @@ def stream_columns(run: Path) -> list[list[str]]:
     return [line.split(",")[:11] for line in (run / "stream.csv").read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_rank_fails_the_run(whole, tmp_path,
                                                                                                 monkeypatch, capsys):
     shard_map(whole / "map", tmp_path / "s", 3, 9)
@@ -165,6 +166,7 @@ def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_o
     assert code == 0 and f"count:           {one.info.count}" in out, err
 
 
+@pytest.mark.slow
 def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path,
                                                                                                    monkeypatch, capsys):
     shard_map(whole / "map", tmp_path / "s", 2, 9)
@@ -222,6 +224,7 @@ def test_a_shortlisted_sharded_match_is_the_whole_maps_with_flat_indexes(whole, 
     assert (got.topk.indices[:, 0] != exact.topk.indices[:, 0]).any() or length == 1  # a shortlist, not exact
 
 
+@pytest.mark.slow
 def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(whole, tmp_path, monkeypatch, capsys):
     code, out, err = run_cli(monkeypatch, capsys, "map", "shard", whole / "map", "--shards", "3", "--overlap", "9",
                              "--out", tmp_path / "s")
@@ -248,6 +251,7 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
     assert '"recall"' in (tmp_path / "two" / "run.json").read_text()  # the shortlist's recall, as for one map
 
 
+@pytest.mark.slow
 def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_and_needs_a_window_in_the_overlap(
         whole, indexed, tmp_path, monkeypatch, capsys):
     from seqvpr.localization import Localizer

@@ -185,6 +185,7 @@ def plain_descriptors(state: dict[str, torch.Tensor], folder) -> torch.Tensor:
         return plain_cosplace(state, torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2))
 
 
+@pytest.mark.slow
 def test_cosplace_raw_state_dict_describes_images_as_upstream(tmp_path):
     from seqvpr.data.sources import load_traversal
     from seqvpr.methods import describe_for_models
@@ -219,6 +220,7 @@ def test_cosplace_training_checkpoint_and_dataparallel_prefix_load(tmp_path):
         torch.testing.assert_close(model.module(images), plain_cosplace(state, images), atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_cosplace_missing_extra_or_misshapen_key_is_named(tmp_path):
     state = upstream_cosplace_state()
     cases = {
@@ -297,6 +299,7 @@ def test_jist_checkpoint_missing_or_extra_key_is_named(tmp_path):
     assert not any((tmp_path / name).exists() for name in "abc")
 
 
+@pytest.mark.slow
 def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsys, tmp_path):
     from seqvpr.data.sources import load_pair
     from seqvpr.methods import describe_for_models, run_method

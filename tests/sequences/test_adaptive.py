@@ -11,6 +11,7 @@ from hypothesis import given, settings, strategies as st
 from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_path
 from seqvpr.sequences.matching import frame_distances, sequence_distance_rows, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec, window_starts
+from tests.helpers import examples
 
 
 def brute_force(d: np.ndarray, q_start: int, length: int, anchor: int, steps: range, seg: np.ndarray) -> np.ndarray:
@@ -37,7 +38,7 @@ def random_case(seed: int, n_q: int, n_r: int, breaks: bool):
     return q, r, q_seg, r_seg
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 10_000), n_q=st.integers(3, 9), n_r=st.integers(3, 12), length=st.integers(1, 4),
        align=st.sampled_from(["centered", "causal"]), low=st.integers(0, 1), extra=st.integers(0, 2),
        breaks=st.booleans())
@@ -56,7 +57,7 @@ def test_adaptive_equals_every_path_by_a_plain_loop(seed, n_q, n_r, length, alig
         np.testing.assert_allclose(got[row], expected, rtol=1e-9, atol=1e-12)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 10_000), length=st.integers(1, 6), align=st.sampled_from(["centered", "causal"]),
        breaks=st.booleans())
 def test_unit_steps_are_the_constant_velocity_kernel(seed, length, align, breaks):

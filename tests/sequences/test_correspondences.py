@@ -12,9 +12,10 @@ from seqvpr.evaluation.metrics import frame_precision
 from seqvpr.sequences.adaptive import AdaptiveScorer
 from seqvpr.sequences.correspondences import adaptive_correspondences, window_correspondences
 from seqvpr.sequences.windows import SequenceSpec, window_starts
+from tests.helpers import examples
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 9999), length=st.integers(1, 5), align=st.sampled_from(["centered", "causal"]),
        boundary=st.sampled_from(["drop", "shift"]))
 def test_window_correspondences_pair_frame_k_with_frame_k(seed, length, align, boundary):
@@ -57,7 +58,7 @@ def test_adaptive_correspondences_at_unit_steps_are_the_windows():
     np.testing.assert_array_equal(got[1], expected[1])
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 9999), k=st.integers(1, 8), exclusion=st.integers(0, 4))
 def test_uniqueness_margins_equal_a_plain_loop(seed, k, exclusion):
     from seqvpr.evaluation.metrics import uniqueness_margins
@@ -75,7 +76,7 @@ def test_uniqueness_margins_equal_a_plain_loop(seed, k, exclusion):
     assert got[5] == np.inf
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 9999), length=st.integers(2, 7), boundary=st.sampled_from(["drop", "shift"]),
        which=st.sampled_from(["kernel", "contrast", "hybrid"]))
 def test_trajectory_correspondences_follow_the_trajectory_that_scored_the_match(seed, length, boundary, which):

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from seqvpr.sequences.filter import FilterSettings, TopologicalFilter, distance_scale, filter_topk
 from seqvpr.sequences.matching import reference_squared_norms
-from tests.helpers import raises_one_line
+from tests.helpers import examples, raises_one_line
 
 
 def oracle_step(belief, distances, segments, settings, scale):
@@ -27,7 +27,7 @@ def oracle_step(belief, distances, segments, settings, scale):
     return post / post.sum()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.integers(2, 15), st.integers(-2, 1), st.integers(0, 3), st.floats(0.0, 0.2), st.integers(0, 2**31 - 1))
 def test_a_step_equals_the_loop_forward_pass(n, low, span, floor, seed):
     rng = np.random.default_rng(seed)

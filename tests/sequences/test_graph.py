@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 
 from seqvpr.sequences.graph import GraphSettings, graph_topk, path_costs
 from seqvpr.sequences.windows import segment_bounds
+from tests.helpers import examples
 
 HIDDEN = -1
 
@@ -37,7 +38,7 @@ def brute_force(d, q_seg, r_seg, low, fanout, hidden):
     return best / (ends - starts)[:, None]
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 9999), n_q=st.integers(1, 4), n_r=st.integers(1, 4), low=st.integers(0, 1),
        extra=st.integers(0, 1), breaks=st.booleans(), hidden=st.floats(0.05, 1.0))
 def test_min_marginals_equal_every_path_by_a_plain_loop(seed, n_q, n_r, low, extra, breaks, hidden):

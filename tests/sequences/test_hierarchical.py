@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from seqvpr.sequences.hierarchical import rerank
 from seqvpr.sequences.matching import TopK, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
-from tests.helpers import raises_one_line
+from tests.helpers import examples, raises_one_line
 from tests.oracles import sequence_distances
 
 
@@ -21,7 +21,7 @@ def whole_reference(n_q, n_r):
     return TopK(np.tile(np.arange(n_r), (n_q, 1)), np.zeros((n_q, n_r)), np.ones(n_q, dtype=bool))
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 10_000), length=st.integers(1, 6), boundary=st.sampled_from(["drop", "shift"]),
        align=st.sampled_from(["centered", "causal"]))
 def test_whole_reference_shortlist_equals_exhaustive_sequence_matching(seed, length, boundary, align):

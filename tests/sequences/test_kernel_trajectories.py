@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 from seqvpr.sequences.correspondences import kernel_trajectories, trajectory_correspondences
 from seqvpr.sequences.matching import max_span, sequence_rows, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
+from tests.helpers import examples
 
 
 class _KernelInTheLoop:
@@ -25,7 +26,7 @@ class _KernelInTheLoop:
         return tuple(spec.velocities)
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 9999), length=st.integers(1, 7), boundary=st.sampled_from(["drop", "shift"]),
        dtype=st.sampled_from([torch.float32, torch.float64]), stored=st.booleans())
 def test_kernel_trajectories_equal_the_per_query_loop(seed, length, boundary, dtype, stored):

@@ -10,6 +10,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import BLOCK_BYTES, block_shape, frame_distances, sequence_distance_matrix, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
+from tests.helpers import examples
 
 
 @st.composite
@@ -42,7 +43,7 @@ def assert_same(fast, slow, tol, atol=None):
     np.testing.assert_allclose(fast[finite], slow[finite], rtol=tol, atol=tol if atol is None else atol)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(problems(), st.booleans(), st.sampled_from([torch.float32, torch.float64]))
 def test_matrix_matches_loop(problem, inplace, dtype):
     q, r, spec, q_seg, r_seg = problem
@@ -53,7 +54,7 @@ def test_matrix_matches_loop(problem, inplace, dtype):
     assert_same(fast.numpy(), oracle_matrix(q, r, spec, q_seg, r_seg), 1e-4 if single else 1e-9, 1e-3 if single else None)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(problems(), st.integers(1, 6), st.integers(1, 5000))
 def test_blocked_topk_matches_full_matrix(problem, k, budget_rows):
     q, r, spec, q_seg, r_seg = problem
@@ -73,7 +74,7 @@ def test_blocked_topk_matches_full_matrix(problem, k, budget_rows):
         assert_same(got[ok], row[top.indices[i][ok]], 1e-9)  # GEMM distances: absolute error near zero
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(problems(), st.integers(1, 6), st.integers(1, 40))
 def test_reference_chunks_give_the_unchunked_topk(problem, k, chunk):
     q, r, spec, q_seg, r_seg = problem

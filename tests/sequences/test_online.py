@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.online import DiagonalSums
 from tests import oracles
-from tests.helpers import raises_one_line
+from tests.helpers import examples, raises_one_line
 
 
 @st.composite
@@ -20,7 +20,7 @@ def streams(draw):
     return rng.normal(size=(n_q, dim)), rng.normal(size=(n_r, dim)), length, q_seg, r_seg
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(streams())
 def test_running_sums_equal_causal_windows_frame_by_frame(stream):
     q, r, length, q_seg, r_seg = stream

@@ -11,6 +11,7 @@ from seqvpr.sequences.adaptive import AdaptiveScorer
 from seqvpr.sequences.matching import frame_distances, sequence_topk
 from seqvpr.sequences.seqslam import MIN_STD, ContrastScorer, enhance_contrast
 from seqvpr.sequences.windows import SequenceSpec
+from tests.helpers import examples
 
 
 def plain_enhance(d: np.ndarray, seg: np.ndarray, window: int) -> np.ndarray:
@@ -24,7 +25,7 @@ def plain_enhance(d: np.ndarray, seg: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 9999), n_r=st.integers(1, 25), window=st.integers(2, 12), breaks=st.booleans())
 def test_contrast_enhancement_equals_a_plain_loop(seed, n_r, window, breaks):
     rng = np.random.default_rng(seed)
@@ -128,7 +129,7 @@ def scored_against_a_plain_loop(scorer, plain, seed, length, align, low, high, b
         np.testing.assert_allclose(part[row], plain(d[:, 7:], best - 7, int(start), spec, r_seg[7:]), rtol=1e-9)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(**SHAPES)
 def test_cone_search_counts_best_matches_inside_the_cone_as_a_plain_loop(seed, length, align, low, high, breaks,
                                                                          boundary):
@@ -139,7 +140,7 @@ def test_cone_search_counts_best_matches_inside_the_cone_as_a_plain_loop(seed, l
                                 seed, length, align, low, high, breaks, boundary)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(**SHAPES)
 def test_hybrid_search_keeps_trajectories_through_a_best_match_as_a_plain_loop(seed, length, align, low, high,
                                                                                breaks, boundary):

@@ -24,7 +24,7 @@ from seqvpr.sequences.descriptors import (
 )
 from seqvpr.sequences.retrieval import build_index, retrieve
 from seqvpr.sequences.windows import SequenceSpec, segment_bounds, window_starts
-from tests.helpers import raises_one_line
+from tests.helpers import examples, raises_one_line
 
 
 def unit(v):
@@ -177,7 +177,7 @@ def layouts(draw):
     return segments, length, align
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(layouts())
 def test_windows_respect_segments_and_boundary_rule(layout):
     segments, length, align = layout

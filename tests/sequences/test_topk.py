@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.sequences.topk import TopK, TopKMerge, best_k, merge_topks, other_place, uniqueness
+from tests.helpers import examples
 
 
 def sorted_oracle(values: np.ndarray, k: int) -> list[int]:
@@ -29,7 +30,7 @@ def _tied(width: int, seed: int) -> np.ndarray:
     return values
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(tied_matrices, st.data())
 def test_scan_and_merge_keep_the_sorted_topk_under_any_chunking(case, data):
     k, values = case
@@ -44,7 +45,7 @@ def test_scan_and_merge_keep_the_sorted_topk_under_any_chunking(case, data):
             assert rows_of(top.indices[i]) == sorted_oracle(values[i], k)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(tied_matrices, st.integers(1, 5), st.integers(0, 2**32 - 1))
 def test_merging_shards_in_any_order_is_the_whole_topk(case, shards, seed):
     k, values = case
@@ -62,7 +63,7 @@ def test_merging_shards_in_any_order_is_the_whole_topk(case, shards, seed):
         assert np.isinf(top.distances[i][top.indices[i] < 0]).all()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.sampled_from([0.5, 1.0, 2.0, np.inf]), min_size=1, max_size=30), st.integers(1, 8))
 def test_best_k_of_a_dense_vector_is_the_sorted_list(values, k):
     values = np.array(values)
@@ -72,7 +73,7 @@ def test_best_k_of_a_dense_vector_is_the_sorted_list(values, k):
     np.testing.assert_array_equal(best, np.sort(values)[: min(k, len(values))])
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=25), st.integers(0, 6))
 def test_uniqueness_is_one_minus_best_over_the_best_elsewhere(values, exclusion):
     values = np.array(values)

@@ -6,9 +6,10 @@ from hypothesis import strategies as st
 
 from seqvpr.sequences.windows import window_starts
 from tests import oracles
+from tests.helpers import examples
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.booleans(), max_size=30), st.integers(1, 8), st.integers(0, 7), st.sampled_from(["drop", "shift"]))
 def test_window_starts_match_oracle(breaks, span, offset, boundary):
     offset = min(offset, span - 1)

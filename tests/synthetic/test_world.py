@@ -22,6 +22,7 @@ from seqvpr.synthetic.world import (
     route,
     write_demo_world,
 )
+from tests.helpers import examples
 
 SMALL = (64, 48)
 
@@ -91,7 +92,7 @@ def test_stops_repeat_positions_while_frames_and_time_advance(test_route):
     assert np.ptp(steps[~standing]) > 1.0  # speed really varies
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(
     variation=st.floats(0.0, 0.9),
     stops=st.integers(0, 3),

@@ -12,13 +12,14 @@ from hypothesis import strategies as st
 from seqvpr.errors import SeqvprError
 from seqvpr.training.augment import LUMA, augment_images, colour_jitter, crop_boxes, random_resized_crop, turn_hue
 from seqvpr.training.settings import JistTrainSettings
+from tests.helpers import examples
 
 
 def images(count: int = 4, height: int = 12, width: int = 16, seed: int = 0) -> torch.Tensor:
     return torch.rand(count, 3, height, width, generator=torch.Generator().manual_seed(seed))
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(st.integers(1, 5), st.integers(2, 20), st.integers(2, 20), st.floats(0, 1), st.floats(0, 0.5),
        st.floats(0.05, 1), st.integers(0, 1000))
 def test_shape_range_and_seed(count, height, width, jitter, hue, scale, seed):
@@ -29,7 +30,7 @@ def test_shape_range_and_seed(count, height, width, jitter, hue, scale, seed):
     assert float(first.min()) >= 0.0 and float(first.max()) <= 1.0
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(st.integers(1, 5), st.integers(1, 40), st.integers(1, 40), st.floats(0.01, 1), st.integers(0, 1000))
 def test_crop_boxes_lie_inside_the_image(count, height, width, scale, seed):
     boxes = crop_boxes(np.random.default_rng(seed), count, height, width, scale)

@@ -25,6 +25,8 @@ from tests.helpers import spawn_ranks
 from tests.training.test_seqmatchnet_training import SMALL as SMN, small_data
 from tests.training.test_seqnet_training import SMALL as SEQNET, route_data
 
+pytestmark = pytest.mark.slow  # every test spawns two gloo ranks
+
 
 def train(kind: str, out: Path, epochs: int, resume: bool = False):
     if kind == "seqmatchnet":
@@ -60,15 +62,33 @@ def state_weights(folder: Path) -> dict:
     return ckpt.read_tensors(folder / state["state_dir"] / ckpt.MODEL_FILE)
 
 
+@pytest.fixture(scope="module")
+def alone_run(tmp_path_factory):
+    """``alone_run(kind)``: the single-process 3-epoch run (one thread, as each rank) and its folder, trained once
+    per kind for the module's tests that compare the ranks with it."""
+    from seqvpr.threads import use_threads
+
+    runs: dict[str, tuple] = {}
+
+    def run(kind: str) -> tuple:
+        if kind not in runs:
+            use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
+            out = tmp_path_factory.mktemp(f"alone-{kind}")
+            runs[kind] = (train(kind, out, 3), out)
+        return runs[kind]
+
+    return run
+
+
 @pytest.mark.parametrize("kind", ["seqmatchnet", "seqnet"])
-def test_two_ranks_train_the_single_process_model_and_resume(tmp_path, kind):
+def test_two_ranks_train_the_single_process_model_and_resume(tmp_path, kind, alone_run):
     from seqvpr.threads import use_threads
 
     use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
-    alone = train(kind, tmp_path / "alone", 3)
+    alone, alone_dir = alone_run(kind)
     spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "two"), [(3, False)]))
     spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "resumed"), [(1, False), (3, True)]))
-    expected = state_weights(tmp_path / "alone")
+    expected = state_weights(alone_dir)
     for run in ("two", "resumed"):
         got = state_weights(tmp_path / run)
         assert got.keys() == expected.keys()
@@ -181,7 +201,7 @@ def _rank_failing_in_epoch_2(rank: int, port: int, out: str) -> None:
     _rank(rank, port, "seqmatchnet", out, [(3, False)])
 
 
-def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whole_epoch_to_resume(tmp_path):
+def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whole_epoch_to_resume(tmp_path, alone_run):
     from seqvpr.threads import use_threads
 
     use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
@@ -191,8 +211,8 @@ def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whol
     assert [h["epoch"] for h in state["history"]] == [0, 1]  # epoch 1 whole (after the untrained 0), none of 2
     assert not list((tmp_path / "run").rglob("*.part"))
     spawn_ranks(_rank, (free_port(), "seqmatchnet", str(tmp_path / "run"), [(3, True)]))
-    alone = train("seqmatchnet", tmp_path / "alone", 3)
-    expected, got = state_weights(tmp_path / "alone"), state_weights(tmp_path / "run")
+    alone, alone_dir = alone_run("seqmatchnet")
+    expected, got = state_weights(alone_dir), state_weights(tmp_path / "run")
     for key in expected:
         np.testing.assert_allclose(got[key].numpy(), expected[key].numpy(), rtol=1e-5, atol=1e-6, err_msg=key)
     assert [h["triplets"] for h in ckpt.read_json(tmp_path / "run" / STATE_JSON)["history"]] == [

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 from torch import nn
@@ -59,6 +60,7 @@ def inverted_world(root: Path, places: int, seed: int) -> tuple[Traversal, Trave
     return traversal(root / f"reference{seed}", reference), traversal(root / f"query{seed}", query)
 
 
+@pytest.mark.slow
 def test_training_lifts_recall_on_unseen_places(tmp_path):
     train, validation = inverted_world(tmp_path, 60, seed=0), inverted_world(tmp_path, 30, seed=1)
     data = TrainingData(*train, *validation, Radius(SPACING, "m"), Radius(2.5 * SPACING, "m"), Radius(SPACING, "m"))

@@ -60,6 +60,7 @@ def assert_consistent(out):
     assert not [p for p in out.parent.rglob("*") if TEMP_TAG in p.name]
 
 
+@pytest.mark.slow
 def test_a_failure_at_any_rename_leaves_one_epochs_set_and_resume_reaches_the_same_weights(tmp_path, monkeypatch):
     whole = train(tmp_path / "whole")
     with monkeypatch.context() as patch:

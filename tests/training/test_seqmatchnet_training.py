@@ -270,6 +270,7 @@ def test_the_untrained_epoch_is_kept_only_when_asked(tmp_path):
     assert nothing.best_epoch == 0 and (tmp_path / "none" / "config.json").is_file()
 
 
+@pytest.mark.slow
 def test_two_processes_with_one_seed_give_bit_identical_weights(tmp_path):
     """Fresh processes (threads and all), as two users' runs are: the weights are equal to the bit (CPU)."""
     import subprocess
@@ -292,6 +293,7 @@ def test_two_processes_with_one_seed_give_bit_identical_weights(tmp_path):
         assert torch.equal(runs[0][key], runs[1][key]), key
 
 
+@pytest.mark.slow
 def test_kill_9_mid_run_then_resume_gives_bit_identical_weights(tmp_path):
     """A training process killed with SIGKILL once an epoch's state is saved, then ``--resume``: the weights of an
     uninterrupted run, to the bit."""

@@ -21,8 +21,9 @@ from seqvpr.training.mining import (
     seqmatch_rows,
 )
 from tests import oracles
+from tests.helpers import examples
 
-FEW = settings(max_examples=25, deadline=None)
+FEW = settings(max_examples=examples(25), deadline=None)
 
 
 def segment_ids(draw, n):
@@ -280,7 +281,7 @@ def brute_force_kernel(spec, r_seg):
     return rows
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(mining_problems(), st.integers(0, 2**31 - 1))
 def test_pooled_miner_with_injected_brute_force_kernel_is_identical(problem, seed):
     q, r, spec, q_seg, r_seg = problem
