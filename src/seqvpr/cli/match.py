@@ -52,7 +52,7 @@ def for_methods(*names: str) -> str:
 
 
 @click.command(cls=SectionedCommand, epilog=MATCH_EPILOG, sections=MATCH_SECTIONS,
-               listings={"Method": ("--method METHOD is one of:", [(m.name, m.summary) for m in METHODS.values()])})
+               listings={"Method": ("METHOD is one of:", [(m.name, m.summary) for m in METHODS.values()])})
 @option("Input", "--reference", "-r", help="Reference traversal: descriptor file, image folder, .db or .toml.")
 @option("Input", "--map", "map_dir", type=click.Path(),
         help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described as the "
