@@ -45,6 +45,11 @@ def option(title: str, *decls: str, **attrs: Any) -> Callable[[Callable], Callab
     return section(title, click.option(*decls, **attrs))
 
 
+def for_methods(*names: str) -> str:
+    """The start of a method-specific option's help line: the methods it applies to ("adaptive, casevpr: ")."""
+    return f"{', '.join(names)}: "
+
+
 class SectionedCommand(click.Command):
     """A command whose ``--help`` lists its options under titled sections (``sections``, in this order; a tag not
     named there follows them, untagged options come last under ``Other``), one column width for all of them.

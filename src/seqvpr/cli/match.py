@@ -19,7 +19,7 @@ from seqvpr.cli.options import (
     OUT_FOLDER,
     extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail,
 )
-from seqvpr.cli.help import SectionedCommand, option, section
+from seqvpr.cli.help import SectionedCommand, for_methods, option, section
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.methods import METHODS
@@ -39,16 +39,10 @@ Examples:
   seqvpr match -r run1.bag -q run2.bag --topic /camera/image_raw --gps-topic /fix --descriptor efficientnet-lite0
 """
 
-
 #: ``seqvpr match --help``'s sections, in order
 MATCH_SECTIONS = ("Input", "Sequences", "Method", "Map", "Ground truth and scoring", "Descriptors", "Output", "Compute")
 #: the methods that search sequence descriptors with faiss, alone or as a shortlist (--index, --rerank)
 RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retrieval", "hierarchical"))
-
-
-def for_methods(*names: str) -> str:
-    """The start of a method-specific option's help line: the methods it applies to ("adaptive, casevpr: ")."""
-    return f"{', '.join(names)}: "
 
 
 @click.command(cls=SectionedCommand, epilog=MATCH_EPILOG, sections=MATCH_SECTIONS,
