@@ -14,6 +14,7 @@ import warnings
 
 import click
 
+from seqvpr.cli.help import tag
 from seqvpr.errors import SeqvprError, SeqvprWarning, os_refusal
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
@@ -48,10 +49,10 @@ def _apply_threads(ctx: click.Context, param: click.Parameter, value: int | None
         use_threads(value)
 
 
-THREADS_OPTION = click.Option(
+THREADS_OPTION = tag(click.Option(
     ["--threads"], type=click.IntRange(min=1), is_eager=True, expose_value=False, callback=_apply_threads,
     help="Threads for torch, numba and faiss together [default: $SEQVPR_THREADS, else $OMP_NUM_THREADS, else the "
-         "cores no other process is busy on at start].")
+         "cores no other process is busy on at start]."), "Compute")
 
 
 def with_threads_option(command: click.Command) -> click.Command:

@@ -15,6 +15,7 @@ from seqvpr.cli.options import (
     COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
     bag_topic_options, locks_output
 )
+from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError, SeqvprWarning
 
@@ -22,51 +23,65 @@ from seqvpr.errors import SeqvprError, SeqvprWarning
 RUN_FILE = "run.json"
 
 
-@click.command("localize", epilog="""\b
+#: ``seqvpr localize --help``'s sections, in order
+LOCALIZE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Ground truth and scoring", "Output", "Compute")
+
+
+@click.command("localize", cls=SectionedCommand, sections=LOCALIZE_SECTIONS, epilog="""\b
 Examples:
   seqvpr localize --map maps/summer -q winter/ --radius 1f --calibrate --target-precision 0.99
   seqvpr localize --map maps/summer -q winter2/ --radius 1f --out localised
   seqvpr localize --map maps/summer -q winter2/ --method hmm --radius 1f""")
-@click.option("--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
-@click.option("-q", "--query", required=True, type=click.Path(), help="The query traversal, replayed frame by frame.")
-@click.option("--frames", help="Keep query frames START:STOP (e.g. 17:2000).")
-@click.option("--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
-              help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through "
-                   "it; hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet "
-                   "with its --model]")
-@click.option("-L", "--seq-len", type=COUNT, default=5, show_default=True, help="Frames of a causal window.")
-@click.option("--model", "model_dirs", multiple=True, type=click.Path(), help="The model(s) the map was built through.")
-@click.option("--shortlist", type=NONNEGATIVE, default=0, show_default=True,
-              help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map).")
-@click.option("--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
-              help="With --shortlist: the H frames before the window place candidates too.")
-@click.option("--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits.")
-@click.option("--threshold", type=FINITE, help="Score from which an estimate is localised [default: the map's "
-                                              "calibrated one for these settings, else the method's default].")
-@click.option("--lost-after", type=COUNT, default=5, show_default=True, help="Frames below the threshold before 'lost'.")
-@click.option("--exclusion", type=NONNEGATIVE, default=10, show_default=True,
-              help="Frames around the best that are not 'another place' for the score.")
-@click.option("--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
-              help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
-@click.option("--min-step", type=NONNEGATIVE, default=0, show_default=True, help="hmm: fewest map frames moved per frame.")
-@click.option("--max-step", type=NONNEGATIVE, default=2, show_default=True, help="hmm: most map frames moved per frame (at most 1000).")
-@click.option("--floor", type=FRACTION, default=1e-3, show_default=True, help="hmm: chance per frame of a jump anywhere.")
-@click.option("--sharpness", type=POSITIVE, default=1.5, show_default=True, help="hmm: how sharply worse distances count.")
-@click.option("--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
-@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
-@click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
-              help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
-@click.option("--calibrate", is_flag=True, help="Pick the threshold reaching --target-precision on this query, "
-                                                "store it with the map (needs ground truth) and write the run at it.")
-@click.option("--target-precision", type=FRACTION, default=0.99, show_default=True)
-@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
-@click.option("--resume-state", type=click.Path(), help="Start from a saved localiser state.")
-@click.option("--save-state", type=OUT_FILE, help="Save the localiser's state after the last frame.")
-@click.option("--device", type=DEVICE, default="cpu", show_default=True)
-@click.option("--out", "out_dir", default="seqvpr-localize", show_default=True, type=OUT_FOLDER,
-              help="Folder for stream.csv, run.json and report/.")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
-@bag_topic_options("query")
+@option("Input", "--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
+@option("Input", "-q", "--query", required=True, type=click.Path(),
+        help="The query traversal, replayed frame by frame.")
+@option("Input", "--frames", help="Keep query frames START:STOP (e.g. 17:2000).")
+@option("Method", "--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
+        help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through it; "
+             "hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet with its "
+             "--model]")
+@option("Method", "-L", "--seq-len", type=COUNT, default=5, show_default=True, help="Frames of a causal window.")
+@option("Method", "--model", "model_dirs", multiple=True, type=click.Path(),
+        help="The model(s) the map was built through.")
+@option("Map", "--shortlist", type=NONNEGATIVE, default=0, show_default=True,
+        help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map).")
+@option("Map", "--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
+        help="With --shortlist: the H frames before the window place candidates too.")
+@option("Map", "--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits.")
+@option("Localiser", "--threshold", type=FINITE, help="Score from which an estimate is localised [default: the map's "
+                                                      "calibrated one for these settings, else the method's default].")
+@option("Localiser", "--lost-after", type=COUNT, default=5, show_default=True,
+        help="Frames below the threshold before 'lost'.")
+@option("Localiser", "--exclusion", type=NONNEGATIVE, default=10, show_default=True,
+        help="Frames around the best that are not 'another place' for the score.")
+@option("Localiser", "--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
+        help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
+@option("Method", "--min-step", type=NONNEGATIVE, default=0, show_default=True,
+        help="hmm: fewest map frames moved per frame.")
+@option("Method", "--max-step", type=NONNEGATIVE, default=2, show_default=True,
+        help="hmm: most map frames moved per frame (at most 1000).")
+@option("Method", "--floor", type=FRACTION, default=1e-3, show_default=True,
+        help="hmm: chance per frame of a jump anywhere.")
+@option("Method", "--sharpness", type=POSITIVE, default=1.5, show_default=True,
+        help="hmm: how sharply worse distances count.")
+@option("Ground truth and scoring", "--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
+@option("Ground truth and scoring", "--ground-truth", "gt_file", type=click.Path(),
+        help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
+@option("Ground truth and scoring", "--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
+        help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
+@option("Ground truth and scoring", "--calibrate", is_flag=True,
+        help="Pick the threshold reaching --target-precision on this query, store it with the map (needs ground "
+             "truth) and write the run at it.")
+@option("Ground truth and scoring", "--target-precision", type=FRACTION, default=0.99, show_default=True,
+        help="With --calibrate: the precision the threshold must reach.")
+@option("Ground truth and scoring", "--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@option("Localiser", "--resume-state", type=click.Path(), help="Start from a saved localiser state.")
+@option("Output", "--save-state", type=OUT_FILE, help="Save the localiser's state after the last frame.")
+@option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@option("Output", "--out", "out_dir", default="seqvpr-localize", show_default=True, type=OUT_FOLDER,
+        help="Folder for stream.csv, run.json and report/.")
+@option("Output", "--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
+@section("Input", bag_topic_options("query"))
 @locks_output("out_dir")
 def localize(**o: Any) -> None:
     """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""

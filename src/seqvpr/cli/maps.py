@@ -14,6 +14,7 @@ from seqvpr.cli.options import (
     NONNEGATIVE, SEED, extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options,
     locks_output
 )
+from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 
@@ -34,6 +35,8 @@ WINDOWS_HELP = ("Index the sequence descriptors (--window-method) of the centred
                 "instead of single frames: for --shortlist, one search per query window; and match --method "
                 "smoothing/delta/seqgem at that L searches it instead of pooling the map (0: frames).")
 METHOD_HELP = "The sequence descriptor an index over windows holds (seqnet: give its --index-model)."
+#: ``seqvpr map build --help``'s sections, in order
+BUILD_SECTIONS = ("Input", "Descriptors", "Storage", "Index", "Output", "Compute")
 
 
 @click.group(name="map")
@@ -41,31 +44,31 @@ def map_group() -> None:
     """Build a reference map once (described, saved, memory-mapped) and inspect it; match with --map."""
 
 
-@map_group.command(epilog=BUILD_EPILOG)
+@map_group.command(cls=SectionedCommand, sections=BUILD_SECTIONS, epilog=BUILD_EPILOG)
 @click.argument("sources", nargs=-1, required=True)
-@click.option("--out", "out_dir", required=True, type=OUT_FOLDER, help="The map folder to write.")
-@click.option("--frames", help="Keep source frames START:STOP of every source (e.g. 17:2000).")
-@click.option("--model", "model_dirs", type=click.Path(), multiple=True,
-              help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform "
-                   "the stored frames go through (repeatable, one per kind); match the map with the same ones.")
-@extraction_options
-@click.option("--dtype", default="float32", show_default=True,
-              help="How the descriptors are stored: float32, float16 (half), sq8 (8-bit codes over each "
-                   "dimension's range, a quarter) or pq:M (product quantisation, M bytes a frame); matching "
-                   "decodes them.")
-@click.option("--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
-@click.option("--index", "index_spec", help=INDEX_HELP)
-@click.option("--windows", type=NONNEGATIVE, default=0, show_default=True, help=WINDOWS_HELP)
-@click.option("--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
-              show_default=True, help=METHOD_HELP)
-@click.option("--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
-@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the index's training sample and k-means.")
-@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
-@click.option("--shards", type=COUNT, help="Write the map as this many shards (as seqvpr map shard does) for "
-                                           "matching under torchrun.")
-@click.option("--overlap", type=NONNEGATIVE, default=63, show_default=True,
-              help="With --shards: frames each shard shares with each neighbour (windows of up to OVERLAP + 1).")
-@bag_topic_options("sources")
+@option("Output", "--out", "out_dir", required=True, type=OUT_FOLDER, help="The map folder to write.")
+@option("Input", "--frames", help="Keep source frames START:STOP of every source (e.g. 17:2000).")
+@option("Descriptors", "--model", "model_dirs", type=click.Path(), multiple=True,
+        help="A JIST or CosPlace model that describes the images, and/or a SeqMatchNet model whose transform the "
+             "stored frames go through (repeatable, one per kind); match the map with the same ones.")
+@section("Descriptors", extraction_options)
+@option("Storage", "--dtype", default="float32", show_default=True,
+        help="How the descriptors are stored: float32, float16 (half), sq8 (8-bit codes over each dimension's range, "
+             "a quarter) or pq:M (product quantisation, M bytes a frame); matching decodes them.")
+@option("Storage", "--no-normalize", is_flag=True, help="Store the descriptors without L2 normalisation.")
+@option("Index", "--index", "index_spec", help=INDEX_HELP)
+@option("Index", "--windows", type=NONNEGATIVE, default=0, show_default=True, help=WINDOWS_HELP)
+@option("Index", "--window-method", type=click.Choice(["smoothing", "delta", "seqgem", "seqnet"]), default="smoothing",
+        show_default=True, help=METHOD_HELP)
+@option("Index", "--index-model", type=click.Path(), help="The SeqNet folder of an index over seqnet windows.")
+@option("Index", "--seed", type=SEED, default=0, show_default=True,
+        help="Seed of the index's training sample and k-means.")
+@option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@option("Output", "--shards", type=COUNT,
+        help="Write the map as this many shards (as seqvpr map shard does) for matching under torchrun.")
+@option("Output", "--overlap", type=NONNEGATIVE, default=63, show_default=True,
+        help="With --shards: frames each shard shares with each neighbour (windows of up to OVERLAP + 1).")
+@section("Input", bag_topic_options("sources"))
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,

@@ -19,6 +19,7 @@ from seqvpr.cli.options import (
     OUT_FOLDER,
     extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail,
 )
+from seqvpr.cli.help import SectionedCommand, for_methods, option, section
 from seqvpr.cli.progress import tqdm_progress
 from seqvpr.errors import SeqvprError
 from seqvpr.methods import METHODS
@@ -38,72 +39,82 @@ Examples:
   seqvpr match -r run1.bag -q run2.bag --topic /camera/image_raw --gps-topic /fix --descriptor efficientnet-lite0
 """
 
+#: ``seqvpr match --help``'s sections, in order
+MATCH_SECTIONS = ("Input", "Sequences", "Method", "Map", "Ground truth and scoring", "Descriptors", "Output", "Compute")
+#: the methods that search sequence descriptors with faiss, alone or as a shortlist (--index, --rerank)
+RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retrieval", "hierarchical"))
 
-@click.command(epilog=MATCH_EPILOG)
-@click.option("--reference", "-r", help="Reference traversal: descriptor file, image folder, .db or .toml.")
-@click.option("--map", "map_dir", type=click.Path(),
-              help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described "
-                   "as the map was (--frames then cuts the query only), and frame matching reads the map in chunks.")
-@click.option("--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
-@click.option("--seq-len", "-L", type=COUNT, help="Frames per sequence window.  [default: 1, or the --model's L]")
-@click.option("--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
-              help="Window around the frame (centred) or ending at it (causal, for online use).")
-@click.option("--model", "model_dirs", type=click.Path(), multiple=True,
-              help="A seqvpr train --out or seqvpr import --out folder (repeatable, one per kind): SeqMatchNet "
-                   "transforms the frames that sequence matching compares; SeqNet and JIST give sequence descriptors "
-                   "(--method seqnet / jist, implied); JIST and CosPlace describe the images themselves, at the "
-                   "folder's image size unless --image-size is given (CosPlace implies --method single; any other "
-                   "method but jist runs on its frames).")
-@click.option("--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
-              help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
-@click.option("--velocities", default="1", show_default=True,
-              help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes); at "
-                   "most 1000 velocities (cone, hybrid: trajectories), each in (0, 100].")
-@click.option("--steps", default="1:2", show_default=True,
-              help="--method adaptive: the fewest and most reference frames a query frame may move (MIN:MAX).")
-@click.option("--contrast-window", type=Number(int, 2), default=10, show_default=True,
-              help="--method seqslam: reference frames each distance is standardised against (OpenSeqSLAM2's "
-                   "r_window); widen it where frames are dense relative to the tolerance.")
-@click.option("--radius", help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
-@click.option("--ground-truth", "gt_file", type=click.Path(), help="Ground truth file: GT .mat (GThard/GTsoft), VPR-Bench .npy or a dense boolean matrix .npy/.npz.")
-@click.option("--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
-              help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
-@click.option("--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
-@click.option("--msls-subtask", type=click.Choice(["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"]),
-              help="An MSLS query side: keep the frames subtask_index.csv marks for this subtask.")
-@extraction_options
-@click.option("--method", type=click.Choice(list(METHODS)),
-              help="; ".join(f"{m.name}: {m.summary}" for m in METHODS.values())
-              + ".  [default: matching, or the --model's method]")
-@click.option("--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
-              help="faiss index for sequence-descriptor methods: exact (flat) or approximate (HNSW).")
-@click.option("--shortlist", type=NONNEGATIVE, default=0, show_default=True,
-              help="With --map: re-rank only the windows placed by each query frame's S nearest map frames (the "
-                   "map's faiss index, seqvpr map index) by exact sequence distance (0: exhaustive).")
-@click.option("--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
-              help="With --shortlist: the H query frames before each window place candidates too, carried forward "
-                   "at one frame per frame (where the robot just was; raises the shortlist's recall).")
-@click.option("--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
-@click.option("--rerank", type=NONNEGATIVE, default=0, show_default=True,
-              help="Hierarchical: re-rank the top N of --method by exact sequence distance (HVPR; 0: off).")
-@click.option("--pca-dim", default=0, show_default=True, type=NONNEGATIVE,
-              help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
-@click.option("--uniqueness", type=NONNEGATIVE, default=None,
-              help="Rank queries for PR by SeqSLAM's windowed uniqueness (best minus the best outside this many "
-                   "frames of it; OpenSeqSLAM2's r_window is 10), not by distance.")
-@click.option("--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
-@click.option("--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude", show_default=True,
-              help="Queries with no positive: excluded from the denominator, or counted as misses.")
-@click.option("--no-normalize", is_flag=True, help="Do not L2-normalise descriptors before matching.")
-@click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
-@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
-@click.option("--memory-budget", default="2G", show_default=True,
-              help="Most bytes of distance matrix held at once (e.g. 512M; at least 1K, at most 1P); 'none' for the "
-                   "whole matrix.")
-@click.option("--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
-              help="Folder for predictions.csv and run.json.")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
-@bag_topic_options("reference", "query")
+
+@click.command(cls=SectionedCommand, epilog=MATCH_EPILOG, sections=MATCH_SECTIONS,
+               listings={"Method": ("METHOD is one of:", [(m.name, m.summary) for m in METHODS.values()])})
+@option("Input", "--reference", "-r", help="Reference traversal: descriptor file, image folder, .db or .toml.")
+@option("Input", "--map", "map_dir", type=click.Path(),
+        help="A saved map (seqvpr map build) as the reference, instead of --reference: the query is described as the "
+             "map was (--frames then cuts the query only), and frame matching reads the map in chunks.")
+@option("Input", "--query", "-q", required=True, help="Query traversal (same kinds as --reference).")
+@option("Sequences", "--seq-len", "-L", type=COUNT, help="Frames per sequence window.  [default: 1, or the --model's L]")
+@option("Sequences", "--align", type=click.Choice(["centered", "causal"]), default="centered", show_default=True,
+        help="Window around the frame (centred) or ending at it (causal, for online use).")
+@option("Method", "--method", type=click.Choice(list(METHODS)), metavar="METHOD",
+        help="How to match: one of the methods listed below.  [default: matching, or the --model's method]")
+@option("Method", "--model", "model_dirs", type=click.Path(), multiple=True,
+        help="A seqvpr train --out or seqvpr import --out folder (repeatable, one per kind): SeqMatchNet transforms "
+             "the frames that sequence matching compares; SeqNet and JIST give sequence descriptors (--method seqnet "
+             "/ jist, implied); JIST and CosPlace describe the images themselves, at the folder's image size unless "
+             "--image-size is given (CosPlace implies --method single; any other method but jist runs on its frames).")
+@option("Sequences", "--boundary", type=click.Choice(["drop", "shift"]), default="drop", show_default=True,
+        help="At segment ends: drop frames whose window does not fit, or shift the window inward.")
+@option("Sequences", "--velocities", default="1", show_default=True,
+        help="Reference frames per query frame to search: V, V1,V2 or MIN:MAX:STEP (SeqSLAM slopes); at most 1000 "
+             "velocities (cone, hybrid: trajectories), each in (0, 100].")
+@option("Method", "--steps", default="1:2", show_default=True,
+        help=for_methods("adaptive", "casevpr", "graph") + "the fewest and most reference frames a query frame may "
+             "move (MIN:MAX).")
+@option("Method", "--contrast-window", type=Number(int, 2), default=10, show_default=True,
+        help=for_methods("seqslam", "seqslam-hybrid") + "reference frames each distance is standardised against "
+             "(OpenSeqSLAM2's r_window); widen it where frames are dense relative to the tolerance.")
+@option("Ground truth and scoring", "--radius",
+        help="Ground-truth tolerance: metres (25m) or frames (2f). Default 25m with positions.")
+@option("Ground truth and scoring", "--ground-truth", "gt_file", type=click.Path(),
+        help="Ground truth file: GT .mat (GThard/GTsoft), VPR-Bench .npy or a dense boolean matrix .npy/.npz.")
+@option("Ground truth and scoring", "--gt-layout", type=click.Choice(["ref-query", "query-ref"]),
+        help="A dense ground-truth matrix's layout when its shape does not say (a square one).")
+@option("Input", "--frames", help="Keep source frames START:STOP of both traversals (e.g. 17:2000).")
+@option("Input", "--msls-subtask", type=click.Choice(["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"]),
+        help="An MSLS query side: keep the frames subtask_index.csv marks for this subtask.")
+@section("Descriptors", extraction_options)
+@option("Method", "--index", "index_kind", type=click.Choice(["flat", "hnsw"]), default="flat", show_default=True,
+        help=for_methods(*RETRIEVAL_METHODS) + "the faiss index of the sequence descriptors: exact (flat) or "
+             "approximate (HNSW).")
+@option("Map", "--shortlist", type=NONNEGATIVE, default=0, show_default=True,
+        help="With --map: re-rank only the windows placed by each query frame's S nearest map frames (the map's "
+             "faiss index, seqvpr map index) by exact sequence distance (0: exhaustive).")
+@option("Map", "--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
+        help="With --shortlist: the H query frames before each window place candidates too, carried forward at one "
+             "frame per frame (where the robot just was; raises the shortlist's recall).")
+@option("Map", "--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a --shortlist search visits.")
+@option("Method", "--rerank", type=NONNEGATIVE, default=0, show_default=True,
+        help=for_methods(*RETRIEVAL_METHODS) + "re-rank the top N by exact sequence distance (0: off; "
+             "hvpr and casevpr: 20).")
+@option("Descriptors", "--pca-dim", default=0, show_default=True, type=NONNEGATIVE,
+        help="PCA-whiten descriptors to this many dimensions, fitted on the reference (0: off).")
+@option("Ground truth and scoring", "--uniqueness", type=NONNEGATIVE, default=None,
+        help="Rank queries for PR by SeqSLAM's windowed uniqueness (best minus the best outside this many frames of "
+             "it; OpenSeqSLAM2's r_window is 10), not by distance.")
+@option("Ground truth and scoring", "--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
+@option("Ground truth and scoring", "--no-positive", type=click.Choice(["exclude", "miss"]), default="exclude",
+        show_default=True, help="Queries with no positive: excluded from the denominator, or counted as misses.")
+@option("Descriptors", "--no-normalize", is_flag=True, help="Do not L2-normalise descriptors before matching.")
+@option("Compute", "--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True,
+        help="Floating-point precision of the distances.")
+@option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@option("Compute", "--memory-budget", default="2G", show_default=True,
+        help="Most bytes of distance matrix held at once (e.g. 512M; at least 1K, at most 1P); 'none' for the whole "
+             "matrix.")
+@option("Output", "--out", "out_dir", default="seqvpr-out", show_default=True, type=OUT_FOLDER,
+        help="Folder for predictions.csv and run.json.")
+@option("Output", "--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
+@section("Input", bag_topic_options("reference", "query"))
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
