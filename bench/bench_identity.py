@@ -29,7 +29,8 @@ except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.maps.files import MapInfo, map_sources, open_map, write_map
+from seqvpr.maps.build import map_sources
+from seqvpr.maps.files import MapInfo, open_map, write_map
 
 DIM = 256
 

@@ -41,7 +41,7 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.localization import Localizer
 from seqvpr.localization.replay import replay, score_replay
-from seqvpr.maps import build_map, load_map
+from seqvpr.maps import build_map, open_map
 from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
 from seqvpr.pipeline import describe, ground_truth
@@ -70,7 +70,7 @@ def latency(work: Path) -> str:
     folder = work / "latency_map"
     if not (folder / "map.json").exists():
         write_plain_map(folder, slow_path(LATENCY_MAP, LATENCY_DIM, 0))
-    saved = load_map(folder)
+    saved = open_map(folder)
     rng = np.random.default_rng(1)
     rows = np.asarray(saved.descriptors[20_000 : 20_000 + LATENCY_QUERIES])
     queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
@@ -101,10 +101,10 @@ def shortlist(work: Path, data: Path) -> list[str]:
     folder = work / f"map_{n}"
     if not (folder / "map.json").exists():
         write_distractor_map(folder, summer, n)
-    saved = load_map(folder)
+    saved = open_map(folder)
     if (saved.info.index or {}).get("spec") != "ivf:4096":
         add_index(saved, parse_index_spec("ivf:4096"), seed=0)
-        saved = load_map(folder)
+        saved = open_map(folder)
     first, last = QUERY_FRAMES
     query = Traversal.from_descriptors(winter[first:last], "winter")
     gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, last)], n)
@@ -140,7 +140,7 @@ def filters(work: Path, data: Path) -> list[str]:
     winter = describe(slice_frame_range(load_traversal(root / "winter", "query"), "17:2000"))
     if not (work / "nordland_map" / "map.json").exists():
         build_map([str(root / "summer")], work / "nordland_map", frames="17:2000")
-    saved = load_map(work / "nordland_map")
+    saved = open_map(work / "nordland_map")
     lines = filter_rows("Nordland", saved, winter, ground_truth(saved.frames, winter, parse_radius("1f")))
     from seqvpr.experiments.demo import DemoSettings, describe_world, render_world
     from seqvpr.features.extraction import ExtractorConfig
@@ -153,7 +153,7 @@ def filters(work: Path, data: Path) -> list[str]:
         extractor = ExtractorConfig(width=settings.width, height=settings.height)
         build_map([str(work / "demo" / "world" / "test_reference")], work / "demo_map",
                   FrameDescription("efficientnet-lite0", extractor=extractor), cache_dir=work / "demo" / "cache")
-    saved = load_map(work / "demo_map")
+    saved = open_map(work / "demo_map")
     gt = ground_truth(reference, query, Radius(settings.radius_m, "m"))
     return lines + filter_rows("demo world", saved, query, gt)
 

@@ -38,7 +38,7 @@ except ImportError:  # running from a checkout without an installed package
 
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.data.traversal import Traversal
-from seqvpr.maps import load_map, match_map
+from seqvpr.maps import open_map, match_map
 from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -107,7 +107,7 @@ def measure(work: Path, n: int) -> dict:
     reference, query_file = write_sources(work, n)
     folder = work / f"map_{n}"
     build_s, build_gb = timed_cli(seqvpr_command("map", "build", reference, "--out", folder))
-    saved = load_map(folder)
+    saved = open_map(folder)
     query = load_traversal(query_file, "query")
     q = torch.nn.functional.normalize(torch.from_numpy(np.asarray(query.descriptors)), dim=1)
     settings = MatchSettings(SequenceSpec(LENGTH), k=K)

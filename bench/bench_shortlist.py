@@ -43,7 +43,7 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.evaluation.metrics import evaluate
 from seqvpr.features.whitening import fit_pca_whitening
-from seqvpr.maps import FrameDescription, load_map, match_map
+from seqvpr.maps import FrameDescription, open_map, match_map
 from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
 from seqvpr.maps.match import shortlist_recall
@@ -124,7 +124,7 @@ def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: l
     folder = work / f"map_{n}"
     if not (folder / "map.json").exists():
         write_distractor_map(folder, summer, n)
-    saved = load_map(folder)
+    saved = open_map(folder)
     first, last = QUERY_FRAMES
     query = Traversal.from_descriptors(winter[first:last], "winter")
     gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, last)], n)
@@ -138,13 +138,13 @@ def measure(work: Path, summer: np.ndarray, winter: np.ndarray, n: int, specs: l
         record = add_index(saved, parse_index_spec(spec), seed=0)
         for per, history, nprobe in frame_rows:
             label = f"{spec} over frames, S = {per}, H = {history}, nprobe {nprobe}"
-            rows.append(run_rows(load_map(folder), query, gt, rows[0], label, per, nprobe, history)
+            rows.append(run_rows(open_map(folder), query, gt, rows[0], label, per, nprobe, history)
                         | {"build": record["build_seconds"]})
         if both:  # an index over smoothed windows re-ranking as many candidates as the first frame row
             per = frame_rows[0][0] * LENGTH
             record = add_index(saved, parse_index_spec(spec), seed=0, windows=LENGTH)
             label = f"{spec} over {record['over']}, S = {per}"
-            rows.append(run_rows(load_map(folder), query, gt, rows[0], label, per, frame_rows[0][2])
+            rows.append(run_rows(open_map(folder), query, gt, rows[0], label, per, frame_rows[0][2])
                         | {"build": record["build_seconds"]})
     for row in rows:
         row.setdefault("build", 0.0)

@@ -154,7 +154,8 @@ def test_an_older_map_without_identity_opens_with_a_warning(world, tmp_path):
 
 def test_rows_are_checked_before_a_map_is_written(world, tmp_path):
     from seqvpr.data.traversal import Traversal
-    from seqvpr.maps.files import MapInfo, map_sources, write_map
+    from seqvpr.maps.build import map_sources
+    from seqvpr.maps.files import MapInfo, write_map
 
     rows = np.eye(6, 4, dtype=np.float32)
     frames = Traversal.from_descriptors(rows, "t")
@@ -169,7 +170,8 @@ def test_rows_are_checked_before_a_map_is_written(world, tmp_path):
 def test_a_name_with_a_line_separator_leaves_the_old_map(world, tmp_path):
     from seqvpr.data.traversal import Traversal
     from seqvpr.maps import open_map
-    from seqvpr.maps.files import MapInfo, map_sources, write_map
+    from seqvpr.maps.build import map_sources
+    from seqvpr.maps.files import MapInfo, write_map
 
     shutil.copytree(world / "good", tmp_path / "m")
     frames = Traversal.from_descriptors(np.eye(3, 4, dtype=np.float32), "t")

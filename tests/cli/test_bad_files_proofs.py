@@ -16,7 +16,7 @@ import pytest
 
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings
-from seqvpr.maps import load_map
+from seqvpr.maps import open_map
 from tests.helpers import QuietCapsys, run_bad_case, run_cli, write_route_files
 
 TRAIN = ("train", "seqmatchnet", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--train-frames",
@@ -209,7 +209,7 @@ def test_harmless_changes_give_the_same_result(world, tmp_path, monkeypatch, cap
     frames = np.load(world / "qry.npz")["descriptors"][12:30]
     estimates = []
     for state in (world / "state.npz", tmp_path / "resaved.npz"):
-        localizer = Localizer.open(load_map(world / "map"))
+        localizer = Localizer.open(open_map(world / "map"))
         localizer.restore(state)
         estimates.append([(e.index, e.status, e.score) for e in map(localizer.update, frames)])
     assert estimates[0] == estimates[1]

@@ -16,7 +16,7 @@ from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.data.traversal import Traversal
 from seqvpr.localization import Localizer
 from seqvpr.localization.replay import replay
-from seqvpr.maps import build_map, load_map
+from seqvpr.maps import build_map, open_map
 from seqvpr.maps.index import IndexSpec, add_index
 from seqvpr.methods import run_method
 from seqvpr.matchers.sequence import SequenceMatcher
@@ -67,7 +67,7 @@ def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
 
 
 def test_the_filter_streams_what_the_offline_hmm_method_gives(route):
-    saved = load_map(route / "map")
+    saved = open_map(route / "map")
     query = load_traversal(route / "qry.npz", "query")
     run = replay(Localizer.open(saved, method="hmm", k=5), query)
     offline = run_method("hmm", saved.frames, query, MatchSettings(k=5))
@@ -79,7 +79,7 @@ def test_the_filter_streams_what_the_offline_hmm_method_gives(route):
 def test_a_flat_shortlist_as_wide_as_the_map_is_exact(route, tmp_path):
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     add_index(saved, IndexSpec("flat"))
-    saved = load_map(tmp_path / "m")
+    saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     exact = replay(Localizer.open(saved, k=5), query)
     wide = replay(Localizer.open(saved, k=5, shortlist=150), query)
@@ -90,7 +90,7 @@ def test_a_flat_shortlist_as_wide_as_the_map_is_exact(route, tmp_path):
 
 
 def test_a_saved_state_resumes_exactly(route, tmp_path):
-    saved = load_map(route / "map")
+    saved = open_map(route / "map")
     frames = load_traversal(route / "qry.npz", "query").descriptors
     for options in ({}, {"method": "hmm"}):
         whole = Localizer.open(saved, **options)
@@ -109,7 +109,7 @@ def test_a_saved_state_resumes_exactly(route, tmp_path):
 
 
 def test_lost_is_a_state_and_the_route_is_found_again(route):
-    saved = load_map(route / "map")
+    saved = open_map(route / "map")
     query = load_traversal(route / "qry.npz", "query").descriptors
     rng = np.random.default_rng(0)
     off_map = rng.normal(size=(15, 16)).astype(np.float32) * 3  # kidnapped somewhere the map never saw
@@ -123,7 +123,7 @@ def test_lost_is_a_state_and_the_route_is_found_again(route):
 
 
 def test_bad_frames_are_one_line_and_the_localiser_goes_on(route):
-    localizer = Localizer.open(load_map(route / "map"))
+    localizer = Localizer.open(open_map(route / "map"))
     query = load_traversal(route / "qry.npz", "query").descriptors
     for row in query[:6]:
         localizer.update(row)
@@ -137,7 +137,7 @@ def test_bad_frames_are_one_line_and_the_localiser_goes_on(route):
 
 
 def test_keyframe_gating_skips_a_stopped_robot(route):
-    localizer = Localizer.open(load_map(route / "map"), keyframe_distance=0.05)
+    localizer = Localizer.open(open_map(route / "map"), keyframe_distance=0.05)
     query = load_traversal(route / "qry.npz", "query").descriptors
     estimates = [localizer.update(row) for row in [*query[:8], *[query[8]] * 5, *query[9:12]]]
     assert [e.kept for e in estimates[8:13]] == [True, False, False, False, False]
@@ -191,7 +191,7 @@ def test_only_a_localised_estimate_names_a_map_frame_a_position_and_a_name(tmp_p
 def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
     from seqvpr.localization.replay import restatus
 
-    saved = load_map(route / "map")
+    saved = open_map(route / "map")
     query = load_traversal(route / "qry.npz", "query")
     query = query.select(np.r_[0:50, 70:120])  # a segment break: the localiser restarts there
     run = replay(Localizer.open(saved, threshold=0.02, lost_after=3, keyframe_distance=gate), query)

@@ -12,7 +12,7 @@ import pytest
 
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings, read_calibrations, store_calibration, stored_threshold
-from seqvpr.maps import build_map, load_map
+from seqvpr.maps import build_map, open_map
 from tests.helpers import raises_one_line, write_route_files
 
 RECORD = {"threshold": 0.3, "calibration": "q", "target_precision": 0.9, "precision": 0.95, "reached": True}
@@ -35,7 +35,7 @@ def rewrite_info(folder, **values) -> None:
 
 
 def state_of(folder, path, route) -> None:
-    localizer = Localizer.open(load_map(folder))
+    localizer = Localizer.open(open_map(folder))
     for row in np.load(route / "qry.npz")["descriptors"][:8]:
         localizer.update(row)
     localizer.save_state(path)
@@ -50,13 +50,13 @@ def test_a_map_without_an_identity_keeps_todays_check(route, tmp_path):
         warnings.simplefilter("ignore")  # such a map opens with a warning of its own
         state_of(tmp_path / "old", tmp_path / "state.npz", route)
         shutil.copytree(tmp_path / "old", tmp_path / "again")  # same count, dimension and creation: accepted
-        Localizer.open(load_map(tmp_path / "again")).restore(tmp_path / "state.npz")
+        Localizer.open(open_map(tmp_path / "again")).restore(tmp_path / "state.npz")
     header = json.loads(str(np.load(tmp_path / "state.npz")["header"]))
     assert "identity" not in header["map"] and header["version"] == 1
 
 
 def test_a_state_names_its_map_by_identity(route, tmp_path):
-    mine, other = load_map(route / "map"), load_map(route / "other")
+    mine, other = open_map(route / "map"), open_map(route / "other")
     assert (mine.info.count, mine.info.dim, mine.info.created) == (other.info.count, other.info.dim, other.info.created)
     assert mine.info.identity and other.info.identity and mine.info.identity != other.info.identity
     state_of(route / "map", tmp_path / "state.npz", route)
@@ -72,7 +72,7 @@ def test_a_calibration_records_its_map_and_is_refused_for_another(route, tmp_pat
     settings = LocalizerSettings()
     store_calibration(tmp_path / "map", settings, RECORD)
     stored = json.loads((tmp_path / "map" / "localizer.json").read_text())
-    assert stored["map"] == load_map(tmp_path / "map").info.identity
+    assert stored["map"] == open_map(tmp_path / "map").info.identity
     assert stored_threshold(tmp_path / "map", settings)[0] == 0.3
     shutil.copy(tmp_path / "map" / "localizer.json", tmp_path / "other" / "localizer.json")  # onto another map
     raises_one_line("localizer.json: calibrated for another map", read_calibrations, tmp_path / "other")

@@ -10,7 +10,7 @@ import pytest
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps import build_map, open_map
-from seqvpr.maps.files import concatenate_traversals
+from seqvpr.maps.build import concatenate_traversals
 from tests.helpers import raises_one_line, write_route_files
 
 
@@ -180,7 +180,8 @@ def test_sources_in_different_coordinate_systems_are_one_line(sources, tmp_path)
 def test_shards_carry_the_coordinate_system_and_the_frame_names(tmp_path):
     from pathlib import Path
 
-    from seqvpr.maps.files import MapInfo, map_sources, write_map
+    from seqvpr.maps.build import map_sources
+    from seqvpr.maps.files import MapInfo, write_map
     from seqvpr.maps.shards import shard_map
 
     names = tuple(f"run.bag:/camera/image_raw@{100 + i}.000000000" for i in range(10))

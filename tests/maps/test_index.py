@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.data.sources import load_traversal
-from seqvpr.maps import build_map, load_map, match_map
+from seqvpr.maps import build_map, open_map, match_map
 from seqvpr.maps.index import IndexSpec, add_index, open_frame_index, parse_index_spec, search_frames
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.pipeline import MatchSettings, ground_truth
@@ -66,7 +66,7 @@ def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align,
 def test_a_flat_shortlist_as_wide_as_the_map_is_exhaustive_matching(route, tmp_path):
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     add_index(saved, IndexSpec("flat"))
-    saved = load_map(tmp_path / "m")
+    saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     exhaustive = match_map(saved, query, "matching", SETTINGS)
     shortlisted = match_map(saved, query, "matching", SETTINGS, shortlist=300)
@@ -90,7 +90,7 @@ def test_ivf_and_hnsw_indexes_are_saved_seeded_and_reopened(route, tmp_path):
     found = []
     for spec in ("ivf:8,pq:4", "ivf:8,pq:4", "hnsw:8"):
         record = add_index(saved, parse_index_spec(spec), seed=3)
-        reopened = load_map(tmp_path / "m")
+        reopened = open_map(tmp_path / "m")
         assert reopened.info.index["spec"] == spec and record["ntotal"] == 300
         found.append(search_frames(open_frame_index(reopened, nprobe=8), query, 5)[0])
     np.testing.assert_array_equal(found[0], found[1])  # same seed, same index
@@ -103,11 +103,11 @@ def test_shortlist_errors_are_one_line(route, tmp_path):
     raises_one_line("has no index", match_map, saved, query, "matching", SETTINGS, shortlist=5)
     raises_one_line("applies to the frame-matching methods", match_map, saved, query, "seqgem", SETTINGS, shortlist=5)
     add_index(saved, IndexSpec("flat"), windows=5)
-    raises_one_line("needs an index over frames", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
+    raises_one_line("needs an index over frames", match_map, open_map(tmp_path / "m"), query, "matching", SETTINGS,
                     shortlist=5, history=3)
     add_index(saved, IndexSpec("flat"))
     (tmp_path / "m" / "index.faiss").write_bytes(b"garbage")
-    raises_one_line("index.faiss: its content is not what", match_map, load_map(tmp_path / "m"), query, "matching", SETTINGS,
+    raises_one_line("index.faiss: its content is not what", match_map, open_map(tmp_path / "m"), query, "matching", SETTINGS,
                     shortlist=5)
     raises_one_line("must divide the dimension 16", add_index, saved, IndexSpec("ivf", nlist=4, pq=5))
     raises_one_line("400 lists for 300 frames", add_index, saved, IndexSpec("ivf", nlist=400))
@@ -119,7 +119,7 @@ def test_a_float16_map_shortlists_like_the_float32_one(route, tmp_path):
     for dtype in ("float32", "float16"):
         saved = build_map([str(route / "ref.npz")], tmp_path / dtype, dtype=dtype)
         add_index(saved, IndexSpec("flat"))
-        results.append(match_map(load_map(tmp_path / dtype), query, "matching", SETTINGS, shortlist=20))
+        results.append(match_map(open_map(tmp_path / dtype), query, "matching", SETTINGS, shortlist=20))
     assert (results[0].topk.indices[:, 0] == results[1].topk.indices[:, 0]).mean() > 0.95
 
 
@@ -130,7 +130,7 @@ def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_pat
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     record = add_index(saved, IndexSpec("flat"), windows=5, method=method)
     assert record["over"] == f"{method}:5" and (tmp_path / "m" / "index_rows.npy").is_file()
-    saved = load_map(tmp_path / "m")
+    saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     indexed = match_map(saved, query, method, SETTINGS)
     reference = load_traversal(route / "ref.npz", "reference")
@@ -142,14 +142,14 @@ def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_pat
                                   run_method(method, reference, query, replace(SETTINGS, sequence=SequenceSpec(3)))
                                   .topk.indices)
     (tmp_path / "m" / "index_rows.npy").unlink()
-    raises_one_line("index_rows.npy: missing", match_map, load_map(tmp_path / "m"), query, method, SETTINGS)
+    raises_one_line("index_rows.npy: missing", match_map, open_map(tmp_path / "m"), query, method, SETTINGS)
 
 
 def test_a_window_index_as_wide_as_the_map_is_exhaustive_matching(route, tmp_path):
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     record = add_index(saved, IndexSpec("flat"), windows=5)
     assert record["over"] == "smoothing:5"
-    saved = load_map(tmp_path / "m")
+    saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     exhaustive = match_map(saved, query, "matching", SETTINGS)
     np.testing.assert_array_equal(match_map(saved, query, "matching", SETTINGS, shortlist=300).topk.indices,
@@ -171,7 +171,7 @@ def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(ro
                     method="seqnet")
     record = add_index(saved, IndexSpec("flat"), windows=5, method="seqnet", model_folder=tmp_path / "seqnet")
     assert record["dim"] == 8 and record["model"]["folder"] == str(tmp_path / "seqnet")
-    saved = load_map(tmp_path / "m")
+    saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     models = {"seqnet": load_trained_model(tmp_path / "seqnet")}
     direct = run_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, models)

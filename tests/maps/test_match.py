@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from seqvpr.data.sources import load_traversal
-from seqvpr.maps import FrameDescription, build_map, load_map, match_map
+from seqvpr.maps import FrameDescription, build_map, open_map, match_map
 from seqvpr.methods import METHODS, describe_for_models, run_method
 from seqvpr.models.configs import JistConfig, TransformConfig
 from seqvpr.models.jist import build_jist, save_jist
@@ -113,6 +113,6 @@ def test_an_sq8_map_ranks_as_the_float32_one_exactly_and_shortlisted(route, tmp_
     exact = match_map(coded, query, "matching", replace(SETTINGS, memory_budget=2 * 4 * 130 * 40))
     assert (exact.topk.indices[:, 0] == wide.topk.indices[:, 0]).mean() > 0.95
     add_index(coded, IndexSpec("flat"))
-    shortlisted = match_map(load_map(tmp_path / "b"), query, "matching", SETTINGS, shortlist=120)
+    shortlisted = match_map(open_map(tmp_path / "b"), query, "matching", SETTINGS, shortlist=120)
     np.testing.assert_array_equal(shortlisted.topk.indices[:, 0], exact.topk.indices[:, 0])
     assert (match_map(coded, query, "seqgem", SETTINGS).topk.indices[:, 0] >= 0).any()  # decoded for retrieval

@@ -328,20 +328,29 @@ def map_matcher(saved: SavedMap, settings: LocalizerSettings):
 
 def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
     """The per-frame step the settings ask for: the matcher's own stream, or its shortlist over the map's index
-    (over a sharded map under torchrun: each rank its shards)."""
+    (a sharded map's: its shards' indexes merged); under torchrun over a sharded map, each rank its shards."""
     from seqvpr import distributed
     from seqvpr.maps.files import is_sharded_map, open_sharded_map
+    from seqvpr.matchers.shortlisted import Shortlisted
 
     world = distributed.current()
-    if is_sharded_map(saved.folder) and (world.size > 1 or settings.shortlist):  # one process: via its shards' indexes
-        return _sharded_matcher(open_sharded_map(saved.folder), world, settings)
-    if settings.shortlist:
-        from seqvpr.maps.index import open_frame_index, search_frames
-        from seqvpr.matchers.stream import ShortlistStepper
+    sharded = open_sharded_map(saved.folder) if is_sharded_map(saved.folder) else None
+    if sharded is not None and world.size > 1 and not settings.shortlist:
+        from seqvpr.matchers.sharded import Sharded
 
-        index = open_frame_index(saved, settings.nprobe)
-        return ShortlistStepper(matcher, saved.frames, lambda row, width: search_frames(index, row, width)[0][0],
-                                settings.shortlist, settings.history, settings.exclusion, index.ntotal)
+        _check_shardable(settings)
+        return Sharded(matcher, world).stream(sharded, settings.exclusion)
+    if settings.shortlist:
+        from seqvpr.maps.index import IndexNeighbours
+        from seqvpr.maps.shards import ShardedNeighbours
+
+        neighbours = IndexNeighbours(saved, settings.nprobe) if sharded is None else \
+            ShardedNeighbours(sharded, world, settings.nprobe)
+        if neighbours.over != "frames":
+            raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
+                              f"{saved.folder} --index SPEC")
+        return Shortlisted(matcher, neighbours, settings.shortlist, settings.history).stream(saved.frames,
+                                                                                            settings.exclusion)
     return matcher.stream(saved.frames, settings.exclusion)
 
 
@@ -354,21 +363,11 @@ def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
                           f"{saved.folder} --index SPEC")
 
 
-def _sharded_matcher(sharded, world, settings: LocalizerSettings):
-    """The per-frame step over a sharded map under torchrun: exact or shortlisted sequence matching, each rank its
-    shards (whose overlap must hold a window)."""
-    from seqvpr.localization.sharded import ShardedExactMatcher, ShardedShortlistMatcher
-
+def _check_shardable(settings: LocalizerSettings) -> None:
+    """Under torchrun a sharded map is localised by sequence matching (the filter needs the whole map)."""
     if settings.method == "hmm":
         raise SeqvprError("a sharded map under torchrun is localised by exact or shortlisted sequence matching; the "
                           "filter needs the whole map (localise it in one process)")
-    if settings.window - 1 > sharded.overlap:
-        raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
-                          f"at most {sharded.overlap + 1}; this localiser needs {settings.window}")
-    if settings.shortlist:
-        return ShardedShortlistMatcher(sharded, world, settings.window, settings.k, settings.exclusion,
-                                       settings.shortlist, settings.history, settings.nprobe)
-    return ShardedExactMatcher(sharded, world, settings.window, settings.k, settings.exclusion)
 
 
 # --- calibrated thresholds, kept with the map ---------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """Saved maps: a reference described once, stored as plain memory-mappable files, matched many times.
 
     saved = build_map(["summer.npy"], "maps/summer")          # or seqvpr map build summer.npy --out maps/summer
-    saved = load_map("maps/summer")                            # memory-mapped, never read whole
+    saved = open_map("maps/summer")                            # memory-mapped, never read whole
     result = match_map(saved, load_traversal("winter.npy", "query"), "matching", MatchSettings(SequenceSpec(5)))
 """
 
@@ -15,12 +15,10 @@ from typing import Any
 EXPORTS = {"FrameDescription": "build", "build_map": "build", "describe_frames": "build", "MapInfo": "files",
            "SavedMap": "files", "open_map": "files", "read_map_info": "files", "match_map": "match"}
 
-__all__ = [*EXPORTS, "load_map"]
+__all__ = list(EXPORTS)
 
 
 def __getattr__(name: str) -> Any:
-    if name == "load_map":
-        name = "open_map"
     if name not in EXPORTS:
         raise AttributeError(f"module 'seqvpr.maps' has no attribute {name!r}")
     return getattr(importlib.import_module(f"seqvpr.maps.{EXPORTS[name]}"), name)

@@ -7,7 +7,7 @@ The same ``FrameDescription`` describes a query later, so a query is always desc
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import shutil
 from pathlib import Path
 from typing import Any
@@ -15,17 +15,17 @@ from typing import Any
 import numpy as np
 
 from seqvpr.data.sources import load_traversal
+from seqvpr.data.geo import common_crs
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
 from seqvpr.io import check_replaceable, commit_folder, temporary_folder
 from seqvpr.maps.files import (
+    MapSource,
     INFO_FILE,
     MapInfo,
     SavedMap,
-    concatenate_traversals,
-    map_sources,
     open_map,
     write_map,
 )
@@ -185,3 +185,35 @@ def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Traversal:
+    """One traversal of several described ones, each keeping its own segments (a window never spans two)."""
+    if not traversals:
+        raise SeqvprError("a map needs at least one source")
+    dims = {t.descriptors.shape[1] for t in traversals if t.descriptors is not None}
+    if any(t.descriptors is None for t in traversals) or len(dims) != 1:
+        raise SeqvprError(f"map sources must all be described with one dimension, got {sorted(dims)}")
+    if len(traversals) == 1:  # one source: its arrays as they are (a 1M-frame map is not copied)
+        only = traversals[0]
+        return replace(only, name=name, segment_ids=np.unique(only.segment_ids, return_inverse=True)[1], source=name)
+    segments, offset = [], 0
+    for t in traversals:
+        segments.append(np.unique(t.segment_ids, return_inverse=True)[1] + offset)
+        offset = int(segments[-1].max()) + 1
+    column = lambda attr: (np.concatenate([getattr(t, attr) for t in traversals])  # noqa: E731
+                           if all(getattr(t, attr) is not None for t in traversals) else None)
+    images = all(t.image_paths is not None for t in traversals)
+    paths = tuple(p for t in traversals for p in t.image_paths) if images else None
+    names = tuple(n for t in traversals for n in t.image_names()) if images else None
+    positioned = all(t.positions is not None for t in traversals)
+    crs = common_crs((t.source or t.name, t.crs) for t in traversals) if positioned else None
+    return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
+                     np.concatenate([t.descriptors for t in traversals]), paths, column("positions"),
+                     column("timestamps"), column("headings"), source=name, names=names, crs=crs)
+
+
+def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSource, ...]:
+    """The ``sources`` records of traversals laid end to end."""
+    firsts = np.cumsum([0] + [len(t) for t in traversals])
+    return tuple(MapSource(str(s), t.name, int(f), len(t)) for s, t, f in zip(sources, traversals, firsts))

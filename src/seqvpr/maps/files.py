@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from seqvpr.data.geo import LOCAL, common_crs
+from seqvpr.data.geo import LOCAL
 from seqvpr.data.traversal import Traversal
 from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SeqvprWarning
@@ -84,38 +84,6 @@ class MapInfo:
         values = asdict(self)
         values["sources"] = [asdict(s) for s in self.sources]
         return values
-
-
-def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Traversal:
-    """One traversal of several described ones, each keeping its own segments (a window never spans two)."""
-    if not traversals:
-        raise SeqvprError("a map needs at least one source")
-    dims = {t.descriptors.shape[1] for t in traversals if t.descriptors is not None}
-    if any(t.descriptors is None for t in traversals) or len(dims) != 1:
-        raise SeqvprError(f"map sources must all be described with one dimension, got {sorted(dims)}")
-    if len(traversals) == 1:  # one source: its arrays as they are (a 1M-frame map is not copied)
-        only = traversals[0]
-        return replace(only, name=name, segment_ids=np.unique(only.segment_ids, return_inverse=True)[1], source=name)
-    segments, offset = [], 0
-    for t in traversals:
-        segments.append(np.unique(t.segment_ids, return_inverse=True)[1] + offset)
-        offset = int(segments[-1].max()) + 1
-    column = lambda attr: (np.concatenate([getattr(t, attr) for t in traversals])  # noqa: E731
-                           if all(getattr(t, attr) is not None for t in traversals) else None)
-    images = all(t.image_paths is not None for t in traversals)
-    paths = tuple(p for t in traversals for p in t.image_paths) if images else None
-    names = tuple(n for t in traversals for n in t.image_names()) if images else None
-    positioned = all(t.positions is not None for t in traversals)
-    crs = common_crs((t.source or t.name, t.crs) for t in traversals) if positioned else None
-    return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
-                     np.concatenate([t.descriptors for t in traversals]), paths, column("positions"),
-                     column("timestamps"), column("headings"), source=name, names=names, crs=crs)
-
-
-def map_sources(traversals: list[Traversal], sources: list[str]) -> tuple[MapSource, ...]:
-    """The ``sources`` records of traversals laid end to end."""
-    firsts = np.cumsum([0] + [len(t) for t in traversals])
-    return tuple(MapSource(str(s), t.name, int(f), len(t)) for s, t, f in zip(sources, traversals, firsts))
 
 
 def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
@@ -233,6 +201,17 @@ class SavedMap:
     def descriptors(self) -> np.ndarray:
         assert self.frames.descriptors is not None
         return self.frames.descriptors
+
+    # a saved map is a ``seqvpr.data.reference.Reference``: its frame table's
+    name = property(lambda self: self.frames.name)
+    source = property(lambda self: self.frames.source)
+    segment_ids = property(lambda self: self.frames.segment_ids)
+    stored = property(lambda self: self.frames.stored)
+    plain_rows = property(lambda self: self.frames.plain_rows)
+    dim = property(lambda self: self.info.dim)
+
+    def __len__(self) -> int:
+        return self.info.count
 
 
 def read_map_info(folder: str | Path) -> MapInfo:
@@ -393,6 +372,14 @@ class ShardedMap:
             raise SeqvprError(f"{saved.folder}: not the shard {number} that {self.folder / SHARDS_FILE} records "
                               "(swapped, copied from another map, or its rows shifted); re-shard the map")
         return saved
+
+    def __len__(self) -> int:
+        return self.count
+
+    @property
+    def frames(self) -> Traversal:
+        """The whole map's frame table, rows read through the shards (``map_table``)."""
+        return map_table(self)
 
     def as_map(self) -> SavedMap:
         """The whole map in one process, its rows read through the shards: what ``open_map`` gives for a sharded

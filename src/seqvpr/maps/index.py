@@ -310,3 +310,21 @@ def search_frames(index, frames: np.ndarray, k: int) -> tuple[np.ndarray, np.nda
     squared, rows = index.search(np.ascontiguousarray(frames, dtype=np.float32), k)
     return rows.astype(np.int64), np.sqrt(np.maximum(squared.astype(np.float64), 0.0))
 
+
+
+class IndexNeighbours:
+    """A saved map's faiss index as a shortlist's ``seqvpr.matchers.shortlisted.Neighbours``: the nearest map
+    frames of query frames (an index over frames), or of query windows by the index's own sequence descriptor."""
+
+    def __init__(self, saved: SavedMap, nprobe: int = DEFAULT_NPROBE) -> None:
+        self.saved, self.index = saved, open_frame_index(saved, nprobe)
+        self.over, self.vectors = saved.info.index["over"], int(self.index.ntotal)
+
+    def search(self, rows, segments: np.ndarray, width: int):
+        from seqvpr.sequences.topk import TopK
+
+        if self.over == "frames":
+            found, distances = search_frames(self.index, np.asarray(rows), width)
+        else:  # each query window's sequence descriptor finds its candidate frames directly
+            found, distances = window_search(self.saved, self.index, rows, segments, width)
+        return TopK(found, distances, found[:, 0] >= 0)

@@ -5,8 +5,8 @@ chunk; sequence-descriptor methods pool its frames)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -15,15 +15,11 @@ from seqvpr.maps.files import MapInfo, SavedMap
 from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, build_matcher, check_run
 from seqvpr.models.registry import TrainedModel
-from seqvpr.matchers.base import MatchResult, MatchSettings
+from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
 from seqvpr.matchers.frames import transformed_by
 from seqvpr.progress import ProgressFactory
 from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy
-
-if TYPE_CHECKING:
-    from seqvpr.sequences.topk import TopK
-
 
 def check_map_models(info: MapInfo, folder: str, method: str, models: Mapping[str, TrainedModel]) -> None:
     """The models a map's frames went through must be given again (same weights); an image model it was not built
@@ -133,12 +129,27 @@ def match_prepared(
     method's own settings (steps, contrast window)."""
     frames, method, models = prepared.frames, prepared.method, prepared.models
     if shortlist:
+        from seqvpr.maps.index import IndexNeighbours
+        from seqvpr.matchers.shortlisted import Shortlisted
+
         check_shortlist(saved, method, models)
-        return shortlist_match(saved, frames, method, settings, shortlist, nprobe, history)
+        neighbours = IndexNeighbours(saved, nprobe)
+        matcher = build_matcher(method, settings, models, progress=progress, **(search or {}))
+        return Shortlisted(matcher, neighbours, shortlist, history).topk(saved, frames)
+    return map_matcher(saved, prepared, settings, index=index, rerank=rerank, nprobe=nprobe, progress=progress,
+                       search=search).topk(saved, frames)
+
+
+def map_matcher(
+    saved: SavedMap, prepared: PreparedQuery, settings: MatchSettings, *, index: str = "flat", rerank: int = 0,
+    nprobe: int = 16, progress: ProgressFactory | None = None, search: Mapping[str, Any] | None = None,
+) -> Matcher:
+    """The matcher of the prepared method over ``saved`` (or any map described alike, such as its shards): its
+    method's, or a search of the map's own index when it already holds the method's sequence descriptors."""
+    method, models = prepared.method, prepared.models
     if uses_window_index(saved, method, settings, models, rerank):
-        return indexed_retrieval(saved, frames, settings, nprobe)
-    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress,
-                         **(search or {})).topk(saved.frames, frames)
+        return IndexedRetrieval(settings, nprobe)
+    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress, **(search or {}))
 
 
 def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:
@@ -154,19 +165,28 @@ def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, mod
             and same_windows and same_model and not rerank)
 
 
-def indexed_retrieval(saved: SavedMap, frames: Traversal, settings: MatchSettings, nprobe: int) -> MatchResult:
-    """Top-K map frames per query frame from the map's saved index over its windows' sequence descriptors."""
-    import numpy as np
-    import torch
+class IndexedRetrieval(Matcher):
+    """Retrieval by the sequence descriptors a map's index already holds: the query's windows pooled as the index
+    says and searched in it (the map given to ``topk`` must hold such an index)."""
 
-    from seqvpr.maps.index import open_frame_index, window_search
-    from seqvpr.sequences.matching import unit_rows
-    from seqvpr.sequences.topk import TopK
+    family = "retrieval"
 
-    query = unit_rows(torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32)))
-    index = open_frame_index(saved, nprobe)
-    rows, distances = window_search(saved, index, query, frames.segment_ids, min(settings.k, index.ntotal))
-    return MatchResult(saved.frames, frames, TopK(rows, distances, rows[:, 0] >= 0), settings)
+    def __init__(self, settings: MatchSettings, nprobe: int = 16) -> None:
+        super().__init__(settings)
+        self.nprobe = nprobe
+
+    def topk(self, reference: SavedMap, query: Traversal) -> MatchResult:  # type: ignore[override]
+        import numpy as np
+        import torch
+
+        from seqvpr.maps.index import open_frame_index, window_search
+        from seqvpr.sequences.matching import unit_rows
+        from seqvpr.sequences.topk import TopK
+
+        rows = unit_rows(torch.as_tensor(np.asarray(query.descriptors, dtype=np.float32)))
+        index = open_frame_index(reference, self.nprobe)
+        found, distances = window_search(reference, index, rows, query.segment_ids, min(self.settings.k, index.ntotal))
+        return MatchResult(reference.frames, query, TopK(found, distances, found[:, 0] >= 0), self.settings)
 
 
 def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedModel]) -> None:
@@ -177,102 +197,6 @@ def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedMo
     if "seqmatchnet" in models:
         raise SeqvprError(f"--shortlist with a SeqMatchNet model needs a map built through it: {saved.folder}'s "
                           "index holds untransformed frames")
-
-
-def shortlist_match(
-    saved: SavedMap, frames: Traversal, method: str, settings: MatchSettings, shortlist: int, nprobe: int,
-    history: int = 0,
-) -> MatchResult:
-    """Shortlisted frame matching: candidates from the map's faiss index, re-ranked by exact sequence distance
-    (``rerank``). An index over frames: each query frame's ``shortlist`` nearest map frames place candidate windows
-    (``frame_shortlist``, up to (L + history) x S); over windows: each query window's ``shortlist`` nearest ones."""
-    query, settings = shortlist_query(frames, method, settings)
-    over = index_over(saved, history)
-    vectors = int(saved.info.index.get("ntotal", saved.info.count))
-    shortlist, history = shortlist_size(shortlist, history, vectors, len(frames), settings)
-    found = index_neighbours(saved, query, frames.segment_ids, shortlist, nprobe)
-    candidates = shortlist_candidates(found, over, frames.segment_ids, settings.sequence, saved.info.count, history)
-    top = rerank_candidates(saved, query, candidates, settings, frames.segment_ids)
-    return MatchResult(saved.frames, frames, top, settings, shortlist=candidates)
-
-
-def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, settings: MatchSettings
-                   ) -> tuple[int, int]:
-    """The shortlist S and history H a search uses: S clipped to the index's ``vectors`` and H to the query's
-    frames (more finds nothing more: the result is the same), then the candidate table, n_query x (L + H) x S rows,
-    checked against ``settings.memory_budget`` before any search (one line naming the options)."""
-    shortlist, history = min(shortlist, max(vectors, 1)), min(history, n_query)
-    cost = n_query * (settings.sequence.length + history) * shortlist * 8 * 3  # neighbours, candidates, sorting
-    if settings.memory_budget is not None and cost > settings.memory_budget:
-        raise SeqvprError(f"--shortlist {shortlist} with --shortlist-history {history} and -L "
-                          f"{settings.sequence.length}: the candidates of {n_query} queries need {cost / 2**20:.0f} "
-                          f"MiB, over the --memory-budget of {settings.memory_budget / 2**20:.0f} MiB (lower them)")
-    return shortlist, history
-
-
-def shortlist_query(frames: Traversal, method: str, settings: MatchSettings):
-    """The query's frame descriptors as a tensor (normalised if asked) and the settings a shortlisted match uses
-    (one-frame windows for ``single``)."""
-    import numpy as np
-    import torch
-
-    from seqvpr.sequences.matching import unit_rows
-    from seqvpr.sequences.windows import SequenceSpec
-
-    spec = SequenceSpec(1) if METHODS[method].length == 1 else settings.sequence
-    query = torch.as_tensor(np.asarray(frames.descriptors, dtype=np.float32))
-    return (unit_rows(query) if settings.normalize else query), replace(settings, sequence=spec)
-
-
-def index_over(saved: SavedMap, history: int = 0) -> str:
-    """What the map's index holds vectors of (``frames``, or ``METHOD:L`` windows); history needs frames."""
-    if not saved.info.index:
-        raise SeqvprError(f"{saved.folder} has no index: add one with seqvpr map index {saved.folder} --index SPEC")
-    over = saved.info.index["over"]
-    if history and over != "frames":
-        raise SeqvprError(f"--shortlist-history needs an index over frames; {saved.folder}'s is over {over}")
-    return over
-
-
-def index_neighbours(saved: SavedMap, query, segments, width: int, nprobe: int) -> TopK:
-    """The ``width`` nearest map rows of each query frame (an index over frames) or window (over windows), by the
-    map's index: rows and Euclidean distances, -1 / +inf where none."""
-    from seqvpr.maps.index import open_frame_index, search_frames, window_search
-    from seqvpr.sequences.topk import TopK
-
-    index = open_frame_index(saved, nprobe)
-    if saved.info.index["over"] == "frames":
-        rows, distances = search_frames(index, query.numpy(), width)
-    else:  # each query window's sequence descriptor finds its candidate frames directly
-        rows, distances = window_search(saved, index, query, segments, width)
-    return TopK(rows, distances, rows[:, 0] >= 0)
-
-
-def shortlist_candidates(found: TopK, over: str, segments, spec, count: int, history: int = 0) -> TopK:
-    """The candidate windows of each query: from its frames' neighbours (``frame_shortlist``, an index over frames)
-    or its window's own (over windows)."""
-    from seqvpr.sequences.hierarchical import frame_shortlist
-    from seqvpr.sequences.topk import TopK
-    from seqvpr.sequences.windows import window_starts
-
-    starts = window_starts(segments, spec.length, spec.offset, spec.boundary)
-    if over == "frames":
-        return frame_shortlist(found.indices, starts, spec, count, history=history, query_segments=segments)
-    return TopK(found.indices, found.distances, starts >= 0)
-
-
-def rerank_candidates(saved: SavedMap, query, candidates: TopK, settings: MatchSettings, segments) -> TopK:
-    """The candidates re-ordered by exact sequence distance over the map's rows (only candidate rows are read: a
-    view of the memory map, or coded rows decoded), the best K kept."""
-    import numpy as np
-    import torch
-
-    from seqvpr.sequences.hierarchical import rerank
-
-    stored = saved.descriptors
-    reference = torch.from_numpy(stored) if isinstance(stored, np.ndarray) else stored
-    return rerank(query, reference, candidates, settings.sequence, segments, saved.frames.segment_ids,
-                  k=settings.k)
 
 
 def shortlist_recall(result: MatchResult, gt) -> float | None:

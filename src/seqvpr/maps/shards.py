@@ -17,8 +17,7 @@ the localiser and every other map command take one in a single process.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,29 +27,19 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.io import atomic_folder, temporary_folder
 from seqvpr.maps.files import (
-    SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, ShardedMap, ShardRecord, map_table, open_map, open_sharded_map,
+    SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, ShardedMap, ShardRecord, open_map, open_sharded_map,
     write_map_rows,
 )
+from seqvpr.matchers.sharded import check_overlap, shard_numbers
 from seqvpr.sequences.topk import TopK, merge_topks
 
 if TYPE_CHECKING:
     from seqvpr.maps.files import SavedMap
-    from seqvpr.maps.match import PreparedQuery
-    from seqvpr.pipeline import MatchResult
+    from seqvpr.matchers.base import MatchResult
 
 DEFAULT_OVERLAP = 63  # windows of up to 64 frames (any velocity) are never cut
 SHARDABLE_FAMILIES = ("matching", "retrieval")  # per-window scores: a shard's top-K over its own frames is exact
 WHOLE_MAP_SEARCHES = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole map
-
-
-@dataclass(frozen=True)
-class ShardMatch:
-    """One shard's part of a match: its top-K in whole-map rows, and its top-1 pairs (query rows, whole-map rows)
-    when the method makes its own (adaptive paths, winning trajectories)."""
-
-    number: int
-    topk: TopK
-    pairs: tuple[np.ndarray, np.ndarray] | None
 
 
 def shard_ranges(count: int, shards: int, overlap: int) -> list[tuple[int, int, int, int]]:
@@ -142,32 +131,7 @@ def check_shardable(method: str, settings, sharded: ShardedMap, search: Mapping[
         raise SeqvprError(f"--method {method} scores whole paths or shortlists over the whole map; a sharded map "
                           f"is matched by sequence matching or sequence descriptors "
                           f"({', '.join(SHARDABLE_FAMILIES)} methods)")
-    span = build_matcher(method, settings, {}, **(search or {})).span()
-    if span - 1 > sharded.overlap:
-        raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
-                          f"at most {sharded.overlap + 1}; this match needs {span} (shard it again with "
-                          f"--overlap {span - 1})")
-
-
-def owned_topk(result_topk: TopK, record: ShardRecord, k: int) -> TopK:
-    """A shard's top-K (shard rows) as whole-map rows, keeping only the frames the shard owns, best ``k``."""
-    rows = np.where(result_topk.indices >= 0, result_topk.indices + record.first, -1)
-    owned = (rows >= record.own_first) & (rows < record.own_last)
-    order = np.argsort(~owned, axis=1, kind="stable")[:, :k]  # owned first, in their rank order
-    kept_rows = np.take_along_axis(np.where(owned, rows, -1), order, 1)
-    kept = np.take_along_axis(np.where(owned, result_topk.distances, np.inf), order, 1)
-    return TopK(_pad(kept_rows, k, -1), _pad(kept, k, np.inf), result_topk.has_window)
-
-
-def _pad(values: np.ndarray, k: int, fill) -> np.ndarray:
-    if values.shape[1] >= k:
-        return values
-    return np.concatenate([values, np.full((len(values), k - values.shape[1]), fill, dtype=values.dtype)], 1)
-
-
-def shard_numbers(shards: int, rank: int, world: int) -> list[int]:
-    """The shards rank ``rank`` of ``world`` matches: every world-th one from its rank (all of them alone)."""
-    return list(range(rank, shards, world))
+    check_overlap(build_matcher(method, settings, {}, **(search or {})), sharded)
 
 
 def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settings,
@@ -175,96 +139,56 @@ def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settin
                       history: int = 0, nprobe: int = 16, search: Mapping[str, Any] | None = None,
                       **extraction: Any) -> MatchResult | None:
     """Match ``query`` against every shard: under ``torchrun`` each rank its own shards, merged on rank 0 (other
-    ranks get None); alone, all shards in turn. The result equals matching the unsharded map (shortlisted: with
-    flat indexes; each shard's own approximate index otherwise). ``search``: the method's own settings (steps,
+    ranks get None); alone, all shards in turn (``seqvpr.matchers.sharded.Sharded``). The result equals matching
+    the unsharded map (shortlisted: the shards' nearest rows merged into one shortlist, each shard re-ranking the
+    candidates it owns; with flat indexes the unsharded shortlist). ``search``: the method's own settings (steps,
     contrast window)."""
     from seqvpr import distributed
-    from seqvpr.maps.match import prepare_query
+    from seqvpr.maps.match import check_shortlist, map_matcher, prepare_query
+    from seqvpr.matchers.sharded import Sharded
+    from seqvpr.matchers.shortlisted import Shortlisted
 
     check_shardable(method, settings, sharded, search)
     world = distributed.current()
-    numbers = shard_numbers(len(sharded.shards), world.rank, world.size)
+    first = sharded.open_shard(0)
     prepared = distributed.everywhere(  # described once a rank, as the shards' (shared) description says
-        lambda: prepare_query(sharded.open_shard(0), query, method, settings, models, 0, progress, **extraction))
+        lambda: prepare_query(first, query, method, settings, models, 0, progress, **extraction))
     if shortlist:
-        return shortlist_sharded_map(sharded, numbers, prepared, settings, shortlist, history, nprobe)
-    parts = distributed.gather_to_root(lambda: match_shards(sharded, numbers, prepared, settings, progress, search), world)
-    if parts is None:
-        return None
-    return merge_shard_matches(sharded, [p for rank_parts in parts for p in rank_parts], prepared.frames, settings)
+        distributed.everywhere(lambda: check_shortlist(first, prepared.method, prepared.models))
+        neighbours = distributed.everywhere(lambda: ShardedNeighbours(sharded, world, nprobe, history))
+        matcher = map_matcher(first, prepared, settings, progress=progress, search=search)
+        return Shortlisted(Sharded(matcher, world), neighbours, shortlist, history).topk(sharded, prepared.frames)
+    matcher = map_matcher(first, prepared, settings, progress=progress, search=search)
+    return Sharded(matcher, world).topk(sharded, prepared.frames)
 
 
-def match_shards(sharded: ShardedMap, numbers: Sequence[int], prepared: PreparedQuery, settings,
-                 progress=None, search: Mapping[str, Any] | None = None) -> list[ShardMatch]:
-    """The top-K, in whole-map rows over owned frames, of each shard in ``numbers`` against the prepared query (a
-    row in the whole map's top-K is in its shard's, which has fewer rivals), with the per-frame pairs of its top-1 matches where the method makes its own; a shard whose segments are all
-    shorter than a window contributes nothing."""
-    from seqvpr.maps.match import match_prepared
-    from seqvpr.sequences.matching import max_span
-    from seqvpr.sequences.windows import window_starts
+class ShardedNeighbours:
+    """The shards' indexes as one shortlist ``Neighbours``: each rank searches its shards for their nearest owned
+    rows, and every rank merges all of them (the whole map's nearest, with flat indexes). Every shard must have an
+    index over the same vectors (checked on every rank, so each fails alike)."""
 
-    spec, query = settings.sequence, prepared.frames
-    parts = []
-    for number in numbers:
-        record, shard = sharded.shards[number], sharded.open_shard(number)
-        if not (window_starts(shard.frames.segment_ids, max_span(spec), 0, spec.boundary) >= 0).any():
-            parts.append(ShardMatch(number, _no_match(query, settings), None))
-            continue
-        result = match_prepared(shard, prepared, settings, progress=progress, search=search)
-        pairs = None if result.correspondences is None else (
-            result.correspondences[0], np.where(result.correspondences[1] >= 0, result.correspondences[1] + record.first, -1))
-        parts.append(ShardMatch(number, owned_topk(result.topk, record, settings.k), pairs))
-    return parts
+    def __init__(self, sharded: ShardedMap, world, nprobe: int = 16, history: int = 0) -> None:
+        from seqvpr.maps.index import IndexNeighbours
 
+        self.over, self.vectors, self.world = shards_index_over(sharded, history), sharded.count, world
+        self.parts = [(sharded.shards[n], IndexNeighbours(sharded.open_shard(n), nprobe))
+                      for n in shard_numbers(len(sharded.shards), world.rank, world.size)]
 
-def _no_match(query: Traversal, settings) -> TopK:
-    from seqvpr.sequences.windows import window_starts
+    def search(self, rows, segments: np.ndarray, width: int) -> TopK:
+        """The ``width`` nearest rows of the whole map, in whole-map rows (a row among the whole map's nearest is
+        among its shard's, which are fewer)."""
+        from seqvpr import distributed
+        from seqvpr.matchers.sharded import owned_topk
 
-    spec = settings.sequence
-    has_window = window_starts(query.segment_ids, spec.length, spec.offset, spec.boundary) >= 0
-    return TopK(np.full((len(query), settings.k), -1), np.full((len(query), settings.k), np.inf), has_window)
+        found = distributed.gather_everywhere(
+            lambda: [owned_topk(index.search(rows, segments, width), record, width) for record, index in self.parts],
+            self.world)
+        return merge_topks([part for rank_parts in found for part in rank_parts], width)
 
 
-def shortlist_sharded_map(sharded: ShardedMap, numbers: Sequence[int], prepared: PreparedQuery, settings,
-                          shortlist: int, history: int, nprobe: int) -> MatchResult | None:
-    """Shortlisted matching of a sharded map: each rank searches its shards' indexes, rank 0 merges the nearest
-    ``shortlist`` rows a query frame (or window) into the candidates and sends them out, each rank re-ranks the
-    candidates its shards own, and rank 0 merges the top-K. With flat indexes this is the unsharded shortlist."""
-    from seqvpr import distributed
-    from seqvpr.maps.match import shortlist_candidates, shortlist_query, shortlist_size
-    from seqvpr.pipeline import MatchResult
-
-    frames = prepared.frames
-    query, settings = shortlist_query(frames, prepared.method, settings)
-    over = distributed.everywhere(lambda: _shards_index(sharded, prepared, history))  # every shard checked
-    shortlist, history = shortlist_size(shortlist, history, sharded.count, len(frames), settings)
-    shards = {n: sharded.open_shard(n) for n in numbers}
-    found = distributed.gather_to_root(
-        lambda: [_shard_neighbours(shards[n], sharded.shards[n], query, frames, shortlist, nprobe) for n in numbers])
-
-    def candidates() -> TopK:
-        merged = merge_topks([part for rank_parts in found for part in rank_parts], shortlist)  # type: ignore[union-attr]
-        return shortlist_candidates(merged, over, frames.segment_ids, settings.sequence, sharded.count, history)
-
-    shortlisted = distributed.broadcast_from_root(candidates)
-    tops = distributed.gather_to_root(
-        lambda: [_shard_rerank(shards[n], sharded.shards[n], query, shortlisted, settings, frames) for n in numbers])
-    if tops is None:
-        return None
-    width = min(settings.k, shortlisted.indices.shape[1])  # as re-ranking keeps: no more than the candidates
-    top = merge_topks([part for rank_parts in tops for part in rank_parts], width)
-    return MatchResult(map_table(sharded), frames, top, settings, shortlist=shortlisted)
-
-
-def _shards_index(sharded: ShardedMap, prepared: PreparedQuery, history: int) -> str:
+def shards_index_over(sharded: ShardedMap, history: int = 0) -> str:
     """What every shard's index holds (the same for all, checked); a shard without one is a one-line error."""
-    from seqvpr.maps.match import check_shortlist
-
-    over = set()
-    for number in range(len(sharded.shards)):
-        shard = sharded.open_shard(number)
-        check_shortlist(shard, prepared.method, prepared.models)
-        over.add(shard_index_over(sharded, shard, history))
+    over = {shard_index_over(sharded, sharded.open_shard(number), history) for number in range(len(sharded.shards))}
     if len(over) > 1:
         raise SeqvprError(f"{sharded.folder}: its shards' indexes hold different vectors ({', '.join(sorted(over))}): "
                           f"seqvpr map index {sharded.folder} --index SPEC indexes them all alike")
@@ -272,50 +196,12 @@ def _shards_index(sharded: ShardedMap, prepared: PreparedQuery, history: int) ->
 
 
 def shard_index_over(sharded: ShardedMap, shard: SavedMap, history: int = 0) -> str:
-    """What a shard's index holds (``index_over``); a shard without one is a one-line error naming the command
-    that indexes every shard."""
-    from seqvpr.maps.match import index_over
-
+    """What a shard's index holds; a shard without one is a one-line error naming the command that indexes every
+    shard, as is history over an index of windows."""
     if not shard.info.index:
         raise SeqvprError(f"{shard.folder} has no index: index every shard with seqvpr map index {sharded.folder} "
                           "--index SPEC")
-    return index_over(shard, history)
-
-
-def _shard_neighbours(shard: SavedMap, record: ShardRecord, query, frames: Traversal, width: int,
-                      nprobe: int) -> TopK:
-    """A shard's ``width`` nearest owned rows of each query frame or window, in whole-map rows (a row among the
-    whole map's nearest is among its shard's, which are fewer)."""
-    from seqvpr.maps.match import index_neighbours
-
-    found = index_neighbours(shard, query, frames.segment_ids, width, nprobe)
-    return owned_topk(found, record, width)
-
-
-def _shard_rerank(shard: SavedMap, record: ShardRecord, query, candidates: TopK, settings, frames: Traversal) -> TopK:
-    """The candidates a shard owns re-ranked over its rows: their top-K in whole-map rows."""
-    from seqvpr.maps.match import rerank_candidates
-
-    rows = candidates.indices
-    owned = (rows >= record.own_first) & (rows < record.own_last)
-    local = TopK(np.where(owned, rows - record.first, -1), candidates.distances, candidates.has_window)
-    return owned_topk(rerank_candidates(shard, query, local, settings, frames.segment_ids), record, settings.k)
-
-
-def merge_shard_matches(sharded: ShardedMap, parts: Sequence[ShardMatch], query: Traversal, settings) -> MatchResult:
-    """The whole map's match from every shard's: top-K merged, each query's pairs from the shard owning its top-1."""
-    from seqvpr.pipeline import MatchResult
-
-    parts = sorted(parts, key=lambda part: part.number)
-    top = merge_topks([p.topk for p in parts], settings.k)
-    pairs = None
-    made = [p.pairs for p in parts if p.pairs is not None]  # a shard too short for any window made none
-    if made:
-        none = np.full_like(made[0][0], -1)
-        q_stack = np.stack([none if p.pairs is None else p.pairs[0] for p in parts])
-        r_stack = np.stack([none if p.pairs is None else p.pairs[1] for p in parts])
-        owner = np.searchsorted([r.own_last for r in sharded.shards], np.maximum(top.indices[:, 0], 0), side="right")
-        q_rows, r_rows = q_stack[owner, np.arange(len(owner))], r_stack[owner, np.arange(len(owner))]
-        matched = (top.indices[:, 0] >= 0)[:, None]
-        pairs = (np.where(matched, q_rows, -1), np.where(matched, r_rows, -1))
-    return MatchResult(map_table(sharded), query, top, settings, correspondences=pairs)
+    over = shard.info.index["over"]
+    if history and over != "frames":
+        raise SeqvprError(f"--shortlist-history needs an index over frames; {shard.folder}'s is over {over}")
+    return over

@@ -89,6 +89,13 @@ class Matcher(ABC):
         other.settings = settings
         return other
 
+    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
+        """The distances of one query window [L, D] (prepared rows) to the reference windows of ``rows`` starting
+        at ``starts``: what a shortlist's stepper re-ranks by. A family that scores no single window has none."""
+        from seqvpr.errors import SeqvprError
+
+        raise SeqvprError(f"{type(self).__name__} scores no single window, so it takes no shortlist")
+
     def span(self) -> int:
         """Reference frames one window may cover (what a shard's overlap must hold)."""
         from seqvpr.sequences.matching import max_span

@@ -18,7 +18,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.progress import ProgressFactory
 from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
 from seqvpr.matchers.frames import (
-    check_dimensions, frame_transform, kernel_rows, query_rows, transform_pair, whole_rows,
+    check_dimensions, frame_transform, kernel_rows, query_rows, transform_pair,
 )
 from seqvpr.sequences.topk import TopK
 
@@ -113,7 +113,7 @@ class SequenceMatcher(Matcher):
 
         reference, query = self.transformed(reference, query)
         settings = self.settings if k is None else replace(self.settings, k=k)
-        ref, qry = whole_rows(reference, settings), query_rows(query, settings)
+        ref, qry = kernel_rows(reference, settings), query_rows(query, settings)
         if isinstance(ref, np.ndarray):
             ref = torch.from_numpy(ref)  # a view of the map: the re-ranking reads only the candidates' rows
         q_seg, r_seg = query.segment_ids, reference.segment_ids
@@ -123,6 +123,12 @@ class SequenceMatcher(Matcher):
             top = rerank(qry, ref, candidates, settings.sequence, q_seg, r_seg, k=settings.k)
         pairs = top1_pairs(qry, ref, top, settings, self.scorer, q_seg, r_seg)
         return MatchResult(reference.frames, query, top, settings, correspondences=pairs)
+
+    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
+        """Mean order-aligned frame distances of the window to the reference windows from ``starts``."""
+        from seqvpr.matchers.stream import window_distances
+
+        return window_distances(rows, window, starts)
 
     def stream(self, reference: Reference, exclusion: int = 10) -> Stepper:
         """Exact causal matching by running diagonal sums for the constant-velocity search at slope 1; any other

@@ -180,18 +180,20 @@ class WindowStepper:
 
 
 class ShortlistStepper:
-    """Candidates from a frame index (``neighbours(row, S)``: the S nearest reference rows of a frame, -1 padded),
-    over the window and the ``history`` frames before it carried forward, re-ranked by exact causal sequence
-    distance; the cost is independent of the reference's size."""
+    """Candidates from a nearest-neighbour search (``seqvpr.matchers.shortlisted.Neighbours``: the S nearest
+    reference rows of a frame), over the window and the ``history`` frames before it carried forward, re-ranked by
+    the matcher's window distance; the cost is independent of the reference's size."""
 
-    def __init__(self, matcher: Any, reference: Reference, neighbours, shortlist: int, history: int = 0,
-                 exclusion: int = 10, vectors: int | None = None) -> None:
+    def __init__(self, matcher: Any, reference: Reference, neighbours: Any, shortlist: int, history: int = 0,
+                 exclusion: int = 10) -> None:
+        from seqvpr.matchers.frames import kernel_rows
         from seqvpr.sequences.windows import window_starts
 
         length = matcher.settings.sequence.length
-        self.reference, self.neighbours, self.length, self.k = reference, neighbours, length, matcher.settings.k
-        self.exclusion, self.count = exclusion, len(reference)
-        self.shortlist = min(shortlist, max(vectors if vectors is not None else self.count, 1))  # more finds nothing
+        self.matcher, self.neighbours, self.length, self.k = matcher, neighbours, length, matcher.settings.k
+        self.rows = kernel_rows(reference, matcher.settings)
+        self.exclusion, self.count, self.dim = exclusion, len(reference), reference.dim
+        self.shortlist = min(shortlist, max(neighbours.vectors, 1))  # more finds nothing more
         self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
         self.window_exists = window_starts(reference.segment_ids, length, length - 1, "drop") >= 0
@@ -202,14 +204,16 @@ class ShortlistStepper:
 
     def push(self, frame: torch.Tensor) -> Scored | None:
         started = time.perf_counter()
-        self.found.appendleft(self.neighbours(frame.numpy()[None], self.shortlist))
+        self.found.appendleft(self.neighbours.search(frame[None], np.zeros(1, np.int64), self.shortlist).indices[0])
         self.frames.append(frame)
         measured = time.perf_counter()
         if len(self.frames) < self.length:
             return None
         candidates = found_candidates(self.found, self.count)
         candidates = candidates[self.window_exists[candidates]]
-        values = window_distances(self.reference.descriptors, self.frames, candidates - (self.length - 1))
+        window = torch.stack(list(self.frames)).numpy()
+        values = self.matcher.window_distances(self.rows, window, candidates - (self.length - 1)) \
+            if len(candidates) else np.zeros(0)
         indices, values = best_of(candidates, values)
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
@@ -218,8 +222,7 @@ class ShortlistStepper:
 
     def state(self) -> dict[str, np.ndarray]:
         found = np.array(list(self.found), np.int64).reshape(-1, self.shortlist)
-        dim = self.reference.dim
-        frames = torch.stack(list(self.frames)).numpy() if self.frames else np.zeros((0, dim), np.float32)
+        frames = torch.stack(list(self.frames)).numpy() if self.frames else np.zeros((0, self.dim), np.float32)
         return {"found": found, "frames": frames}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
@@ -238,13 +241,13 @@ def found_candidates(found, count: int) -> np.ndarray:
     return candidates[candidates < count]
 
 
-def window_distances(descriptors, frames, starts: np.ndarray) -> np.ndarray:
-    """Mean order-aligned distances between the query ``frames`` (the last L, oldest first) and the reference windows
-    from ``starts``: a gather of (L + H) S x L rows at most, too few for a parallel kernel (whose threads would only
-    contend with faiss's)."""
+def window_distances(descriptors, window, starts: np.ndarray) -> np.ndarray:
+    """Mean order-aligned distances between the query ``window`` [L, D] (the last L frames, oldest first) and the
+    reference windows from ``starts``: a gather of (L + H) S x L rows at most, too few for a parallel kernel (whose
+    threads would only contend with faiss's)."""
     if not len(starts):  # no candidate window (here): nothing to read
         return np.zeros(0)
-    window = torch.stack(list(frames)).numpy()
+    window = np.asarray(window, np.float32)
     length = len(window)
     rows = starts[:, None] + np.arange(length)[None, :]
     gathered = np.asarray(descriptors[rows.ravel()], np.float32).reshape(len(starts), length, -1)

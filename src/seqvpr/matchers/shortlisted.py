@@ -1,0 +1,105 @@
+"""Shortlisting any matcher that scores single windows: a nearest-neighbour search (``Neighbours``: a saved map's
+faiss index, a sharded map's indexes merged, a brute-force search in a test) proposes candidate windows, and the
+matcher re-ranks only those, offline (``topk``) or a frame at a time (``stream``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from seqvpr.data.reference import Reference
+from seqvpr.data.traversal import Traversal
+from seqvpr.errors import SeqvprError
+from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.frames import query_rows
+from seqvpr.sequences.topk import TopK
+
+
+class Neighbours(Protocol):
+    """The nearest reference rows of query rows: ``over`` is what the search holds vectors of (``frames``, or
+    ``METHOD:L`` windows, whose search pools the query's windows itself), ``vectors`` how many it holds."""
+
+    over: str
+    vectors: int
+
+    def search(self, rows: torch.Tensor, segments: np.ndarray, width: int) -> TopK:
+        """The ``width`` nearest reference rows of each query row (or window), -1 / +inf where none."""
+        ...
+
+
+class Shortlisted:
+    """``matcher`` over the candidates ``neighbours`` proposes: each query frame's ``shortlist`` S nearest
+    reference frames place candidate windows (with the ``history`` H frames before each window, up to (L + H) x S
+    a query; an index over windows: each window's own S nearest), re-ranked by the matcher's window distance."""
+
+    def __init__(self, matcher: Matcher, neighbours: Neighbours, shortlist: int, history: int = 0) -> None:
+        if history and neighbours.over != "frames":
+            raise SeqvprError(f"--shortlist-history needs an index over frames; this one is over {neighbours.over}")
+        self.matcher, self.neighbours, self.shortlist, self.history = matcher, neighbours, shortlist, history
+
+    @property
+    def settings(self) -> MatchSettings:
+        return self.matcher.settings
+
+    def topk(self, reference: Reference, query: Traversal) -> MatchResult | None:
+        from seqvpr.sequences.hierarchical import frame_shortlist
+        from seqvpr.sequences.windows import window_starts
+
+        settings = self.settings
+        rows = query_rows(query, replace(settings, device="cpu", dtype="float32"))
+        shortlist, history = shortlist_size(self.shortlist, self.history, self.neighbours.vectors, len(query),
+                                            settings)
+        found = self.neighbours.search(rows, query.segment_ids, shortlist)
+        spec, segments = settings.sequence, query.segment_ids
+        starts = window_starts(segments, spec.length, spec.offset, spec.boundary)
+        if self.neighbours.over == "frames":
+            candidates = frame_shortlist(found.indices, starts, spec, len(reference), history=history,
+                                         query_segments=segments)
+        else:
+            candidates = TopK(found.indices, found.distances, starts >= 0)
+        result = self.matcher.rerank(reference, query, candidates)
+        return None if result is None else replace(result, shortlist=candidates)  # None: another rank's
+
+    def stream(self, reference: Reference, exclusion: int = 10):
+        """The shortlist a frame at a time (``ShortlistStepper``): its cost independent of the reference's size."""
+        from seqvpr.matchers.stream import ShortlistStepper
+
+        if self.neighbours.over != "frames":
+            raise SeqvprError(f"a shortlist a frame at a time needs an index over frames; this one is over "
+                              f"{self.neighbours.over}")
+        return ShortlistStepper(self.matcher, reference, self.neighbours, self.shortlist, self.history, exclusion)
+
+
+def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, settings: MatchSettings
+                   ) -> tuple[int, int]:
+    """The shortlist S and history H a search uses: S clipped to the index's ``vectors`` and H to the query's
+    frames (more finds nothing more: the result is the same), then the candidate table, n_query x (L + H) x S rows,
+    checked against ``settings.memory_budget`` before any search (one line naming the options)."""
+    shortlist, history = min(shortlist, max(vectors, 1)), min(history, n_query)
+    cost = n_query * (settings.sequence.length + history) * shortlist * 8 * 3  # neighbours, candidates, sorting
+    if settings.memory_budget is not None and cost > settings.memory_budget:
+        raise SeqvprError(f"--shortlist {shortlist} with --shortlist-history {history} and -L "
+                          f"{settings.sequence.length}: the candidates of {n_query} queries need {cost / 2**20:.0f} "
+                          f"MiB, over the --memory-budget of {settings.memory_budget / 2**20:.0f} MiB (lower them)")
+    return shortlist, history
+
+
+class ExactNeighbours:
+    """Brute-force nearest reference frames (Euclidean, the tie rule's order): an exact stand-in for a flat index."""
+
+    over = "frames"
+
+    def __init__(self, rows) -> None:
+        self.rows = torch.as_tensor(np.asarray(rows, np.float32))
+        self.vectors = len(self.rows)
+
+    def search(self, rows: torch.Tensor, segments: np.ndarray, width: int) -> TopK:
+        from seqvpr.sequences.topk import best_of
+
+        distances = torch.cdist(rows.float()[None], self.rows[None])[0].double().numpy()
+        candidates = np.broadcast_to(np.arange(self.vectors), distances.shape)
+        indices, values = best_of(candidates, distances, min(width, self.vectors))
+        return TopK(indices, values, np.ones(len(rows), bool))
