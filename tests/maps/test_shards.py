@@ -297,3 +297,21 @@ def test_map_build_shards_writes_what_map_shard_of_the_built_map_writes_and_no_w
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--shards", "400", "--out", tmp_path / "x")
     assert code == 2 and "--shards must be between 1 and the map's 330 frames" in err and err.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["built", "split"]
+
+
+def test_a_sharded_match_through_a_model_is_the_whole_maps(whole, tmp_path):
+    import torch
+
+    from seqvpr.models.registry import TrainedModel
+    from seqvpr.sequences.descriptors import SeqNet
+
+    sharded = shard_map(whole / "map", tmp_path / "sharded", 3, 4)
+    query = load_traversal(str(whole / "qry.npz"), "query")
+    torch.manual_seed(0)
+    dim = query.descriptors.shape[1]
+    models = {"seqnet": TrainedModel("seqnet", SeqNet(dim, dim, 3).eval(), 5, tmp_path / "seqnet")}
+    settings_ = MatchSettings(SequenceSpec(5), k=10)
+    expected = match_map(load_map_of(whole), query, "seqnet", settings_, models)
+    got = match_sharded_map(sharded, query, "seqnet", settings_, models)
+    np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
+    np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-5)

@@ -117,7 +117,8 @@ def _index_like(source: SavedMap, shard_folder: Path) -> None:
               method, (record.get("model") or {}).get("folder"))
 
 
-def check_shardable(method: str, settings, sharded: ShardedMap, search: Mapping[str, Any] | None = None) -> None:
+def check_shardable(method: str, settings, sharded: ShardedMap, search: Mapping[str, Any] | None = None,
+                    models: Mapping[str, Any] | None = None) -> None:
     """A method whose per-window scores a shard can compute from the rows it holds: the frames its windows cover
     (its matcher's span: adaptive paths, SeqSLAM's contrast neighbourhood) fit in the shards' overlap."""
     from seqvpr.methods import build_matcher, get_method
@@ -131,7 +132,7 @@ def check_shardable(method: str, settings, sharded: ShardedMap, search: Mapping[
         raise SeqvprError(f"--method {method} scores whole paths or shortlists over the whole map; a sharded map "
                           f"is matched by sequence matching or sequence descriptors "
                           f"({', '.join(SHARDABLE_FAMILIES)} methods)")
-    check_overlap(build_matcher(method, settings, {}, **(search or {})), sharded)
+    check_overlap(build_matcher(method, settings, models, **(search or {})), sharded)
 
 
 def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settings,
@@ -148,7 +149,7 @@ def match_sharded_map(sharded: ShardedMap, query: Traversal, method: str, settin
     from seqvpr.matchers.sharded import Sharded
     from seqvpr.matchers.shortlisted import Shortlisted
 
-    check_shardable(method, settings, sharded, search)
+    check_shardable(method, settings, sharded, search, models)
     world = distributed.current()
     first = sharded.open_shard(0)
     prepared = distributed.everywhere(  # described once a rank, as the shards' (shared) description says
