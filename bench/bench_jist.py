@@ -16,7 +16,7 @@ Datasets and splits:
   (``--fold b``), radius 2 frames (negatives outside 5). ``--extra day_right`` adds the third traversal's training
   frames to the classification branch.
 
-Every row is scored on the test pair at L = 5 through ``run_method`` (what ``seqvpr match`` runs):
+Every row is scored on the test pair at L = 5 through ``seqvpr.match`` (what ``seqvpr match`` runs):
 
 * ``single`` / ``seqgem``: the backbone's own descriptors (ImageNet EfficientNet-Lite0 + GeM, no training) by
   single-image retrieval and by untrained SeqGeM (p = 3);
@@ -49,7 +49,8 @@ from seqvpr.data.sources import load_pair
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
-from seqvpr.methods import describe_for_models, run_method
+from seqvpr.api import match
+from seqvpr.methods import describe_for_models
 from seqvpr.models.jist import build_jist, save_jist
 from seqvpr.models.registry import load_trained_model
 from seqvpr.pipeline import MatchSettings, describe, evaluate_match
@@ -89,9 +90,9 @@ def gardenspoint_pairs(data: Path, fold: str) -> tuple[tuple, tuple, tuple, Radi
 
 
 def score(method: str, reference: Traversal, query: Traversal, radius: Radius, models: dict) -> Evaluation:
-    """Recall@KS of one method on described traversals at L = 5, through ``run_method``."""
+    """Recall@KS of one method on described traversals at L = 5, through ``seqvpr.match``."""
     settings = MatchSettings(SequenceSpec(LENGTH), k=max(KS))
-    result = run_method(method, reference, query, settings, models)
+    result = match(reference, query, method, models=models, settings=settings)
     return evaluate_match(result, ground_truth_within_radius(query, reference, radius), KS)
 
 

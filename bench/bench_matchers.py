@@ -9,7 +9,7 @@ budget): the constant-velocity kernel (the yardstick), ``AdaptiveScorer(1, 2)`` 
 ``ContrastScorer()`` (``--method seqslam``), the kernel with SeqSLAM's five-velocity sweep, OpenSeqSLAM2's cone
 (``ConeScorer``, ``--method seqslam-cone``) and hybrid search (``ContrastScorer(10, HybridScorer())``,
 ``--method seqslam-hybrid``) over velocities 0.8..1.2 (each includes its single-image pass), CaseVPR's hierarchy
-(``run_method("casevpr")``: a SeqGeM top-20 shortlist from faiss, re-ranked by adaptive matching), and once the graph
+(``seqvpr.match(..., "casevpr")``: a SeqGeM top-20 shortlist from faiss, re-ranked by adaptive matching), and once the graph
 matcher (``--method graph``, whole query) against the kernel at L = 1. The median of
 ``--repeats`` runs is reported per length, with the ratio to the kernel at the same length.
 """
@@ -33,9 +33,9 @@ from seqvpr.sequences.windows import SequenceSpec
 
 
 def timed_casevpr(query: torch.Tensor, reference: torch.Tensor, length: int, repeats: int) -> float:
-    """Median seconds of ``run_method("casevpr")`` (shortlist and adaptive re-rank) over ``repeats`` runs."""
+    """Median seconds of ``seqvpr.match(..., "casevpr")`` (shortlist and adaptive re-rank) over ``repeats`` runs."""
     from seqvpr.data.traversal import Traversal
-    from seqvpr.methods import run_method
+    from seqvpr.api import match
     from seqvpr.pipeline import MatchSettings
 
     def traversal(name: str, rows: torch.Tensor) -> Traversal:
@@ -45,7 +45,7 @@ def timed_casevpr(query: torch.Tensor, reference: torch.Tensor, length: int, rep
     times = []
     for _ in range(repeats):
         started = time.perf_counter()
-        run_method("casevpr", ref, qry, MatchSettings(SequenceSpec(length), k=20))
+        match(ref, qry, "casevpr", settings=MatchSettings(SequenceSpec(length), k=20))
         times.append(time.perf_counter() - started)
     return statistics.median(times)
 

@@ -118,3 +118,10 @@ def run_bad_case(monkeypatch, capsys, args, fragment: str, world, out) -> str:
     assert fragment in lines[0], lines[0]
     assert not out.exists() or not any(out.rglob("*")), f"partial output: {list(out.rglob('*'))}"
     return err
+
+
+def match_method(name: str, reference, query, settings, models=None, **conf):
+    """``seqvpr.match`` by a method's name with the given settings, as every entry point calls it."""
+    from seqvpr.api import match
+
+    return match(reference, query, name, models=models or {}, settings=settings, **conf)

@@ -24,7 +24,7 @@ LAYERS = {
     "seqvpr.pipeline": 4, "seqvpr.matchers": 4,
     "seqvpr.training": 5,
     "seqvpr.methods": 6,
-    "seqvpr.experiments": 7, "seqvpr.maps": 7,
+    "seqvpr.experiments": 7, "seqvpr.maps": 7, "seqvpr.api": 7,
     "seqvpr.localization": 8,
     "seqvpr.cli": 9,
 }

@@ -18,7 +18,7 @@ from seqvpr.matchers.frames import transform_traversal
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.methods import (
     IMAGE_MODELS, IMPLIED_METHODS, METHODS, MODEL_TITLES, build_matcher, check_models, implied_method, matcher_class,
-    models_used, run_length, run_method,
+    models_used, run_length,
 )
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
@@ -27,7 +27,7 @@ from seqvpr.pipeline import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route
-from tests.helpers import raises_one_line
+from tests.helpers import match_method, raises_one_line
 
 SETTINGS = MatchSettings(SequenceSpec(5), k=10)
 
@@ -73,14 +73,14 @@ def test_every_record_builds_the_class_it_names():
 
 def test_matching_family(pair):
     reference, query = pair
-    same(run_method("matching", reference, query, SETTINGS), SequenceMatcher(SETTINGS).topk(reference, query))
-    single = run_method("single", reference, query, SETTINGS)
+    same(match_method("matching", reference, query, SETTINGS), SequenceMatcher(SETTINGS).topk(reference, query))
+    single = match_method("single", reference, query, SETTINGS)
     assert single.settings.sequence.length == 1
     same(single, SequenceMatcher(replace(SETTINGS, sequence=SequenceSpec(1))).topk(reference, query))
     transformed = (transform_traversal(reference, SMN.module), transform_traversal(query, SMN.module))
     expected = SequenceMatcher(SETTINGS).topk(*transformed)
-    same(run_method("seqmatchnet", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
-    same(run_method("matching", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
+    same(match_method("seqmatchnet", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
+    same(match_method("matching", reference, query, SETTINGS, {"seqmatchnet": SMN}), expected)
 
 
 @pytest.mark.parametrize("name", ["single", "hmm", "graph"])
@@ -88,7 +88,7 @@ def test_one_frame_methods_score_one_frame_a_query_whatever_length_is_asked(pair
     from seqvpr.pipeline import evaluate_match
 
     reference, query = pair
-    result = run_method(name, reference, query, replace(SETTINGS, sequence=SequenceSpec(9)))
+    result = match_method(name, reference, query, replace(SETTINGS, sequence=SequenceSpec(9)))
     assert result.settings.sequence.length == 1  # the benchmark asks every method for its table's L
     gt = ground_truth_within_radius(query, reference, Radius(4, "m"))
     evaluation = evaluate_match(result, gt, (1,))
@@ -98,19 +98,19 @@ def test_one_frame_methods_score_one_frame_a_query_whatever_length_is_asked(pair
 
 def test_retrieval_and_hierarchical_families(pair):
     reference, query = pair
-    same(run_method("delta", reference, query, SETTINGS), RetrievalMatcher(SETTINGS, "delta").topk(reference, query))
-    same(run_method("seqnet", reference, query, SETTINGS, {"seqnet": SEQNET}),
+    same(match_method("delta", reference, query, SETTINGS), RetrievalMatcher(SETTINGS, "delta").topk(reference, query))
+    same(match_method("seqnet", reference, query, SETTINGS, {"seqnet": SEQNET}),
          RetrievalMatcher(SETTINGS, "seqnet", SEQNET.module).topk(reference, query))
     # HVPR: the SeqNet shortlist over the frames as described, re-ranked over SeqMatchNet-transformed frames
     shortlist = RetrievalMatcher(replace(SETTINGS, k=20), "seqnet", SEQNET.module).topk(reference, query)
     transformed = (transform_traversal(reference, SMN.module), transform_traversal(query, SMN.module))
-    hvpr = run_method("hvpr", reference, query, SETTINGS, {"seqnet": SEQNET, "seqmatchnet": SMN})
+    hvpr = match_method("hvpr", reference, query, SETTINGS, {"seqnet": SEQNET, "seqmatchnet": SMN})
     same(hvpr, SequenceMatcher(SETTINGS).rerank(*transformed, shortlist.topk))
     composed = HierarchicalMatcher(RetrievalMatcher(SETTINGS, "seqnet", SEQNET.module),
                                    SequenceMatcher(SETTINGS, transform=SMN.module))
     same(hvpr, composed.topk(reference, query))
-    seqgem = run_method("hvpr", reference, query, SETTINGS, shortlist="seqgem")
-    same(seqgem, run_method("seqgem", reference, query, SETTINGS, rerank=20))
+    seqgem = match_method("hvpr", reference, query, SETTINGS, proposer="seqgem")
+    same(seqgem, match_method("seqgem", reference, query, SETTINGS, rerank=20))
     gt = ground_truth_within_radius(query, reference, Radius(4, "m"))
     assert gt.contains(np.arange(len(query)), hvpr.topk.indices[:, 0]).any()
 
@@ -121,8 +121,8 @@ def test_models_and_methods_that_do_not_go_together_are_one_line_errors():
     raises_one_line("got a SeqMatchNet --model", check_models, METHODS["jist"], {"seqmatchnet": SMN})
     raises_one_line("use --method seqnet", check_models, METHODS["delta"], {"seqnet": SEQNET})
     raises_one_line("use --method jist", check_models, METHODS["matching"], jist)
-    raises_one_line("--rerank N needs", run_method, "matching", None, None, SETTINGS, rerank=5)
-    raises_one_line("method 'magic' is not known", run_method, "magic", None, None, SETTINGS)
+    raises_one_line("--rerank N needs", match_method, "matching", None, None, SETTINGS, rerank=5)
+    raises_one_line("method 'magic' is not known", match_method, "magic", None, None, SETTINGS)
 
 
 def test_model_tables_agree_with_the_registry():
@@ -160,7 +160,7 @@ def test_implied_method_length_and_models_used():
 
 
 def test_a_new_method_is_one_record_plus_its_function(monkeypatch, pair):
-    """The README's how-to: a pooling function and one Method record make a method ``run_method`` runs."""
+    """The README's how-to: a pooling function and one Method record make a method ``seqvpr.match`` runs."""
     import torch
 
     from seqvpr.methods import Method
@@ -172,7 +172,7 @@ def test_a_new_method_is_one_record_plus_its_function(monkeypatch, pair):
     monkeypatch.setitem(descriptors.FIXED_POOLINGS, "maxpool", maxpool)
     monkeypatch.setitem(METHODS, "maxpool", Method("maxpool", "retrieval", "element-wise max", pooling="maxpool"))
     reference, query = pair
-    result = run_method("maxpool", reference, query, SETTINGS)
+    result = match_method("maxpool", reference, query, SETTINGS)
     ref, qry = (torch.nn.functional.normalize(torch.as_tensor(t.descriptors, dtype=torch.float32), dim=1)
                 for t in pair)
     window = lambda x, i: maxpool(x[i - 2 : i + 3][None])[0]  # noqa: E731 (centred L = 5)

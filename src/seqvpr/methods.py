@@ -1,5 +1,5 @@
-"""One record per method and one ``run_method`` that every entry point uses (``seqvpr match``, ``seqvpr
-benchmark``, the demo).
+"""One record per method, which every entry point uses (``seqvpr.match``, ``seqvpr match``, ``seqvpr benchmark``,
+the demo, the localiser) through ``build_matcher``: the record names its matcher class and defaults.
 
 A method is frame-level sequence matching (``single``, ``matching``, ``seqmatchnet``), retrieval by one sequence
 descriptor per window (``smoothing``, ``delta``, ``concat``, ``seqgem``, ``seqgem-signed``, ``seqnet``, ``jist``),
@@ -10,8 +10,9 @@ matching methods and every re-ranking); SeqNet and JIST give their own sequence 
 frame encoder only. Sequence-descriptor methods pool the frames as described: the model that consumes images (JIST's
 encoder, or CosPlace, at most one of them) describes them, ``describe_for_models``.
 
-Adding a method: one ``Method`` record in ``METHODS`` and, when no family fits, a branch of ``run_method``; the
-CLI's ``--method`` choices and the benchmark's accepted methods are ``METHODS``.
+Adding a method: one ``Method`` record in ``METHODS`` and, when no family fits, a matcher class it names
+(``seqvpr.matchers``; a ``WindowMatcher`` writes one window distance); the CLI's ``--method`` choices and the
+benchmark's accepted methods are ``METHODS``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
-    from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+    from seqvpr.matchers.base import MatchSettings, Matcher
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 
@@ -169,7 +170,7 @@ def run_length(method: Method, models: Mapping[str, TrainedModel]) -> int:
 
 
 def models_used(name: str, shortlist: str = "seqnet") -> tuple[str, ...]:
-    """The model kinds ``run_method(name, ...)`` uses (what the benchmark trains for it)."""
+    """The model kinds method ``name`` uses (what the benchmark trains for it)."""
     method = get_method(name)
     if method.family == "hierarchical":
         return ("seqmatchnet", *models_used(shortlist))
@@ -191,7 +192,8 @@ def build_matcher(
     **conf: Any,
 ) -> Matcher:
     """The matcher of method ``name`` under ``settings`` with these models, its family's own settings from ``conf``
-    (``steps``, ``contrast_window``, ``index``, ``rerank`` N, ``shortlist`` method, ``filter``, ``seed``). A method
+    (``steps``, ``contrast_window``, ``index``, ``rerank`` N, ``proposer``: hvpr's retrieval method, ``filter``,
+    ``seed``). A method
     of fixed length (``single``, ``hmm``, ``graph``) matches one frame a query, whatever length was asked."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     models = dict(models or {})
@@ -201,12 +203,6 @@ def build_matcher(
     if method.length is not None:
         settings = replace(settings, sequence=SequenceSpec(method.length))
     return matcher_class(method).from_method(method, settings, models, build_matcher, progress=progress, **conf)
-
-
-def run_method(name: str, reference, query: Traversal, settings: MatchSettings,
-               models: Mapping[str, TrainedModel] | None = None, **conf: Any) -> MatchResult:
-    """Top-K reference frames per query frame by method ``name`` (``build_matcher``'s matcher's ``topk``)."""
-    return build_matcher(name, settings, models, **conf).topk(reference, query)
 
 
 def image_model(models: Mapping[str, TrainedModel]) -> TrainedModel | None:

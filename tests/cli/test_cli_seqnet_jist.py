@@ -257,9 +257,9 @@ def test_bad_input_is_one_line_without_output(monkeypatch, capsys, tmp_path, rou
     assert stdout == "" and not out.exists()
 
 
-def test_match_hvpr_with_two_models_equals_run_method(route, seqnet_run, tmp_path):
+def test_match_hvpr_with_two_models_equals_the_library_match(route, seqnet_run, tmp_path):
     """``--model SEQNET --model SEQMATCHNET --method hvpr``: the benchmark's HVPR row from the command line."""
-    from seqvpr.methods import run_method
+    from seqvpr.api import match
     from seqvpr.models.configs import TransformConfig
     from seqvpr.models.registry import load_trained_model
     from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
@@ -271,7 +271,7 @@ def test_match_hvpr_with_two_models_equals_run_method(route, seqnet_run, tmp_pat
     result = json.loads(stdout)
     models = {m.kind: m for m in (load_trained_model(seqnet_run[0]), load_trained_model(tmp_path / "smn"))}
     reference, query = (load_traversal(p, role).slice_frames(120, 150) for p, role in zip(route, ("reference", "query")))
-    found = run_method("hvpr", reference, query, MatchSettings(SequenceSpec(4), k=20), models)
+    found = match(reference, query, "hvpr", models=models, settings=MatchSettings(SequenceSpec(4), k=20))
     expected = evaluate_match(found, ground_truth_within_radius(query, reference, Radius(5.0, "m")), (1, 5, 10, 20))
     assert result["recall"] == {str(k): v for k, v in expected.recall.items()}
     assert result["settings"]["model_kind"] == ["seqnet", "seqmatchnet"] and result["settings"]["method"] == "hvpr"

@@ -71,7 +71,7 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
 def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table(monkeypatch, capsys, route, tmp_path):
     from seqvpr.data.groundtruth import ground_truth_within_radius
     from seqvpr.experiments.benchmark import load_splits
-    from seqvpr.methods import run_method
+    from tests.helpers import match_method
     from seqvpr.pipeline import MatchSettings, evaluate_match
     from seqvpr.sequences.windows import SequenceSpec
 
@@ -81,7 +81,7 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
     rows = {(r["method"], r["L"]): r for r in found}
     splits = load_splits(read_config(config).datasets[0])
     gt = ground_truth_within_radius(splits.test[1], splits.test[0], splits.radius)
-    result = run_method("adaptive", *splits.test, MatchSettings(SequenceSpec(7), k=20))
+    result = match_method("adaptive", *splits.test, MatchSettings(SequenceSpec(7), k=20))
     expected = evaluate_match(result, gt, (1, 5))  # oracle: the library's own evaluation of the same run
     row = rows[("adaptive", "7")]
     assert float(row["frame_precision"]) == pytest.approx(expected.frame_precision, abs=1e-4)

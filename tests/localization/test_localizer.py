@@ -18,7 +18,7 @@ from seqvpr.localization import Localizer
 from seqvpr.localization.replay import replay
 from seqvpr.maps import build_map, open_map
 from seqvpr.maps.index import IndexSpec, add_index
-from seqvpr.methods import run_method
+from tests.helpers import match_method
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.pipeline import MatchSettings, describe
 from seqvpr.sequences.windows import SequenceSpec
@@ -70,7 +70,7 @@ def test_the_filter_streams_what_the_offline_hmm_method_gives(route):
     saved = open_map(route / "map")
     query = load_traversal(route / "qry.npz", "query")
     run = replay(Localizer.open(saved, method="hmm", k=5), query)
-    offline = run_method("hmm", saved.frames, query, MatchSettings(k=5))
+    offline = match_method("hmm", saved.frames, query, MatchSettings(k=5))
     np.testing.assert_array_equal(run.indices, offline.topk.indices)
     np.testing.assert_allclose(run.distances, offline.topk.distances, atol=1e-6)  # one-row vs blocked GEMM rounding
     assert not (run.status == "warming up").any()

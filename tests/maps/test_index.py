@@ -125,7 +125,7 @@ def test_a_float16_map_shortlists_like_the_float32_one(route, tmp_path):
 
 @pytest.mark.parametrize("method", ["smoothing", "delta", "seqgem"])
 def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_path, method):
-    from seqvpr.methods import run_method
+    from tests.helpers import match_method
 
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
     record = add_index(saved, IndexSpec("flat"), windows=5, method=method)
@@ -134,12 +134,12 @@ def test_a_window_index_answers_retrieval_as_pooling_the_map_does(route, tmp_pat
     query = load_traversal(route / "qry.npz", "query")
     indexed = match_map(saved, query, method, SETTINGS)
     reference = load_traversal(route / "ref.npz", "reference")
-    direct = run_method(method, reference, query, SETTINGS)
+    direct = match_method(method, reference, query, SETTINGS)
     np.testing.assert_array_equal(indexed.topk.indices, direct.topk.indices)
     np.testing.assert_allclose(indexed.topk.distances, direct.topk.distances, rtol=1e-5, atol=1e-6)
     other_length = match_map(saved, query, method, replace(SETTINGS, sequence=SequenceSpec(3)))  # pools the map
     np.testing.assert_array_equal(other_length.topk.indices,
-                                  run_method(method, reference, query, replace(SETTINGS, sequence=SequenceSpec(3)))
+                                  match_method(method, reference, query, replace(SETTINGS, sequence=SequenceSpec(3)))
                                   .topk.indices)
     (tmp_path / "m" / "index_rows.npy").unlink()
     raises_one_line("index_rows.npy: missing", match_map, open_map(tmp_path / "m"), query, method, SETTINGS)
@@ -159,7 +159,7 @@ def test_a_window_index_as_wide_as_the_map_is_exhaustive_matching(route, tmp_pat
 
 
 def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(route, tmp_path):
-    from seqvpr.methods import run_method
+    from tests.helpers import match_method
     from seqvpr.models.registry import load_trained_model
     from seqvpr.models.seqnet import save_seqnet
     from seqvpr.sequences.descriptors import SeqNet
@@ -174,14 +174,14 @@ def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(ro
     saved = open_map(tmp_path / "m")
     query = load_traversal(route / "qry.npz", "query")
     models = {"seqnet": load_trained_model(tmp_path / "seqnet")}
-    direct = run_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, models)
+    direct = match_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, models)
     indexed = match_map(saved, query, "seqnet", SETTINGS, models)
     np.testing.assert_array_equal(indexed.topk.indices, direct.topk.indices)
     shortlisted = match_map(saved, query, "matching", SETTINGS, shortlist=300)  # the index's SeqNet, from its folder
     np.testing.assert_array_equal(shortlisted.topk.indices, match_map(saved, query, "matching", SETTINGS).topk.indices)
     other = {"seqnet": load_trained_model(tmp_path / "other")}
     assert (match_map(saved, query, "seqnet", SETTINGS, other).topk.indices
-            == run_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, other)
+            == match_method("seqnet", load_traversal(route / "ref.npz", "reference"), query, SETTINGS, other)
             .topk.indices).all()  # another SeqNet pools the map itself
     (tmp_path / "seqnet" / "model.safetensors").write_bytes(b"changed")
     raises_one_line("which is gone or has changed", match_map, saved, query, "matching", SETTINGS, shortlist=5)

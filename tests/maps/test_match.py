@@ -10,7 +10,8 @@ import pytest
 
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import FrameDescription, build_map, open_map, match_map
-from seqvpr.methods import METHODS, describe_for_models, run_method
+from seqvpr.methods import METHODS, describe_for_models
+from tests.helpers import match_method
 from seqvpr.models.configs import JistConfig, TransformConfig
 from seqvpr.models.jist import build_jist, save_jist
 from seqvpr.models.registry import load_trained_model
@@ -51,7 +52,7 @@ def test_every_method_gives_the_direct_result(route, tmp_path, method):
     stored = {k: m for k, m in models.items() if k == "seqmatchnet" and METHODS[method].family == "matching"}
     saved = build_map([str(route / "ref.npz")], tmp_path / "m", models=stored)
     reference, query = load_traversal(route / "ref.npz", "reference"), load_traversal(route / "qry.npz", "query")
-    direct = run_method(method, reference, query, SETTINGS, models)
+    direct = match_method(method, reference, query, SETTINGS, models)
     same(match_map(saved, query, method, SETTINGS, models), direct)
 
 
@@ -82,7 +83,7 @@ def test_jist_frames_are_stored_and_the_query_goes_through_the_same_encoder(tmp_
     query = load_traversal(world["test_query"], "query")
     settings = replace(SETTINGS, sequence=SequenceSpec(3))
     described = describe_for_models(reference, query, models, lambda r, q: (r, q))
-    direct = run_method("jist", *described, settings, models)
+    direct = match_method("jist", *described, settings, models)
     same(match_map(saved, query, "jist", settings, models), direct)
     raises_one_line("was built through the jist model", match_map, saved, query, "seqgem", settings, {})
 

@@ -302,7 +302,8 @@ def test_jist_checkpoint_missing_or_extra_key_is_named(tmp_path):
 @pytest.mark.slow
 def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsys, tmp_path):
     from seqvpr.data.sources import load_pair
-    from seqvpr.methods import describe_for_models, run_method
+    from seqvpr.api import match
+    from seqvpr.methods import describe_for_models
     from seqvpr.pipeline import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
@@ -321,7 +322,7 @@ def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsy
     frames = describe_for_models(*load_pair(ref, qry), {"cosplace": model}, None, image_size=(64, 48))
     np.testing.assert_allclose(frames[1].descriptors, plain_descriptors(upstream_cosplace_state(5, 32), qry).numpy(),
                                atol=1e-5, rtol=0)
-    expected = run_method("single", *frames, MatchSettings(SequenceSpec(1), k=20), {"cosplace": model})
+    expected = match(*frames, "single", models={"cosplace": model}, settings=MatchSettings(SequenceSpec(1), k=20))
     rows = (tmp_path / "o" / "predictions.csv").read_text().splitlines()[1:]
     assert [[int(i) for i in row.split(",")[2].split()] for row in rows] == expected.topk.indices.tolist()
     code, stdout, stderr = run_cli(monkeypatch, capsys, "match", *common, "--method", "matching", "-L", "3",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -118,17 +119,61 @@ RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retr
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
+    from seqvpr import distributed
+    from seqvpr.api import match as match_reference
+    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.methods import run_length
+    from seqvpr.pipeline import evaluate_match
     from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
     k_values, speeds, budget = _checked_options(o)
-    from seqvpr.data.sources import load_pair
-    from seqvpr.methods import image_model, run_length, run_method
-    from seqvpr.pipeline import MatchSettings, evaluate_match, ground_truth_of_kept, resolve_ground_truth
-
     models, method = _models_and_method(o)
-    sharded = _sharded_reference(o["map_dir"])
-    if o["map_dir"]:
-        return (_match_sharded if sharded else _match_map)(o, models, method, k_values, speeds, budget)
+    sides = _map_sides(o, models, method) if o["map_dir"] else _traversal_sides(o, models, method)
+    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
+    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
+                             budget)
+    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
+    with distributed.process_group(o["device"]) as world:
+        result = match_reference(sides.reference, sides.query, method, models=models, settings=settings,
+                                 shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"],
+                                 rerank=o["rerank"], index=o["index_kind"],
+                                 progress=tqdm_progress if world.is_root else None, cache_dir=o["cache_dir"],
+                                 skip_bad=o["skip_bad"], **search)
+    if result is None:  # another rank of a sharded match: rank 0 scores and writes
+        return
+    evaluation = evaluate_match(result, sides.gt, k_values, o["no_positive"], o["uniqueness"])
+    run = _run_settings({**o, "reference": o["map_dir"] or o["reference"]}, method, models, sides.descriptor,
+                        sides.gt.description, {**settings.as_dict(), **search})
+    run.update(sides.record)
+    if sides.sharded:
+        run["ranks"] = world.size
+    if o["shortlist"]:
+        run["shortlist"] = _shortlist_record(o, result, sides.gt, sides.index_spec)
+    shown = (result.reference, result.query) if o["map_dir"] else (sides.reference, sides.query)
+    _write_and_print(o, result, sides.gt, evaluation, run, run_label(method, spec.length, o), shown)
+
+
+@dataclass(frozen=True)
+class Sides:
+    """What a match reads: the reference as the matcher takes it (a described traversal, a saved or a sharded
+    map), the query, their ground truth, the descriptor's name and run.json's entries about the reference."""
+
+    reference: Any
+    query: Any
+    gt: Any
+    descriptor: str
+    record: dict[str, Any]
+    sharded: bool = False
+    index_spec: str | None = None
+
+
+def _traversal_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
+    """``--reference`` and ``--query`` loaded, cut, checked against L, ground truth resolved, both described."""
+    from seqvpr.data.sources import load_pair
+    from seqvpr.methods import image_model, run_length
+    from seqvpr.pipeline import ground_truth_of_kept, resolve_ground_truth
+
+    _sharded_reference(None)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     if o["msls_subtask"]:
         query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
@@ -140,19 +185,32 @@ def match(**o: Any) -> None:
     reference, query = _frames(reference, query, models, o)
     gt = ground_truth_of_kept(gt, pair, (reference, query))
     _say_skipped(pair, (reference, query))
-    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget)
-    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
-    result = run_method(method, reference, query, settings, models, index=o["index_kind"], rerank=o["rerank"],
-                        progress=tqdm_progress, **search)
-    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
     image = image_model(models)
     descriptor = image.kind if image else o["descriptor"] if has_images else "file"
-    run = _run_settings(o, method, models, descriptor, gt.description, {**settings.as_dict(), **search})
-    if image:
-        run["image_size"] = list(_image_size(o) or image.image_size)
-    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (reference, query))
+    record = {"image_size": list(_image_size(o) or image.image_size)} if image else {}
+    return Sides(reference, query, gt, descriptor, record)
+
+
+def _map_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
+    """``--map`` opened (a sharded one as its shards), the query loaded and cut, checked against L, ground truth
+    resolved on the map's frame table; the map describes the query as it described its frames."""
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.maps.files import open_map, open_sharded_map
+    from seqvpr.methods import run_length
+    from seqvpr.pipeline import resolve_ground_truth
+
+    sharded = _sharded_reference(o["map_dir"])
+    reference = open_sharded_map(o["map_dir"]) if sharded else open_map(o["map_dir"])
+    info = reference.open_shard(0).info if sharded else reference.info
+    _check_map_options(o, info.description["descriptor"])
+    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    table = reference.frames
+    _check_length(o["seq_len"] or run_length(METHODS[method], models), table, query)
+    gt = resolve_ground_truth(table, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
+    record = {"map": o["map_dir"], **({"shards": len(reference.shards)} if sharded else {})}
+    return Sides(reference, query, gt, info.description["descriptor"], record, sharded,
+                 (info.index or {}).get("spec"))
 
 
 def _checked_options(o: dict[str, Any]):
@@ -232,74 +290,6 @@ def _sharded_reference(map_dir: str | None) -> bool:
         raise SeqvprError("under torchrun, seqvpr match shares the work of a sharded map (seqvpr map shard MAP "
                           "--shards N); give one as --map, or run without torchrun")
     return sharded
-
-
-def _match_sharded(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
-    """``match --map SHARDED``: under torchrun each rank matches its shards and rank 0 merges, scores and writes;
-    alone, one process matches every shard."""
-    from seqvpr import distributed
-    from seqvpr.data.sources import load_traversal
-    from seqvpr.data.traversal import slice_frame_range
-    from seqvpr.maps.files import map_table, open_sharded_map
-    from seqvpr.maps.shards import match_sharded_map
-    from seqvpr.methods import run_length
-    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
-    from seqvpr.sequences.windows import SequenceSpec, parse_steps
-
-    sharded = open_sharded_map(o["map_dir"])
-    descriptor = sharded.open_shard(0).info.description["descriptor"]
-    _check_map_options(o, descriptor)
-    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-    _check_length(o["seq_len"] or run_length(METHODS[method], models), map_table(sharded), query)
-    gt = resolve_ground_truth(map_table(sharded), query, o["radius"], o["gt_file"], layout=o["gt_layout"])
-    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget)
-    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
-    with distributed.process_group(o["device"]) as world:
-        result = match_sharded_map(sharded, query, method, settings, models,
-                                   progress=tqdm_progress if world.is_root else None, shortlist=o["shortlist"],
-                                   history=o["history"], nprobe=o["nprobe"], cache_dir=o["cache_dir"],
-                                   skip_bad=o["skip_bad"], search=search)
-    if result is None:  # another rank: rank 0 scores and writes
-        return
-    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
-    run = _run_settings({**o, "reference": o["map_dir"]}, method, models, descriptor, gt.description,
-                        {**settings.as_dict(), **search})
-    run["map"], run["shards"], run["ranks"] = o["map_dir"], len(sharded.shards), world.size
-    if o["shortlist"]:
-        run["shortlist"] = _shortlist_record(o, result, gt, sharded.open_shard(0).info.index["spec"])
-    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (result.reference, query))
-
-
-def _match_map(o: dict[str, Any], models: dict, method: str, k_values, speeds, budget) -> None:
-    """``match --map``: the query against a saved map, described as the map was."""
-    from seqvpr.data.sources import load_traversal
-    from seqvpr.data.traversal import slice_frame_range
-    from seqvpr.maps import match_map, open_map
-    from seqvpr.methods import run_length
-    from seqvpr.pipeline import MatchSettings, evaluate_match, resolve_ground_truth
-    from seqvpr.sequences.windows import SequenceSpec, parse_steps
-
-    saved = open_map(o["map_dir"])
-    _check_map_options(o, saved.info.description["descriptor"])
-    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-    _check_length(o["seq_len"] or run_length(METHODS[method], models), saved.frames, query)
-    gt = resolve_ground_truth(saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
-    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget)
-    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
-    result = match_map(saved, query, method, settings, models, index=o["index_kind"], rerank=o["rerank"],
-                       shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"], progress=tqdm_progress,
-                       cache_dir=o["cache_dir"], skip_bad=o["skip_bad"], search=search)
-    evaluation = evaluate_match(result, gt, k_values, o["no_positive"], o["uniqueness"])
-    run = _run_settings({**o, "reference": o["map_dir"]}, method, models, saved.info.description["descriptor"],
-                        gt.description, {**settings.as_dict(), **search})
-    run["map"] = o["map_dir"]
-    if o["shortlist"]:
-        run["shortlist"] = _shortlist_record(o, result, gt, saved.info.index["spec"])
-    _write_and_print(o, result, gt, evaluation, run, run_label(method, spec.length, o), (saved.frames, result.query))
 
 
 def _shortlist_record(o: dict[str, Any], result, gt, index_spec: str) -> dict[str, Any]:

@@ -287,7 +287,7 @@ def load_splits(spec: DatasetSpec, progress=None) -> Splits:
 
 
 class MethodRunner:
-    """Runs the methods on one dataset through ``run_method``; each model kind a method uses is trained once on the
+    """Runs the methods on one dataset through ``seqvpr.match``; each model kind a method uses is trained once on the
     train split (selected on the select split) and shared (SeqMatchNet and SeqNet also feed HVPR); a re-run into
     the same folder reuses the finished runs trained on the same data and split (``drop_stale_run``)."""
 
@@ -326,13 +326,15 @@ class MethodRunner:
     def run(self, method: str, length: int) -> MatchResult:
         """The method's top-K on the test split at sequence length ``length``."""
         from seqvpr.matchers.hierarchical import HVPR_SHORTLIST
-        from seqvpr.methods import models_used, run_method
+        from seqvpr.api import match
+        from seqvpr.methods import models_used
 
         shortlist = self.config.hvpr_shortlist
         models = {kind: self.model(kind) for kind in models_used(method, shortlist)}
         settings, search = self.config.match_settings(method, length, max(max(self.config.ks), HVPR_SHORTLIST))
-        return run_method(method, *self.test_frames(models), settings, models,
-                          shortlist=shortlist if method == "hvpr" else None, **search)
+        reference, query = self.test_frames(models)
+        return match(reference, query, method, models=models, settings=settings,
+                     proposer=shortlist if method == "hvpr" else None, **search)
 
 
 def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, monitor=None) -> Path:

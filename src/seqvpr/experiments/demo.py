@@ -20,7 +20,7 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.errors import SeqvprError
-from seqvpr.methods import run_method
+from seqvpr.api import match
 from seqvpr.pipeline import (
     MatchResult, MatchSettings, ProgressFactory, describe, distance_matrix, evaluate_match, ground_truth,
 )
@@ -113,7 +113,7 @@ def match_and_score(
 ) -> MethodRun:
     """One method at one length, scored at every K of the curves."""
     settings = MatchSettings(SequenceSpec(length, velocities=velocities), k=max(CURVE_KS), device=device)
-    result = run_method(method, reference, query, settings, models)
+    result = match(reference, query, method, models=models, settings=settings)
     return MethodRun(name, result, evaluate_match(result, gt, CURVE_KS))
 
 

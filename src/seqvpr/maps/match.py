@@ -1,5 +1,5 @@
 """Matching a query against a saved map: the query described as the map's frames were, the models checked against
-the ones the map went through, then ``run_method`` as for any reference (frame matching reads the map chunk by
+the ones the map went through, then the method's matcher as for any reference (frame matching reads the map chunk by
 chunk; sequence-descriptor methods pool its frames)."""
 
 from __future__ import annotations

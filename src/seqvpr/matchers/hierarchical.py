@@ -29,12 +29,12 @@ class HierarchicalMatcher(Matcher):
     @classmethod
     def from_method(cls, method: Any, settings: MatchSettings, models: Mapping[str, Any], build: Callable[..., Matcher],
                     progress: ProgressFactory | None = None, **conf: Any) -> HierarchicalMatcher:
-        """The ``shortlist`` retrieval method of ``conf`` (SeqNet's when a SeqNet model is given, else SeqGeM) with
+        """The ``proposer`` retrieval method of ``conf`` (SeqNet's when a SeqNet model is given, else SeqGeM) with
         the models it takes, its top ``rerank`` N (default 20) re-ranked by the method's sequence search."""
         from seqvpr.matchers.frames import frame_transform
         from seqvpr.matchers.sequence import search_of
 
-        first = conf.get("shortlist") or ("seqnet" if "seqnet" in models else "seqgem")
+        first = conf.get("proposer") or ("seqnet" if "seqnet" in models else "seqgem")
         proposer = build(first, settings, models, progress=progress, index=conf.get("index") or "flat",
                          accepted_only=True)
         if proposer.family != "retrieval":

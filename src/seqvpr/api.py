@@ -1,0 +1,156 @@
+"""seqvpr in a few calls: load traversals, match a query against any reference by a method's name, evaluate.
+
+    import seqvpr
+    reference = seqvpr.load_traversal("day.npz", "reference")
+    query = seqvpr.load_traversal("night.npz", "query")
+    result = seqvpr.match(reference, query, "matching", seq_len=5)
+    print(seqvpr.evaluate(result, radius="2f").recall)
+
+``seqvpr match`` on the command line is these calls plus reading options and writing files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from seqvpr.errors import SeqvprError
+
+if TYPE_CHECKING:
+    from seqvpr.data.traversal import Traversal
+    from seqvpr.evaluation.metrics import Evaluation
+    from seqvpr.matchers.base import MatchResult, MatchSettings
+    from seqvpr.models.registry import TrainedModel
+    from seqvpr.progress import ProgressFactory
+
+DEFAULT_BUDGET = 2 * 1024**3
+
+
+def load_models(models: Iterable[str | Path] | Mapping[str, TrainedModel] | None,
+                device: str = "cpu") -> dict[str, TrainedModel]:
+    """Models by kind: loaded model folders (one per kind), or a mapping of loaded ones as given."""
+    from seqvpr.models.registry import load_trained_model
+
+    if models is None:
+        return {}
+    if isinstance(models, Mapping):
+        return dict(models)
+    loaded: dict[str, TrainedModel] = {}
+    for folder in models:
+        model = load_trained_model(folder, device)
+        if model.kind in loaded:
+            raise SeqvprError(f"model {folder}: a second {model.kind} model (give one model per kind)")
+        loaded[model.kind] = model
+    return loaded
+
+
+def open_reference(reference: Any) -> Any:
+    """A reference as the matchers take it: a traversal, a saved map or a sharded map as given, else the path of
+    one (a sharded map's folder, a map's folder, or a traversal file or folder, which is loaded)."""
+    if not isinstance(reference, (str, Path)):
+        return reference
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.maps.files import INFO_FILE, is_sharded_map, open_map, open_sharded_map
+
+    if is_sharded_map(reference):
+        return open_sharded_map(reference)
+    if (Path(reference) / INFO_FILE).is_file():
+        return open_map(reference)
+    return load_traversal(str(reference), "reference")
+
+
+def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int | None = None, *, k: int = 20,
+                   align: str = "centered", boundary: str = "drop", velocities: Iterable[float] = (1.0,),
+                   normalize: bool = True, dtype: str = "float32", device: str = "cpu",
+                   memory_budget: int | None = DEFAULT_BUDGET) -> MatchSettings:
+    """The settings of a match: windows of ``seq_len`` frames (the method's or its model's length when None)."""
+    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.methods import get_method, run_length
+    from seqvpr.sequences.windows import SequenceSpec
+
+    length = seq_len or run_length(get_method(method), models)
+    spec = SequenceSpec(length, align, boundary, tuple(velocities))  # type: ignore[arg-type]
+    return MatchSettings(spec, k, normalize, dtype, device, memory_budget)
+
+
+def match(
+    reference: Any,
+    query: Traversal | str | Path,
+    method: str = "matching",
+    *,
+    seq_len: int | None = None,
+    models: Iterable[str | Path] | Mapping[str, TrainedModel] | None = None,
+    settings: MatchSettings | None = None,
+    shortlist: int = 0,
+    history: int = 0,
+    nprobe: int = 16,
+    rerank: int = 0,
+    index: str = "flat",
+    steps: tuple[int, int] | None = None,
+    contrast_window: int | None = None,
+    proposer: str | None = None,
+    progress: ProgressFactory | None = None,
+    **conf: Any,
+) -> MatchResult | None:
+    """The K best reference frames of every query frame by ``method`` (any name in ``seqvpr.methods.METHODS``).
+
+    ``reference``: a traversal with descriptors, a saved map, a sharded map, or the path of one; ``query``: a
+    traversal or its file (described as a map's frames were, against a map). ``models``: model folders or loaded
+    models by kind. ``settings`` (``MatchSettings``), or its fields in ``conf`` (``k``, ``align``, ``boundary``,
+    ``velocities``, ``normalize``, ``dtype``, ``device``, ``memory_budget``); the method's own: ``steps``,
+    ``contrast_window``, ``rerank`` N, ``index``, ``proposer`` (hvpr's retrieval method); against a map with an index, ``shortlist`` S a frame with
+    ``history`` H. Under ``torchrun`` over a sharded map, ranks other than 0 get None.
+    """
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.methods import check_run
+
+    extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
+    device = (settings.device if settings else conf.get("device")) or "cpu"
+    models = load_models(models, device)
+    check_run(method, models, rerank, seq_len)
+    settings = settings or match_settings(method, models, seq_len, **conf)
+    if isinstance(query, (str, Path)):
+        query = load_traversal(str(query), "query")
+    options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
+               "progress": progress, "search": {"steps": steps, "contrast_window": contrast_window,
+                                                    **({"proposer": proposer} if proposer else {})}}
+    return match_reference(open_reference(reference), query, method, settings, models, **options, **extraction)
+
+
+def match_reference(reference: Any, query: Traversal, method: str, settings: MatchSettings,
+                    models: Mapping[str, TrainedModel], *, shortlist: int, history: int, nprobe: int, rerank: int,
+                    index: str, progress: ProgressFactory | None, search: Mapping[str, Any],
+                    **extraction: Any) -> MatchResult | None:
+    """``match`` once its inputs are opened: by what the reference is (a sharded map, a saved map, a traversal)."""
+    from seqvpr.maps.files import SavedMap, ShardedMap
+    from seqvpr.methods import build_matcher
+
+    if isinstance(reference, ShardedMap):
+        from seqvpr.maps.shards import match_sharded_map
+
+        return match_sharded_map(reference, query, method, settings, models, progress, shortlist=shortlist,
+                                 history=history, nprobe=nprobe, search=search, **extraction)
+    if isinstance(reference, SavedMap):
+        from seqvpr.maps.match import match_map
+
+        return match_map(reference, query, method, settings, models, index=index, rerank=rerank,
+                         shortlist=shortlist, history=history, nprobe=nprobe, progress=progress, search=search,
+                         **extraction)
+    if shortlist:
+        raise SeqvprError(f"--shortlist S needs a map with an index (seqvpr map build --index), not the traversal "
+                          f"{reference.source or reference.name}")
+    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress,
+                         **search).topk(reference, query)
+
+
+def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str | Path | None = None,
+             ks: Iterable[int] = (1, 5, 10, 20), no_positive: str = "exclude",
+             uniqueness: int | None = None) -> Evaluation:
+    """Recall@K (and precision-recall) of a match against ground truth: within ``radius`` (``25m`` or ``2f``) of
+    the positions, or from a ground-truth file."""
+    from seqvpr.pipeline import evaluate_match, resolve_ground_truth
+
+    gt = resolve_ground_truth(result.reference, result.query, radius,
+                              None if ground_truth is None else str(ground_truth))
+    return evaluate_match(result, gt, tuple(ks), no_positive, uniqueness)
