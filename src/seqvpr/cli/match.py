@@ -119,6 +119,8 @@ RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retr
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
+    k_values, speeds, budget = _checked_options(o)
+    models, method = _models_and_method(o)
     from seqvpr import distributed
     from seqvpr.api import match as match_reference
     from seqvpr.matchers.settings import MatchSettings
@@ -126,8 +128,6 @@ def match(**o: Any) -> None:
     from seqvpr.pipeline import evaluate_match
     from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
-    k_values, speeds, budget = _checked_options(o)
-    models, method = _models_and_method(o)
     sides = _map_sides(o, models, method) if o["map_dir"] else _traversal_sides(o, models, method)
     spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
     settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
