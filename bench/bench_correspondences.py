@@ -34,7 +34,8 @@ def main() -> None:
     from seqvpr.matchers.base import MatchResult, MatchSettings
     from seqvpr.matchers.frames import query_rows
     from seqvpr.matchers.sequence import top1_pairs
-    from seqvpr.pipeline import match_correspondences, resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import resolve_ground_truth
+    from seqvpr.evaluation.scoring import match_correspondences
     from seqvpr.sequences.matching import sequence_topk
     from seqvpr.sequences.windows import SequenceSpec, parse_velocities
     from seqvpr.synthetic.routes import generate_route

@@ -35,14 +35,10 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import (
-    MatchSettings,
-    describe,
-    evaluate_match,
-    ground_truth,
-    netvlad_extractor,
-    whiten_pair,
-)
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.features.describe import describe, netvlad_extractor, whiten_pair
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 

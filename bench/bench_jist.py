@@ -53,7 +53,9 @@ from seqvpr.api import match
 from seqvpr.methods import describe_for_models
 from seqvpr.models.jist import build_jist, save_jist
 from seqvpr.models.registry import load_trained_model
-from seqvpr.pipeline import MatchSettings, describe, evaluate_match
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.features.describe import describe
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.data import classification_traversals, training_data
 from seqvpr.training.jist import jist_setup, train_jist

@@ -44,7 +44,8 @@ from seqvpr.localization.replay import replay, score_replay
 from seqvpr.maps import build_map, open_map
 from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
-from seqvpr.pipeline import describe, ground_truth
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.features.describe import describe
 
 LATENCY_MAP, LATENCY_DIM, LATENCY_QUERIES = 100_000, 512, 300
 

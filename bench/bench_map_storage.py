@@ -26,7 +26,10 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.maps import build_map, match_map
-from seqvpr.pipeline import MatchSettings, describe, evaluate_match, ground_truth
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.features.describe import describe
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 GARDENS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"

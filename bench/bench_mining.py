@@ -67,7 +67,7 @@ from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
-from seqvpr.pipeline import describe
+from seqvpr.features.describe import describe
 from seqvpr.sequences.windows import SequenceSpec, window_starts
 from seqvpr.training.mining import DistanceRows, MiningConfig, SequenceMiner, Triplet, seqmatch_rows
 from seqvpr.training.seqmatchnet import TrainingData, SeqMatchNetSettings, train_seqmatchnet

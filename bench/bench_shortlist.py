@@ -47,7 +47,8 @@ from seqvpr.maps import FrameDescription, open_map, match_map
 from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
 from seqvpr.maps.match import shortlist_recall
-from seqvpr.pipeline import MatchSettings, describe
+from seqvpr.features.describe import describe
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 DIM, LENGTH, K = 256, 5, 20

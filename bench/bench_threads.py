@@ -7,7 +7,7 @@ Run from the repository root (CPU; about 10 minutes on 2 cores):
 
 Each measurement is a fresh process (so the policy is chosen at its start, as a command's is) that runs one
 workload through the public Python entry points and times the work alone (not the imports):
-* describe: 24 images of 320x240 through EfficientNet-Lite0 (``pipeline.describe``, the map builder's path).
+* describe: 24 images of 320x240 through EfficientNet-Lite0 (``features.describe.describe``, the map builder's path).
 * match: sequence matching (``SequenceMatcher``, L = 5, top-20) of 1,000 query frames against 4,000 map
   frames, 512-D.
 * localise: ``Localizer.update`` of 200 frames, one at a time, over a 20,000-frame 512-D map (exact causal
@@ -50,7 +50,7 @@ def worker(kind: str, work: Path) -> dict:
 def _describe(work: Path) -> None:
     from seqvpr.data.traversal import Traversal
     from seqvpr.features.extraction import ExtractorConfig
-    from seqvpr.pipeline import describe
+    from seqvpr.features.describe import describe
 
     paths = sorted((work / "images").glob("*.png"))
     traversal = Traversal("images", np.arange(len(paths)), np.zeros(len(paths), np.int64), image_paths=tuple(paths))
@@ -60,7 +60,7 @@ def _describe(work: Path) -> None:
 def _match(work: Path) -> None:
     from seqvpr.data.traversal import Traversal
     from seqvpr.matchers.sequence import SequenceMatcher
-    from seqvpr.pipeline import MatchSettings
+    from seqvpr.matchers.settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     rng = np.random.default_rng(1)

@@ -21,7 +21,7 @@ LAYERS = {
     "seqvpr.data": 1, "seqvpr.sequences": 1,
     "seqvpr.features": 2, "seqvpr.evaluation": 2, "seqvpr.synthetic": 2,
     "seqvpr.models": 3,
-    "seqvpr.pipeline": 4, "seqvpr.matchers": 4,
+    "seqvpr.matchers": 4,
     "seqvpr.training": 5,
     "seqvpr.methods": 6,
     "seqvpr.experiments": 7, "seqvpr.maps": 7, "seqvpr.api": 7,

@@ -23,7 +23,7 @@ from seqvpr.methods import (
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
 from seqvpr.models.seqmatchnet import FrameTransform
-from seqvpr.pipeline import MatchSettings
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route
@@ -85,7 +85,7 @@ def test_matching_family(pair):
 
 @pytest.mark.parametrize("name", ["single", "hmm", "graph"])
 def test_one_frame_methods_score_one_frame_a_query_whatever_length_is_asked(pair, name):
-    from seqvpr.pipeline import evaluate_match
+    from seqvpr.evaluation.scoring import evaluate_match
 
     reference, query = pair
     result = match_method(name, reference, query, replace(SETTINGS, sequence=SequenceSpec(9)))

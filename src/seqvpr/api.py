@@ -149,7 +149,8 @@ def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str |
              uniqueness: int | None = None) -> Evaluation:
     """Recall@K (and precision-recall) of a match against ground truth: within ``radius`` (``25m`` or ``2f``) of
     the positions, or from a ground-truth file."""
-    from seqvpr.pipeline import evaluate_match, resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import resolve_ground_truth
+    from seqvpr.evaluation.scoring import evaluate_match
 
     gt = resolve_ground_truth(result.reference, result.query, radius,
                               None if ground_truth is None else str(ground_truth))

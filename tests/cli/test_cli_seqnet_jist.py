@@ -19,7 +19,8 @@ from seqvpr.synthetic.routes import generate_route
 from seqvpr.synthetic.world import write_demo_world
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import MatchSettings, evaluate_match
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
 from seqvpr.training.settings import JistTrainSettings

@@ -75,7 +75,7 @@ def test_pca_whitening_rejects_other_input_dimension():
 
 def test_whiten_pair_fits_on_the_reference_only_and_caps_the_dimension():
     from seqvpr.data.traversal import Traversal
-    from seqvpr.pipeline import whiten_pair
+    from seqvpr.features.describe import whiten_pair
 
     rng = np.random.default_rng(5)
     ref = Traversal.from_descriptors(rng.normal(size=(12, 20)).astype(np.float32), name="r")

@@ -21,7 +21,7 @@ from seqvpr.features.extraction import (
     extract_descriptors,
 )
 from seqvpr.features.torchscript import load_encoder
-from seqvpr.pipeline import descriptor_config
+from seqvpr.features.describe import descriptor_config
 from tests.helpers import raises_one_line, run_cli
 
 W, H = 64, 48

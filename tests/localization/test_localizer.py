@@ -20,7 +20,8 @@ from seqvpr.maps import build_map, open_map
 from seqvpr.maps.index import IndexSpec, add_index
 from tests.helpers import match_method
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import MatchSettings, describe
+from seqvpr.features.describe import describe
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import examples, raises_one_line, write_route_files
 
@@ -213,7 +214,7 @@ for row in np.load({str(route / "ref.npz")!r})["descriptors"][:8]:
     localizer.update(row.astype(np.float32))
 loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("matplotlib", "faiss", "PIL", "rosbags")
                 or m.startswith(("scipy.io", "scipy.spatial", "scipy.sparse"))  # numba imports bare scipy
-                or m.startswith(("seqvpr.models", "seqvpr.features", "seqvpr.pipeline",
+                or m.startswith(("seqvpr.models", "seqvpr.features",
                                  "seqvpr.training", "seqvpr.evaluation", "seqvpr.maps.build", "seqvpr.maps.match",
                                  "seqvpr.data.sources", "seqvpr.data.loaders")))
 print(sorted({{m.split(".")[0] for m in loaded}} | {{m for m in loaded if m.startswith("seqvpr")}}))

@@ -14,7 +14,8 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, open_map, match_map
 from seqvpr.maps.index import IndexSpec, add_index, open_frame_index, parse_index_spec, search_frames
 from seqvpr.maps.match import shortlist_recall
-from seqvpr.pipeline import MatchSettings, ground_truth
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.hierarchical import frame_shortlist
 from seqvpr.sequences.windows import SequenceSpec, window_starts
 from tests.helpers import examples, raises_one_line, write_route_files

@@ -10,7 +10,8 @@ from seqvpr.data.groundtruth import parse_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import MatchSettings, ground_truth
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.descriptors import (
     FIXED_POOLINGS,
     SeqGeM,

@@ -89,7 +89,7 @@ def localize(**o: Any) -> None:
     from seqvpr.data.traversal import slice_frame_range
     from seqvpr.io import check_replaceable
     from seqvpr.localization.replay import replay
-    from seqvpr.pipeline import resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
     k_values = parse_ks(o["ks"])
     if o["calibrate"] and not (o["radius"] or o["gt_file"]):

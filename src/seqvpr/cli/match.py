@@ -125,7 +125,7 @@ def match(**o: Any) -> None:
     from seqvpr.api import match as match_reference
     from seqvpr.matchers.settings import MatchSettings
     from seqvpr.methods import run_length
-    from seqvpr.pipeline import evaluate_match
+    from seqvpr.evaluation.scoring import evaluate_match
     from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
     sides = _map_sides(o, models, method) if o["map_dir"] else _traversal_sides(o, models, method)
@@ -171,7 +171,7 @@ def _traversal_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
     """``--reference`` and ``--query`` loaded, cut, checked against L, ground truth resolved, both described."""
     from seqvpr.data.sources import load_pair
     from seqvpr.methods import image_model, run_length
-    from seqvpr.pipeline import ground_truth_of_kept, resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import ground_truth_of_kept, resolve_ground_truth
 
     _sharded_reference(None)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
@@ -198,7 +198,7 @@ def _map_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
     from seqvpr.data.traversal import slice_frame_range
     from seqvpr.maps.files import open_map, open_sharded_map
     from seqvpr.methods import run_length
-    from seqvpr.pipeline import resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
     sharded = _sharded_reference(o["map_dir"])
     reference = open_sharded_map(o["map_dir"]) if sharded else open_map(o["map_dir"])
@@ -272,7 +272,7 @@ def run_label(method: str, length: int, o: dict[str, Any]) -> str:
 
 def _say_skipped(pair, kept) -> None:
     """Name on stderr the images --skip-bad left out."""
-    from seqvpr.pipeline import dropped_frames
+    from seqvpr.features.describe import dropped_frames
 
     for original, described in zip(pair, kept):
         skipped = dropped_frames(original, described)
@@ -337,7 +337,7 @@ def _frames(reference, query, models: dict, o: dict[str, Any]):
     """Frame descriptors for the method: the image model's (JIST, CosPlace) or the extraction options', then
     PCA-whitened if asked."""
     from seqvpr.methods import describe_for_models
-    from seqvpr.pipeline import describe_pair, whiten_pair
+    from seqvpr.features.describe import describe_pair, whiten_pair
 
     descriptor, patchnorm, extraction = extraction_settings(o, o["device"])
     reference, query = describe_for_models(
@@ -384,7 +384,7 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
     from seqvpr.evaluation.predictions import save_correspondences, save_match_predictions
     from seqvpr.evaluation.results import evaluation_json, recall_table
     from seqvpr.io import atomic_folder
-    from seqvpr.pipeline import match_correspondences
+    from seqvpr.evaluation.scoring import match_correspondences
 
     out = Path(o["out_dir"])
     pairs = match_correspondences(result)
@@ -423,7 +423,7 @@ def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, 
     from seqvpr.data.sources import load_pair
     from seqvpr.evaluation.predictions import evaluate_predictions
     from seqvpr.evaluation.results import evaluation_json, recall_table
-    from seqvpr.pipeline import resolve_ground_truth
+    from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
     ref, qry = load_pair(reference, query)
     gt = resolve_ground_truth(ref, qry, radius, gt_file, reference, whole=True, layout=gt_layout)
@@ -456,7 +456,7 @@ def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
     descriptor, patchnorm, extraction = extraction_settings(o, device)
     from seqvpr.data.sources import load_traversal, save_traversal_npz
-    from seqvpr.pipeline import describe, dropped_frames, netvlad_extractor
+    from seqvpr.features.describe import describe, dropped_frames, netvlad_extractor
 
     traversal = load_traversal(images, role)
     if traversal.image_paths is None:

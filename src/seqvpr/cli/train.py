@@ -141,7 +141,7 @@ def described_data(kind: str, o: dict):
     training pair and the patchnorm config (for the ablation's test split)."""
     from seqvpr.data.groundtruth import parse_radius
     from seqvpr.features.patchnorm import PatchNormConfig
-    from seqvpr.pipeline import describe_pair
+    from seqvpr.features.describe import describe_pair
     from seqvpr.training.data import training_data, training_pairs
 
     width, height = parse_thumbnail(o["thumbnail"])
@@ -368,7 +368,7 @@ def _test_split(o: dict, whole, config, test_frames: str, test_reference: str | 
     training and validation frames."""
     from seqvpr.data.sources import load_pair
     from seqvpr.data.traversal import check_disjoint, slice_frame_range
-    from seqvpr.pipeline import describe_pair
+    from seqvpr.features.describe import describe_pair
 
     if test_reference or test_query:
         pair = load_pair(test_reference or o["reference"], test_query or o["query"], o["frames"])

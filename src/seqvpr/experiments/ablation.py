@@ -19,7 +19,8 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_file_set
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import MatchSettings, evaluate_match
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.models.seqmatchnet import load_seqmatchnet
 from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import (

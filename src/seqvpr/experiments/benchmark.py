@@ -55,7 +55,10 @@ from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.errors import SeqvprError, SeqvprWarning, reading
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.methods import METHODS
-from seqvpr.pipeline import MatchResult, MatchSettings, describe, evaluate_match
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.features.describe import describe
+from seqvpr.matchers.base import MatchResult
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 

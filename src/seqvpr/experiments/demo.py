@@ -21,9 +21,13 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.errors import SeqvprError
 from seqvpr.api import match
-from seqvpr.pipeline import (
-    MatchResult, MatchSettings, ProgressFactory, describe, distance_matrix, evaluate_match, ground_truth,
-)
+from seqvpr.evaluation.ground_truth import ground_truth
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.features.describe import describe
+from seqvpr.matchers.base import MatchResult
+from seqvpr.matchers.frames import distance_matrix
+from seqvpr.matchers.settings import MatchSettings
+from seqvpr.progress import ProgressFactory
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.progress import LOGGER, or_logged

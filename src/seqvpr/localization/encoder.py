@@ -46,7 +46,7 @@ class FrameEncoder:
             self.size, self.network = None, None
         else:
             from seqvpr.features.extraction import build_encoder
-            from seqvpr.pipeline import descriptor_config
+            from seqvpr.features.describe import descriptor_config
 
             config = descriptor_config(description.descriptor, description.extractor)
             self.size, self.network = (config.width, config.height), build_encoder(config).to(device)

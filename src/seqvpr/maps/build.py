@@ -33,7 +33,8 @@ from seqvpr.maps.index import model_record
 from seqvpr.matchers.frames import transformed_by
 from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel
-from seqvpr.pipeline import ProgressFactory, describe
+from seqvpr.features.describe import describe
+from seqvpr.progress import ProgressFactory
 from seqvpr.sequences.matching import unit_rows
 from seqvpr.progress import or_logged
 from seqvpr.threads import ensure_policy

@@ -113,3 +113,14 @@ def frame_row(frame, transform=None, normalize: bool = True) -> torch.Tensor:
         with torch.no_grad():
             vector = transform(vector[None])[0].float()
     return unit_rows(vector, dim=0) if normalize else vector
+
+
+def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings | None = None) -> np.ndarray:
+    """The full sequence-distance matrix [n_query, n_reference] (+inf where a window is missing), for plots and
+    small traversals; a matcher's ``topk`` keeps only the top K and never holds it."""
+    from seqvpr.sequences.matching import frame_distances, sequence_distance_matrix
+
+    settings = settings or MatchSettings()
+    ref, qry = query_rows(reference, settings), query_rows(query, settings)
+    full = sequence_distance_matrix(frame_distances(qry, ref), settings.sequence, query.segment_ids, reference.segment_ids)
+    return full.double().cpu().numpy()

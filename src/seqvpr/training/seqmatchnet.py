@@ -24,7 +24,8 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqmatchnet, save_seqmatchnet
 from seqvpr.matchers.frames import transform_traversal
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.pipeline import MatchSettings, evaluate_match
+from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.losses import sequence_triplet_loss, window_part
 from seqvpr.training.settings import SeqMatchNetSettings
