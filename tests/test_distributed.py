@@ -17,16 +17,16 @@ from tests.helpers import raises_one_line, spawn_ranks
 def test_the_world_is_torchruns_environment_or_one_process(monkeypatch):
     for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
         monkeypatch.delenv(name, raising=False)
-    assert distributed.from_environment() == distributed.World(0, 1, 0)
+    assert distributed.from_environment() == distributed.Ranks(0, 1, 0)
     monkeypatch.setenv("RANK", "1")
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("LOCAL_RANK", "1")
-    assert distributed.from_environment() == distributed.World(1, 2, 1)
+    assert distributed.from_environment() == distributed.Ranks(1, 2, 1)
     monkeypatch.setenv("RANK", "2")
     raises_one_line("rank 2 is not one of WORLD_SIZE=2 ranks", distributed.from_environment)
     monkeypatch.setenv("RANK", "one")
     raises_one_line("must be whole numbers", distributed.from_environment)
-    assert distributed.gather_to_root(lambda: 7, distributed.World()) == [7]  # alone: no process group
+    assert distributed.gather_to_root(lambda: 7, distributed.Ranks()) == [7]  # alone: no process group
 
 
 def _rank(rank: int, port: int, fail_rank: int, out: str) -> None:

@@ -31,7 +31,7 @@ MAX_TIMEOUT_S = 86_400.0  # a day: past that a wait is a hang
 
 
 @dataclass(frozen=True)
-class World:
+class Ranks:
     """This process's place among the ranks of a run: rank, how many there are, and its rank on its machine."""
 
     rank: int = 0
@@ -43,13 +43,13 @@ class World:
         return self.rank == 0
 
 
-_current = World()
+_current = Ranks()
 
 
-def from_environment() -> World:
+def from_environment() -> Ranks:
     """The world torchrun describes in ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` (one process when unset)."""
     try:
-        world = World(int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)),
+        world = Ranks(int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)),
                       int(os.environ.get("LOCAL_RANK", 0)))
     except ValueError:
         raise SeqvprError("RANK, WORLD_SIZE and LOCAL_RANK must be whole numbers (torchrun sets them)") from None
@@ -58,13 +58,13 @@ def from_environment() -> World:
     return world
 
 
-def current() -> World:
+def current() -> Ranks:
     """The world of the running command (one process outside ``process_group``)."""
     return _current
 
 
 @contextlib.contextmanager
-def process_group(device: str = "cpu") -> Iterator[World]:
+def process_group(device: str = "cpu") -> Iterator[Ranks]:
     """Be in torchrun's process group for the duration (gloo on CPU, NCCL on CUDA). The group is joined once per
     process and left when the process exits: a second command or training run in the same process reuses it, as a
     group torn down and joined again on the same port can wait forever for its rendezvous."""
@@ -149,7 +149,7 @@ def _leave() -> None:
         dist.destroy_process_group()
 
 
-def everywhere(work: Callable[[], T], world: World | None = None) -> T:
+def everywhere(work: Callable[[], T], world: Ranks | None = None) -> T:
     """Every rank's own ``work()``; if it raises on any rank, every rank raises one line naming the first that
     failed, once all have finished theirs (a sync point: no rank goes on before all have done this)."""
     world = world or current()
@@ -171,7 +171,7 @@ def everywhere(work: Callable[[], T], world: World | None = None) -> T:
     return value  # type: ignore[return-value]
 
 
-def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T] | None:
+def gather_to_root(work: Callable[[], T], world: Ranks | None = None) -> list[T] | None:
     """Every rank's ``work()``, gathered on rank 0 in rank order (other ranks get None). A rank whose work raises
     makes every rank raise one line naming it, after all have finished theirs."""
     world = world or current()
@@ -185,7 +185,7 @@ def gather_to_root(work: Callable[[], T], world: World | None = None) -> list[T]
     return values
 
 
-def gather_everywhere(work: Callable[[], T], world: World | None = None) -> list[T]:
+def gather_everywhere(work: Callable[[], T], world: Ranks | None = None) -> list[T]:
     """Every rank's ``work()``, in rank order, on every rank; a rank whose work raises makes every rank raise one
     line naming it."""
     world = world or current()
@@ -199,7 +199,7 @@ def gather_everywhere(work: Callable[[], T], world: World | None = None) -> list
     return values
 
 
-def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
+def broadcast_from_root(work: Callable[[], T], world: Ranks | None = None) -> T:
     """Rank 0's ``work()`` on every rank (the others do not run it); if it raises, every rank raises one line."""
     world = world or current()
     if world.size == 1:
@@ -218,7 +218,7 @@ def broadcast_from_root(work: Callable[[], T], world: World | None = None) -> T:
     return message[0]
 
 
-def sum_over_ranks(values: list[float], world: World | None = None) -> list[float]:
+def sum_over_ranks(values: list[float], world: Ranks | None = None) -> list[float]:
     """Each value summed over the ranks (float64)."""
     world = world or current()
     if world.size == 1:
@@ -231,7 +231,7 @@ def sum_over_ranks(values: list[float], world: World | None = None) -> list[floa
     return total.tolist()
 
 
-def barrier(world: World | None = None) -> None:
+def barrier(world: Ranks | None = None) -> None:
     """Wait until every rank is here."""
     world = world or current()
     if world.size > 1:
@@ -240,7 +240,7 @@ def barrier(world: World | None = None) -> None:
         _wait(dist.barrier, world)
 
 
-def _wait(collective: Callable, world: World, *args, **kwargs) -> None:
+def _wait(collective: Callable, world: Ranks, *args, **kwargs) -> None:
     """Run a collective; a rank that times out waiting (``$SEQVPR_RANK_TIMEOUT``) or loses the others is one line."""
     try:
         collective(*args, **kwargs)

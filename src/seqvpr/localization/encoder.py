@@ -1,5 +1,6 @@
 """Camera frames to map frames: one image (a path, a PIL image or an H x W x 3 uint8 array) described exactly as
-the map's frames were (its descriptor or image model, then its SeqMatchNet transform), with the model built once."""
+the map's frames were (its descriptor or image model), with the model built once. The localiser applies the map's
+SeqMatchNet transform after, to described and given descriptors alike."""
 
 from __future__ import annotations
 
@@ -31,13 +32,13 @@ def rgb_image(frame: Frame) -> Image.Image:
     return Image.fromarray(array).convert("RGB")
 
 
-class FrameEncoder:
-    """Describes single images as the map's frames: ``encode(frame) -> [D]`` float32 (before normalisation)."""
+class ImageDescriber:
+    """Describes single images as the map's frames: ``encode(frame) -> [D]`` float32 on the CPU (before any
+    transform or normalisation)."""
 
     def __init__(self, description: FrameDescription, models: Mapping[str, TrainedModel], device: str = "cpu"):
         self.description, self.device = description, device
         self.model = image_model(models)
-        self.transform = models.get("seqmatchnet")
         if self.model is not None:
             self.size = description.image_size or self.model.image_size
             module = self.model.module
@@ -54,7 +55,7 @@ class FrameEncoder:
             self.network.eval()
 
     @torch.no_grad()
-    def encode(self, frame: Frame) -> np.ndarray:
+    def encode(self, frame: Frame) -> torch.Tensor:
         image = rgb_image(frame)
         if self.network is None:
             from seqvpr.features.patchnorm import patch_normalize
@@ -67,7 +68,5 @@ class FrameEncoder:
             pixels = np.asarray(image.resize(self.size, Image.BILINEAR), dtype=np.float32) / 255.0
             batch = torch.from_numpy(pixels).permute(2, 0, 1)[None].to(self.device)
             vector = self.network(batch)[0].float().cpu()
-        if self.transform is not None:
-            vector = self.transform.module(vector[None].to(self.device))[0].float().cpu()
-        return vector.numpy()
+        return vector
 

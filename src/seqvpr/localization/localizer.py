@@ -212,13 +212,13 @@ class Localizer:
         elif self.encoder is None:
             raise SeqvprError(f"{self.saved.folder} holds descriptor-file frames: update() takes a descriptor [D]")
         else:
-            vector = torch.from_numpy(self.encoder.encode(frame))
+            vector = self.encoder.encode(frame)
         if vector.shape != (self.saved.info.dim,):
             raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {self.saved.info.dim}-D"
                               " frames")
         if not torch.isfinite(vector).all():
             raise SeqvprError("the frame's descriptor holds NaN or infinite values")
-        if self.transform is not None and is_descriptor:  # the map holds transformed frames
+        if self.transform is not None:  # the map holds transformed frames: the one place the transform is applied
             vector = frame_row(vector, self.transform.module, normalize=False)
         return self.matcher.prepare_frame(vector)
 
@@ -298,10 +298,10 @@ def _frame_encoder(saved: SavedMap, models: Mapping[str, TrainedModel], device: 
     """Camera frames to map frames when the map was described from images (None for descriptor-file maps)."""
     if saved.info.description.get("descriptor") == "file":
         return None
-    from seqvpr.localization.encoder import FrameEncoder
+    from seqvpr.localization.encoder import ImageDescriber
     from seqvpr.maps.build import FrameDescription
 
-    return FrameEncoder(FrameDescription.from_json(saved.info.description), models, device)
+    return ImageDescriber(FrameDescription.from_json(saved.info.description), models, device)
 
 
 def next_status(score: float | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:

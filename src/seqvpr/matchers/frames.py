@@ -108,10 +108,12 @@ def matcher_rows(matcher: Any, reference: Reference):
 
 def frame_row(frame, transform=None, normalize: bool = True) -> torch.Tensor:
     """One query frame's descriptor [D] as ``topk`` prepares a query's rows: float32, transformed, normalised."""
-    vector = torch.as_tensor(np.asarray(frame, dtype=np.float32))
-    if transform is not None:
+    vector = frame if torch.is_tensor(frame) and frame.dtype == torch.float32 else \
+        torch.as_tensor(np.asarray(frame, dtype=np.float32))
+    if transform is not None:  # on the transform's device, back to the CPU
+        device = next(iter(transform.parameters()), vector).device
         with torch.no_grad():
-            vector = transform(vector[None])[0].float()
+            vector = transform(vector[None].to(device))[0].float().cpu()
     return unit_rows(vector, dim=0) if normalize else vector
 
 
