@@ -330,11 +330,11 @@ def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
     """The per-frame step the settings ask for: the matcher's own stream, or its shortlist over the map's index
     (a sharded map's: its shards' indexes merged); under torchrun over a sharded map, each rank its shards."""
     from seqvpr import distributed
-    from seqvpr.maps.files import is_sharded_map, open_sharded_map
+    from seqvpr.maps.files import open_sharded_map
     from seqvpr.matchers.shortlisted import Shortlisted
 
     world = distributed.current()
-    sharded = open_sharded_map(saved.folder) if is_sharded_map(saved.folder) else None
+    sharded = open_sharded_map(saved.folder) if saved.stored == "sharded" else None  # rows read through shards
     if sharded is not None and world.size > 1 and not settings.shortlist:
         from seqvpr.matchers.sharded import Sharded
 
@@ -356,9 +356,7 @@ def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
 
 def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
     """A shortlist needs the map's index over frames (a sharded map's shards are checked as they open)."""
-    from seqvpr.maps.files import is_sharded_map
-
-    if settings.shortlist and not is_sharded_map(saved.folder) and (saved.info.index or {}).get("over") != "frames":
+    if settings.shortlist and saved.stored != "sharded" and (saved.info.index or {}).get("over") != "frames":
         raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
                           f"{saved.folder} --index SPEC")
 
