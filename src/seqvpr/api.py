@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     from seqvpr.progress import ProgressFactory
 
 DEFAULT_BUDGET = 2 * 1024**3
+#: the match settings ``match`` takes by name (``match_settings``)
+SETTING_NAMES = ("k", "align", "boundary", "velocities", "normalize", "dtype", "device", "memory_budget")
 
 
 def load_models(models: Iterable[str | Path] | Mapping[str, TrainedModel] | None,
@@ -106,16 +108,27 @@ def match(
     from seqvpr.methods import check_run
 
     extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
+    unknown = sorted(set(conf) - set(SETTING_NAMES))
+    if unknown:
+        raise SeqvprError(f"seqvpr.match: no setting {unknown[0]!r} (settings: {', '.join(SETTING_NAMES)}, "
+                          "shortlist, history, nprobe, rerank, index, steps, contrast_window, proposer, cache_dir, "
+                          "skip_bad)")
     device = (settings.device if settings else conf.get("device")) or "cpu"
     models = load_models(models, device)
     check_run(method, models, rerank, seq_len)
     settings = settings or match_settings(method, models, seq_len, **conf)
     if isinstance(query, (str, Path)):
         query = load_traversal(str(query), "query")
+    reference = open_reference(reference)
+    for side, given in (("reference", reference), ("query", query)):
+        shaped = hasattr(given, "segment_ids") or (side == "reference" and hasattr(given, "shards"))
+        if not shaped or (side == "query" and not hasattr(given, "descriptors")):
+            raise SeqvprError(f"seqvpr.match: the {side} must be a traversal{', a map' if side == 'reference' else ''}"
+                              f" or the path of one, not {type(given).__name__}")
     options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
                "progress": progress, "search": {"steps": steps, "contrast_window": contrast_window,
                                                     **({"proposer": proposer} if proposer else {})}}
-    return match_reference(open_reference(reference), query, method, settings, models, **options, **extraction)
+    return match_reference(reference, query, method, settings, models, **options, **extraction)
 
 
 def match_reference(reference: Any, query: Traversal, method: str, settings: MatchSettings,
