@@ -287,8 +287,8 @@ def describe_images(
     store: ImageStore | None = None, batch: int = 32,
 ) -> Traversal:
     """The traversal with the frame descriptors of a frame encoder (CosPlace) or a JIST model's encoder, images at
-    ``width`` x ``height``. Pooling JIST's frames with ``model.sequence_pool`` (``retrieve_traversals(...,
-    "seqgem", model=model.sequence_pool)``) gives JIST's sequence descriptors."""
+    ``width`` x ``height``. Pooling JIST's frames with ``model.sequence_pool`` (the retrieval matcher with
+    pooling ``seqgem`` and that module) gives JIST's sequence descriptors."""
     check_images_exist(traversal, traversal.source or traversal.name)
     store = store or ImageStore(width, height)
     return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())

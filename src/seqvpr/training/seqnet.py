@@ -3,7 +3,7 @@
 The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter (``SeqNetLearner``):
 
 * model: ``SeqNet(in_dim, out_dim, w)`` (Conv1d over the window, temporal mean, L2), on L2-normalised frames
-  (as ``sequence_descriptors`` / ``retrieve_traversals`` feed it at test time);
+  (as ``sequence_descriptors`` and the retrieval matcher feed it at test time);
 * mining features: the SeqNet descriptor of every training frame's window (a zero placeholder for frames
   without one); kernel ``seqnet_rows``: Euclidean distance between the query windows' descriptors and every
   reference window's descriptor (one GEMM, clamped sqrt), +inf for reference frames without a window. The
