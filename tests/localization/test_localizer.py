@@ -225,3 +225,24 @@ print(sorted({{m.split(".")[0] for m in loaded}} | {{m for m in loaded if m.star
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_a_map_built_through_seqmatchnet_takes_untransformed_frames_and_streams_the_offline_match(route, tmp_path):
+    """The localiser applies the map's SeqMatchNet transform itself, once, to the frames it is given (of the
+    model's input size): its stream is the offline causal match of the same map."""
+    import seqvpr
+    from seqvpr.models.configs import TransformConfig
+    from seqvpr.models.registry import load_trained_model
+    from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
+
+    save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(16, out_dim=8), seed=3),
+                     {"sequence": {"length": 4}})
+    build_map([str(route / "ref.npz")], tmp_path / "map", models={"seqmatchnet": load_trained_model(tmp_path / "smn")})
+    query = load_traversal(route / "qry.npz", "query")
+    run = replay(Localizer.open(tmp_path / "map", tmp_path / "smn", seq_len=4, k=5), query)
+    offline = seqvpr.match(tmp_path / "map", query, "seqmatchnet", models=[tmp_path / "smn"], seq_len=4, k=5,
+                           align="causal")
+    assert_same_as_offline(run, offline, 5)
+    localizer = Localizer.open(tmp_path / "map", tmp_path / "smn", seq_len=4)
+    raises_one_line("holds frames of 16-D descriptors through its SeqMatchNet model", localizer.update,
+                    np.ones(8, np.float32))

@@ -213,9 +213,11 @@ class Localizer:
             raise SeqvprError(f"{self.saved.folder} holds descriptor-file frames: update() takes a descriptor [D]")
         else:
             vector = self.encoder.encode(frame)
-        if vector.shape != (self.saved.info.dim,):
-            raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {self.saved.info.dim}-D"
-                              " frames")
+        wanted = self.saved.info.dim if self.transform is None else self.transform.module.config.in_dim
+        if vector.shape != (wanted,):
+            held = f"{self.saved.info.dim}-D frames" if self.transform is None else \
+                f"frames of {wanted}-D descriptors through its SeqMatchNet model"
+            raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {held}")
         if not torch.isfinite(vector).all():
             raise SeqvprError("the frame's descriptor holds NaN or infinite values")
         if self.transform is not None:  # the map holds transformed frames: the one place the transform is applied
