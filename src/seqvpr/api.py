@@ -104,31 +104,43 @@ def match(
     ``contrast_window``, ``rerank`` N, ``index``, ``proposer`` (hvpr's retrieval method); against a map with an index, ``shortlist`` S a frame with
     ``history`` H. Under ``torchrun`` over a sharded map, ranks other than 0 get None.
     """
-    from seqvpr.data.sources import load_traversal
     from seqvpr.methods import check_run
 
     extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
+    check_setting_names(conf)
+    device = (settings.device if settings else conf.get("device")) or "cpu"
+    models = load_models(models, device)
+    check_run(method, models, rerank, seq_len)
+    settings = settings or match_settings(method, models, seq_len, **conf)
+    reference, query = opened_sides(reference, query)
+    options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
+               "progress": progress, "search": {"steps": steps, "contrast_window": contrast_window,
+                                                    **({"proposer": proposer} if proposer else {})}}
+    return match_reference(reference, query, method, settings, models, **options, **extraction)
+
+
+def check_setting_names(conf: Mapping[str, Any]) -> None:
+    """A setting ``match`` does not know is a one-line error naming it and the ones it knows."""
     unknown = sorted(set(conf) - set(SETTING_NAMES))
     if unknown:
         raise SeqvprError(f"seqvpr.match: no setting {unknown[0]!r} (settings: {', '.join(SETTING_NAMES)}, "
                           "shortlist, history, nprobe, rerank, index, steps, contrast_window, proposer, cache_dir, "
                           "skip_bad)")
-    device = (settings.device if settings else conf.get("device")) or "cpu"
-    models = load_models(models, device)
-    check_run(method, models, rerank, seq_len)
-    settings = settings or match_settings(method, models, seq_len, **conf)
+
+
+def opened_sides(reference: Any, query: Any) -> tuple[Any, Traversal]:
+    """Both sides opened from their paths, each checked to be what a match takes (one line otherwise)."""
+    from seqvpr.data.sources import load_traversal
+
+    reference = open_reference(reference)
     if isinstance(query, (str, Path)):
         query = load_traversal(str(query), "query")
-    reference = open_reference(reference)
     for side, given in (("reference", reference), ("query", query)):
         shaped = hasattr(given, "segment_ids") or (side == "reference" and hasattr(given, "shards"))
         if not shaped or (side == "query" and not hasattr(given, "descriptors")):
             raise SeqvprError(f"seqvpr.match: the {side} must be a traversal{', a map' if side == 'reference' else ''}"
                               f" or the path of one, not {type(given).__name__}")
-    options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
-               "progress": progress, "search": {"steps": steps, "contrast_window": contrast_window,
-                                                    **({"proposer": proposer} if proposer else {})}}
-    return match_reference(reference, query, method, settings, models, **options, **extraction)
+    return reference, query
 
 
 def match_reference(reference: Any, query: Traversal, method: str, settings: MatchSettings,
