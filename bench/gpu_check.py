@@ -152,8 +152,18 @@ def stream_rows(device: str, size: dict) -> list[Row]:
     return rows
 
 
-def seqvpr_command(*args) -> list[str]:
-    return [sys.executable, "-c", "from seqvpr.cli import main; main()", *map(str, args)]
+def run_cli(args: list, work: Path) -> str:
+    """A ``seqvpr`` command in this process (what a user's command runs, without another interpreter's start-up):
+    the first line it printed; its error's last line raised."""
+    from click.testing import CliRunner
+
+    from seqvpr.cli import cli
+
+    done = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=True)
+    if done.exit_code != 0:
+        error = done.exception if done.exception and not isinstance(done.exception, SystemExit) else None
+        raise RuntimeError(str(error) if error else (done.output.strip().splitlines() or ["no output"])[-1])
+    return (done.stdout.strip().splitlines() or [""])[0][:100]
 
 
 def run_command(command: list[str], work: Path) -> str:
@@ -176,23 +186,22 @@ def training_rows(device: str, size: dict, work: Path) -> list[Row]:
               "--radius", "5m", "-L", "3", "--epochs", "1", "--batch-size", "8", "--device", device]
     width, height = size["image"]
     commands = {
-        "train seqmatchnet": seqvpr_command("train", "seqmatchnet", *common, "--out", work / "smn"),
-        "train seqnet": seqvpr_command("train", "seqnet", *common, "--w", "2", "--out", work / "seqnet"),
+        "train seqmatchnet": (["train", "seqmatchnet", *common, "--out", work / "smn"], work / "smn"),
+        "train seqnet": (["train", "seqnet", *common, "--w", "2", "--out", work / "seqnet"], work / "seqnet"),
     }
-    rows = [timed(name, lambda c=c, name=name: checked_model(run_command(c, work), work / name.split()[1]
-                                                             .replace("seqmatchnet", "smn"), device))
-            for name, c in commands.items()]
+    rows = [timed(name, lambda c=c, out=out: checked_model(run_cli(c, work), out, device))
+            for name, (c, out) in commands.items()]
 
     def jist() -> str:
         world = write_demo_world(work / "world", frames=size["world"], width=width, height=height, seed=0,
                                  query_condition="dusk")
         n = size["world"]
-        run_command(seqvpr_command(
+        run_cli([
             "train", "jist", "-r", world["train_reference"], "-q", world["train_query"], "--train-frames",
             f"0:{n * 3 // 4}", "--val-frames", f"{n * 3 // 4}:{n}", "--radius", "25m", "--pos-radius", "10m",
             "--out-dim", "32", "-L", "3", "--epochs", "1", "--refreshes", "1", "--max-iterations", "2",
             "--batch-size", "2", "--images-per-batch", "8", "--image-size", f"{width}x{height}", "--cell-size", "15",
-            "--min-images", "2", "--device", device, "--out", work / "jist"), work)
+            "--min-images", "2", "--device", device, "--out", work / "jist"], work)
         return checked_model("", work / "jist", device) + (" (autocast)" if device.startswith("cuda") else "")
 
     rows.append(timed("train jist", jist))

@@ -141,7 +141,7 @@ def loading(args: list[str]) -> tuple[list[str], float]:
 
 @pytest.mark.parametrize("args", [["--help"], ["match", "--help"]])
 def test_help_loads_no_torch_faiss_or_numba_and_is_quick(args):
-    runs = [loading(args) for _ in range(2)]
+    runs = [loading(args) for _ in range(3)]
     assert all(loaded == [] for loaded, _ in runs)
     if args == ["--help"]:
-        assert min(seconds for _, seconds in runs) < 0.5  # of CPU: the best of two, on a busy machine
+        assert min(seconds for _, seconds in runs) < 0.5  # of CPU: the best of three, on a busy machine
