@@ -315,3 +315,14 @@ def test_a_sharded_match_through_a_model_is_the_whole_maps(whole, tmp_path):
     got = match_sharded_map(sharded, query, "seqnet", settings_, models)
     np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
     np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-5)
+
+
+def test_each_shard_as_a_reference_owns_the_rows_its_record_gives_and_names_its_index(whole, indexed, tmp_path):
+    sharded = shard_map(indexed, tmp_path / "s", 3, 5)
+    for number, record in enumerate(sharded.shards):
+        shard = sharded.open_shard(number)
+        assert shard.owned == slice(record.own_first - record.first, record.own_last - record.first)
+        assert shard.index["over"] == "frames" and len(shard) == shard.info.count
+    whole_map = load_map_of(whole)
+    assert whole_map.owned == slice(0, len(whole_map)) and whole_map.index is None
+    assert whole_map.frames.owned == slice(0, len(whole_map)) and whole_map.frames.index is None

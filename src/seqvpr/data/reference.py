@@ -34,3 +34,11 @@ class Reference(Protocol):
 
     @property
     def frames(self) -> Traversal: ...
+
+    #: the rows it answers for (a shard holds its neighbours' edges too, and answers for its own)
+    @property
+    def owned(self) -> slice: ...
+
+    #: its saved nearest-neighbour index's record, if it has one
+    @property
+    def index(self) -> dict | None: ...

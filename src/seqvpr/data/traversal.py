@@ -136,6 +136,16 @@ class Traversal:
         """The frame table results index (a traversal is its own)."""
         return self
 
+    @property
+    def owned(self) -> slice:
+        """The rows this reference answers for (all of a traversal's; a shard's own, ``SavedMap.owned``)."""
+        return slice(0, len(self))
+
+    @property
+    def index(self) -> dict | None:
+        """The saved nearest-neighbour index over the rows (a map's ``map.json`` record); a traversal has none."""
+        return None
+
     def with_descriptors(self, descriptors: np.ndarray) -> Traversal:
         """The same frames with new descriptor rows in memory (for instance after a learned transform)."""
         return replace(self, descriptors=descriptors, stored=None)

@@ -358,7 +358,7 @@ def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
 
 def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
     """A shortlist needs the map's index over frames (a sharded map's shards are checked as they open)."""
-    if settings.shortlist and saved.stored != "sharded" and (saved.info.index or {}).get("over") != "frames":
+    if settings.shortlist and saved.stored != "sharded" and (saved.index or {}).get("over") != "frames":
         raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
                           f"{saved.folder} --index SPEC")
 

@@ -209,6 +209,15 @@ class SavedMap:
     stored = property(lambda self: self.frames.stored)
     plain_rows = property(lambda self: self.frames.plain_rows)
     dim = property(lambda self: self.info.dim)
+    index = property(lambda self: self.info.index)
+
+    @property
+    def owned(self) -> slice:
+        """All its rows; a shard's own, those past the overlap it shares with its neighbours."""
+        if not self.info.shard:
+            return slice(0, self.info.count)
+        first, (own_first, own_last) = self.info.shard["first"], self.info.shard["own"]
+        return slice(own_first - first, own_last - first)
 
     def __len__(self) -> int:
         return self.info.count

@@ -1,4 +1,6 @@
 """One class per matching family, each with ``topk(reference, query)`` and ``stream(reference)``: frame sequence
 matching (``sequence``), retrieval by a sequence descriptor (``retrieval``), hierarchical (``hierarchical``), the
 HMM filter (``filter``) and graph matching (``graph``); what they share in ``base``, the one-frame steppers in
-``stream``. ``seqvpr.methods`` names the class of every method."""
+``stream``, a matcher written as one window distance in ``windows``. Any matcher that scores windows is wrapped,
+not copied, for a shortlist (``shortlisted.Shortlisted``) and for shards (``sharded.Sharded``), offline and a frame
+at a time. ``seqvpr.methods`` names the class of every method."""
