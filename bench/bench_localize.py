@@ -103,7 +103,7 @@ def shortlist(work: Path, data: Path) -> list[str]:
     if not (folder / "map.json").exists():
         write_distractor_map(folder, summer, n)
     saved = open_map(folder)
-    if (saved.info.index or {}).get("spec") != "ivf:4096":
+    if (saved.info.index or {}).get("spec") != "ivf:4096" or saved.info.index.get("over") != "frames":
         add_index(saved, parse_index_spec("ivf:4096"), seed=0)
         saved = open_map(folder)
     first, last = QUERY_FRAMES
