@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from seqvpr.data.traversal import Traversal
+from seqvpr.maps.files import ShardRecord
 from seqvpr.matchers.base import MatchSettings
 from seqvpr.matchers.sharded import Sharded
 from seqvpr.matchers.shortlisted import ExactNeighbours, Shortlisted
@@ -38,26 +39,20 @@ TOY = Method("toy", "matching", "mean L1 distance of aligned frames", matcher=f"
 
 
 @dataclass(frozen=True)
-class ShardRange:
-    first: int
-    own_first: int
-    own_last: int
-
-
-@dataclass(frozen=True)
 class ToyShards:
     """A traversal cut into overlapping shards, in memory (what a sharded map is on disk)."""
 
     reference: Traversal
     count: int
     overlap: int
-    shards: tuple[ShardRange, ...]
+    shards: tuple[ShardRecord, ...]
     folder: str = "toy-shards"
 
     @classmethod
     def cut(cls, reference: Traversal, shards: int, overlap: int) -> ToyShards:
         bounds = [len(reference) * i // shards for i in range(shards + 1)]
-        ranges = tuple(ShardRange(max(0, a - overlap), a, b) for a, b in zip(bounds, bounds[1:]))
+        ranges = tuple(ShardRecord(f"shard-{i}", max(0, a - overlap), a, b)
+                       for i, (a, b) in enumerate(zip(bounds, bounds[1:])))
         return cls(reference, len(reference), overlap, ranges)
 
     def open_shard(self, number: int) -> Traversal:
