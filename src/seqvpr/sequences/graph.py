@@ -20,7 +20,7 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.adaptive import same_segment_masks, steps_min
-from seqvpr.sequences.topk import TopK
+from seqvpr.sequences.topk import TopK, rank_order
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import segment_bounds
 
@@ -54,7 +54,7 @@ def graph_topk(query: torch.Tensor, reference: torch.Tensor, k: int, query_segme
     marginal = path_costs(d, np.asarray(query_segments), np.asarray(reference_segments), settings.fanout, hidden,
                           settings.min_step)
     k = min(k, n_r)
-    order = np.argsort(marginal, axis=1, kind="stable")[:, :k]
+    order = rank_order(np.broadcast_to(np.arange(n_r), marginal.shape), marginal, k)  # the one tie rule
     return TopK(order.astype(np.int64), np.take_along_axis(marginal, order, 1), np.ones(n_q, bool))
 
 
