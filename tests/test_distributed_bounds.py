@@ -57,30 +57,32 @@ def _seqvpr_lines(err: str) -> list[str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rank", [0, 1])
-def test_a_lone_rank_ends_with_one_line_after_the_rank_timeout(sharded, rank):
+def test_a_lone_rank_ends_with_one_line_after_the_rank_timeout(sharded):
     started = time.monotonic()
-    process = _lone_rank(sharded, rank, "2")
-    err = _finish(process, 90)
+    processes = [_lone_rank(sharded, rank, "2") for rank in (0, 1)]  # each alone in a world of its own port
+    errors = [_finish(process, 90) for process in processes]
     assert time.monotonic() - started < 60, "waited far past SEQVPR_RANK_TIMEOUT=2"
-    lines = _seqvpr_lines(err)
-    assert process.returncode == 2, err
-    assert len(lines) == 1 and "did not join within 2 s" in lines[0] and "SEQVPR_RANK_TIMEOUT" in lines[0], err
+    for process, err in zip(processes, errors):
+        lines = _seqvpr_lines(err)
+        assert process.returncode == 2, err
+        assert len(lines) == 1 and "did not join within 2 s" in lines[0] and "SEQVPR_RANK_TIMEOUT" in lines[0], err
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rank", [0, 1])
-def test_sigterm_ends_a_rank_waiting_for_the_others_within_seconds(sharded, rank):
-    process = _lone_rank(sharded, rank, None)  # the default timeout (minutes): only SIGTERM can end it here
+def test_sigterm_ends_a_rank_waiting_for_the_others_within_seconds(sharded):
+    processes = [_lone_rank(sharded, rank, None) for rank in (0, 1)]  # the default timeout: only SIGTERM ends them
     time.sleep(6)  # started and waiting at the rendezvous
-    assert process.poll() is None, process.communicate()[1]
+    for process in processes:
+        assert process.poll() is None, process.communicate()[1]
     sent = time.monotonic()
-    process.send_signal(signal.SIGTERM)
-    err = _finish(process, 30)
+    for process in processes:
+        process.send_signal(signal.SIGTERM)
+    errors = [_finish(process, 30) for process in processes]
     assert time.monotonic() - sent < 10
-    assert process.returncode == 143, err
-    lines = _seqvpr_lines(err)
-    assert len(lines) == 1 and lines[0].startswith("seqvpr: terminated (SIGTERM)"), err
+    for process, err in zip(processes, errors):
+        assert process.returncode == 143, err
+        lines = _seqvpr_lines(err)
+        assert len(lines) == 1 and lines[0].startswith("seqvpr: terminated (SIGTERM)"), err
 
 
 @pytest.mark.parametrize("value", ["0", "-3", "nan", "inf", "soon", "1e9"])
