@@ -48,8 +48,8 @@ def kernel_rows(reference: Reference, settings: MatchSettings):
 
 
 def whole_rows(reference: Reference, settings: MatchSettings) -> torch.Tensor | np.ndarray:
-    """The reference rows a whole-reference pass reads (pooling, re-ranking): a saved map's float32 memory map as
-    it is, else the rows as a normalised tensor."""
+    """The reference rows a whole-reference pass reads (pooling every window): a saved map's float32 memory map as
+    it is, else the rows as a normalised tensor (re-ranking reads ``kernel_rows``: only the candidates' rows)."""
     plain = reference.stored and reference.plain_rows
     return reference.descriptors if plain and settings.dtype == "float32" and settings.device == "cpu" \
         else query_rows(reference, settings)

@@ -212,8 +212,7 @@ class ShortlistStepper:
         candidates = found_candidates(self.found, self.count)
         candidates = candidates[self.window_exists[candidates]]
         window = torch.stack(list(self.frames)).numpy()
-        values = self.matcher.window_distances(self.rows, window, candidates - (self.length - 1)) \
-            if len(candidates) else np.zeros(0)
+        values = self.matcher.window_distances(self.rows, window, candidates - (self.length - 1))
         indices, values = best_of(candidates, values)
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
