@@ -132,7 +132,7 @@ def test_demo_quick_renders_matches_trains_and_writes_an_offline_report(monkeypa
     import re
 
     out = tmp_path / "demo"
-    code, stdout, stderr = run(monkeypatch, capsys, "demo", "--quick", "--out", out)
+    code, stdout, stderr = run(monkeypatch, capsys, "demo", "--quick", "--frames", "100", "--epochs", "3", "--out", out)
     assert code == 0, stderr
     lines = stdout.splitlines()
     table = lines[next(i for i, line in enumerate(lines) if "PR-AUC" in line) + 1:]
