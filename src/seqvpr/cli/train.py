@@ -17,9 +17,10 @@ from seqvpr.cli.options import (
 )
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.errors import SeqvprError
-from seqvpr.models.configs import JIST_BACKBONES, JistConfig
+from seqvpr.models.configs import JIST_BACKBONES, JIST_BRANCHES, JistConfig
 from seqvpr.training.settings import (
-    NEGATIVE_RADIUS_FACTOR, CellGrouping, JistTrainSettings, SeqMatchNetSettings, SeqNetSettings,
+    NEGATIVE_RADIUS_FACTOR, THUMBNAIL_RECIPE, THUMBNAIL_SIDE, CellGrouping, JistTrainSettings, SeqMatchNetSettings,
+    SeqNetSettings,
 )
 
 
@@ -222,68 +223,81 @@ def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
 
 JIST_DEFAULTS, JIST_RUN = JistConfig(), JistTrainSettings()
 
+
+def _both(key: str, defaults: Any = JIST_RUN) -> str:
+    """A help text's default: the reference's value and the thumbnail recipe's."""
+    return f"[default: {getattr(defaults, key):g}; thumbnails: {THUMBNAIL_RECIPE[key]:g}]"
+
+
 jist_options = with_options([
     *data_options("jist"),
-    click.option("--backbone", type=click.Choice(list(JIST_BACKBONES)), default=JIST_DEFAULTS.backbone,
-                 show_default=True),
+    click.option("--backbone", type=click.Choice(list(JIST_BACKBONES)),
+                 help=f"Frame encoder.  [default: {JIST_DEFAULTS.backbone}; thumbnails (frames of at most "
+                      f"{THUMBNAIL_SIDE} px a side, e.g. Nordland's 64x32): thumbnail-cnn, a small CNN over "
+                      "patch-normalised grey frames trained from scratch, with its own recipe (the values after "
+                      "'thumbnails:' below)]"),
     click.option("--weights", help="Backbone weights: a checkpoint path (torchvision or CosPlace keys), or 'imagenet' "
                  "(efficientnet-lite0's packaged weights).  [default: random initialisation]"),
     click.option("--trainable-stages", help="Comma list of backbone stages to train (ResNet: stem, layer1..layer4; "
                  "efficientnet-lite0: stem, stage1..stage7, head).  [default: the backbone's last stage: layer4; "
-                 "efficientnet-lite0: stage7,head]"),
-    click.option("--out-dim", default=JIST_DEFAULTS.out_dim, show_default=True, type=COUNT, help="Frame descriptor size (at most 65536)."),
+                 "efficientnet-lite0: stage7,head; thumbnail-cnn: all of stage1,stage2,stage3,head]"),
+    click.option("--out-dim", type=COUNT, help=f"Frame descriptor size (at most 65536).  {_both('out_dim', JIST_DEFAULTS)}"),
     click.option("--seq-len", "-L", default=JIST_DEFAULTS.seq_length, show_default=True, type=COUNT,
                  help="Frames per sequence window."),
-    click.option("--epochs", default=JIST_RUN.epochs, show_default=True, type=NONNEGATIVE),
-    click.option("--refreshes", default=JIST_RUN.refreshes, show_default=True, type=COUNT,
-                 help="Triplet mining refreshes per epoch."),
-    click.option("--max-iterations", type=COUNT, help="Most iterations per refresh.  [default: every mined batch]"),
-    click.option("--batch-size", default=JIST_RUN.batch_size, show_default=True, type=COUNT,
-                 help="Sequence triplets per iteration."),
-    click.option("--images-per-batch", default=JIST_RUN.images_per_batch, show_default=True, type=COUNT,
-                 help="Single images per iteration for the CosPlace classification branch."),
-    click.option("--image-size", default=f"{JIST_RUN.width}x{JIST_RUN.height}", show_default=True,
-                 help="Image size WIDTHxHEIGHT for training and for seqvpr match --model."),
+    click.option("--epochs", type=NONNEGATIVE, help=_both("epochs")),
+    click.option("--refreshes", type=COUNT, help=f"Triplet mining refreshes per epoch.  {_both('refreshes')}"),
+    click.option("--max-iterations", type=COUNT, help="Most iterations per refresh.  [default: every mined batch; "
+                 f"thumbnails: {THUMBNAIL_RECIPE['max_iterations']}]"),
+    click.option("--batch-size", type=COUNT, help=f"Sequence triplets per iteration.  {_both('batch_size')}"),
+    click.option("--images-per-batch", type=COUNT,
+                 help=f"Single images per iteration for the CosPlace classification branch.  {_both('images_per_batch')}"),
+    click.option("--image-size", help="Image size WIDTHxHEIGHT for training and for seqvpr match --model.  "
+                 f"[default: {JIST_RUN.width}x{JIST_RUN.height}; thumbnails: their own size]"),
     click.option("--class-images", "class_images", multiple=True, metavar="SOURCE",
                  help="Another traversal of the training route (another condition; frame-aligned, or with positions) "
                       "whose --train-frames images join the CosPlace classification branch. Repeatable.  "
                       "[default: the training reference and query only]"),
-    click.option("--cell-size", default=CellGrouping.cell_m, show_default=True, type=POSITIVE,
-                 help="CosPlace class cells, in the radius unit (metres, or frames with a frame radius)."),
-    click.option("--min-images", default=CellGrouping.min_images, show_default=True, type=COUNT,
-                 help="Images a CosPlace class needs to be used."),
+    click.option("--cell-size", type=POSITIVE, help="CosPlace class cells, in the radius unit (metres, or frames "
+                 f"with a frame radius).  [default: {CellGrouping.cell_m:g}; thumbnails: {THUMBNAIL_RECIPE['cell_m']:g}]"),
+    click.option("--min-images", type=COUNT, help="Images a CosPlace class needs to be used.  "
+                 f"[default: {CellGrouping.min_images}; thumbnails: {THUMBNAIL_RECIPE['min_images']}]"),
     click.option("--seqgem-normalize/--no-seqgem-normalize", default=JIST_DEFAULTS.seqgem_normalize, show_default=True,
                  help="L2-normalise SeqGeM's sequence descriptor (--no-seqgem-normalize: upstream JIST's forward)."),
-    click.option("--lr", default=JIST_DEFAULTS.lr, show_default=True, type=POSITIVE, help="Adam learning rate of the model."),
+    click.option("--lr", type=POSITIVE, help=f"Adam learning rate of the model.  {_both('lr', JIST_DEFAULTS)}"),
     click.option("--classifier-lr", default=JIST_DEFAULTS.classifier_lr, show_default=True, type=POSITIVE,
                  help="Adam learning rate of the CosFace classifiers."),
     click.option("--select", "select_k", default=JIST_RUN.select_k, show_default=True, type=COUNT,
                  help="Keep the epoch with the best validation Recall@K for this K (one of --k)."),
     click.option("--k", "ks", default=",".join(map(str, JIST_RUN.ks)), show_default=True, help="Recall@K values reported."),
     SELECT_UNTRAINED,
-    click.option("--jitter", default=JIST_RUN.jitter, show_default=True, type=NONNEGATIVE_FLOAT,
-                 help="Classification images: brightness, contrast and saturation factors in [1 - J, 1 + J]."),
-    click.option("--hue", default=JIST_RUN.hue, show_default=True, type=Number(float, 0, 0.5),
-                 help="Classification images: hue turned by up to this fraction of a turn."),
-    click.option("--crop-scale", default=JIST_RUN.crop_scale, show_default=True, type=FRACTION,
-                 help="Classification images: random crops keep this share of the area or more (1: no crop)."),
+    click.option("--jitter", type=NONNEGATIVE_FLOAT,
+                 help=f"Classification images: brightness, contrast and saturation factors in [1 - J, 1 + J].  {_both('jitter')}"),
+    click.option("--hue", type=Number(float, 0, 0.5),
+                 help=f"Classification images: hue turned by up to this fraction of a turn.  {_both('hue')}"),
+    click.option("--crop-scale", type=FRACTION,
+                 help=f"Classification images: random crops keep this share of the area or more (1: no crop).  {_both('crop_scale')}"),
+    click.option("--branches", type=click.Choice(list(JIST_BRANCHES)), default=JIST_DEFAULTS.branches,
+                 show_default=True, help="What the loss trains: both branches (the paper's), the sequence triplets "
+                 "alone, or the CosPlace classification of single images alone."),
     click.option("--seed", default=JIST_RUN.seed, show_default=True, type=SEED),
     click.option("--device", type=DEVICE, default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
 ])
 
 
 def jist_values(o: dict) -> dict[str, Any]:
-    """The JIST options as the flat table ``training.jist.jist_setup`` takes (the benchmark's ``[jist]`` table)."""
-    width, height = parse_thumbnail(o["image_size"], "--image-size")
+    """The JIST options as the flat table ``training.jist.jist_setup`` takes (the benchmark's ``[jist]`` table);
+    None where an option was not given (``training.jist.with_recipe`` fills it)."""
+    width, height = parse_thumbnail(o["image_size"], "--image-size") if o["image_size"] else (None, None)
+    stages = parse_stages(o["trainable_stages"])
     return {
         "backbone": o["backbone"], "weights": o["weights"], "out_dim": o["out_dim"],
-        "trainable_stages": parse_stages(o["trainable_stages"]), "seq_length": o["seq_len"], "lr": o["lr"],
+        "trainable_stages": stages or None, "seq_length": o["seq_len"], "lr": o["lr"],
         "classifier_lr": o["classifier_lr"], "epochs": o["epochs"], "refreshes": o["refreshes"],
         "max_iterations": o["max_iterations"], "batch_size": o["batch_size"],
         "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
         "min_images": o["min_images"], "select_k": o["select_k"], "ks": parse_ks(o["ks"]), "device": o["device"],
         "seed": o["seed"], "select_untrained": o["select_untrained"], "jitter": o["jitter"], "hue": o["hue"],
-        "crop_scale": o["crop_scale"], "seqgem_normalize": o["seqgem_normalize"],
+        "crop_scale": o["crop_scale"], "seqgem_normalize": o["seqgem_normalize"], "branches": o["branches"],
     }
 
 
@@ -308,14 +322,18 @@ def train_jist_command(out_dir, resume, **o) -> None:
     single images, from the traversals' images (best epoch by validation Recall@K)."""
     from seqvpr.data.groundtruth import parse_radius
     from seqvpr.training.data import classification_traversals, training_data, training_pairs
-    from seqvpr.training.jist import jist_setup, train_jist
+    from seqvpr.training.jist import frame_size, jist_setup, train_jist
+    from seqvpr.training.settings import with_recipe
 
-    config, settings = jist_setup(jist_values(o))
     train_pair, validation, _ = training_pairs(
         o["reference"], o["query"], o["train_frames"], o["val_frames"], lambda r, q: (r, q), frames=o["frames"],
         val_reference=o["val_reference"], val_query=o["val_query"],
     )
     radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
+    values = with_recipe(jist_values(o), frame_size(train_pair[0]))
+    config, settings = jist_setup(values)
+    click.echo(f"recipe: {values['recipe']} ({config.backbone} at {settings.width}x{settings.height}, lr {config.lr:g}, "
+               f"{settings.epochs} epochs, branches {config.branches})", err=True)
     data = training_data("jist", train_pair, validation, *radii)
     classification = classification_traversals(data, o["class_images"], o["train_frames"], o["frames"])
     result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor(),
@@ -377,3 +395,61 @@ def _test_split(o: dict, whole, config, test_frames: str, test_reference: str | 
         check_disjoint(o["train_frames"], test_frames, ("--train-frames", "--test-frames"))
         check_disjoint(o["val_frames"], test_frames, ("--val-frames", "--test-frames"))
     return tuple(slice_frame_range(t, test_frames, "--test-frames") for t in whole)
+
+
+@ablate.command(name="jist", epilog="""\b
+The split (Nordland, the dataset's own): train on frames 17-1199, select the epoch on 1200-1599, test on 1600-1999:
+  seqvpr ablate jist -r nordland_64x32/summer -q nordland_64x32/winter --train-frames 17:1200 \\
+      --val-frames 1200:1600 --test-frames 1600:2000 --radius 1f --out runs/jist-ablation-nordland
+The three frame ranges must not overlap. Rows: JIST joint, sequence branch alone, image branch alone, untrained
+SeqGeM over the same starting encoder, SeqNet trained on the split (patch-normalised frames), sequence matching;
+then the joint model at L = 3, 5, 10 and with each test window's frames reversed and shuffled.
+""")
+@jist_options
+@click.option("--test-frames", required=True, help="Source frames START:STOP of the test split (disjoint from the others).")
+@click.option("--variants", default=",".join(JIST_BRANCHES), show_default=True,
+              help="The JIST rows to train (comma list of joint, sequence, images).")
+@click.option("--out", "out_dir", default="jist-ablation", show_default=True, type=OUT_FOLDER,
+              help="Folder with one run per variant, the starting model, SeqNet's run, ablation.csv and ablation.md.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the tables.")
+@bag_topic_options("reference", "query", "val_reference", "val_query", "class_images")
+def ablate_jist_command(test_frames, variants, out_dir, as_json, **o) -> None:
+    """JIST's ablation: joint training against each branch alone, untrained SeqGeM, SeqNet and sequence matching on
+    one split and budget, and the joint model's robustness to the window's length and frame order."""
+    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.traversal import check_disjoint, slice_frame_range
+    from seqvpr.experiments.jist_ablation import (
+        JistSplit, ablation_markdown, robustness_markdown, robustness_rows, run_jist_ablation, write_jist_ablation,
+    )
+    from seqvpr.training.data import classification_traversals, training_data, training_pairs
+    from seqvpr.training.jist import frame_size
+    from seqvpr.training.settings import with_recipe
+
+    for other, name in ((o["train_frames"], "--train-frames"), (o["val_frames"], "--val-frames")):
+        check_disjoint(other, test_frames, (name, "--test-frames"))
+    train, select, whole = training_pairs(
+        o["reference"], o["query"], o["train_frames"], o["val_frames"], lambda r, q: (r, q), frames=o["frames"],
+        val_reference=o["val_reference"], val_query=o["val_query"],
+    )
+    test = tuple(slice_frame_range(t, test_frames, "--test-frames") for t in whole)
+    radius = parse_radius(o["radius"])
+    values = with_recipe(jist_values(o), frame_size(train[0]))
+    classification = classification_traversals(training_data("jist", train, select, radius), o["class_images"],
+                                               o["train_frames"], o["frames"])
+    split = JistSplit(train, select, test, radius)  # type: ignore[arg-type]
+    chosen = [v.strip() for v in variants.split(",") if v.strip()]
+    rows = run_jist_ablation(split, values, out_dir, classification=classification, variants=chosen,
+                             monitor=lambda name: TqdmMonitor(f"{name} "))
+    robustness = robustness_rows(Path(out_dir) / "joint", split) if "joint" in chosen else []
+    csv_path, md_path = write_jist_ablation(rows, robustness, out_dir)
+    if as_json:
+        click.echo(json.dumps({"rows": [{"row": r.name, "recall": {str(k): v for k, v in r.test.recall.items()},
+                                         "best_epoch": r.best_epoch} for r in rows],
+                               "robustness": [{"windows": c, **{n: e.recall[1] for n, e in s.items()}}
+                                              for c, s in robustness]}))
+        return
+    click.echo(f"recipe: {values['recipe']}; test frames {test_frames}, radius {radius}, L={o['seq_len']}")
+    click.echo(ablation_markdown(rows))
+    if robustness:
+        click.echo("\n" + robustness_markdown(robustness))
+    click.echo(f"tables: {md_path}, {csv_path}")

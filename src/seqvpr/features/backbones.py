@@ -290,3 +290,72 @@ def resnet(depth: int, weights: str | Path | None) -> ResNet:
     path = Path(weights)
     load_strict(model, backbone_state(load_state_dict_file(path)), path)
     return model.eval()
+
+
+# --- a small CNN for thumbnails ----------------------------------------------------------------------------------
+
+#: ITU-R 601 luma weights: the grey PIL's ``convert("L")`` gives, as seqvpr's patch-normalised descriptor reads it
+LUMA = (0.299, 0.587, 0.114)
+
+
+class PatchNorm2d(nn.Module):
+    """Grey of an RGB batch [B, 3, H, W], each ``patch`` x ``patch`` block shifted to mean 0 and scaled to std 1
+    (``features.patchnorm``'s descriptor, as a layer): local brightness and contrast removed before any weight."""
+
+    def __init__(self, patch: int = 8, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.patch, self.eps = int(patch), float(eps)
+        self.register_buffer("luma", torch.tensor(LUMA, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = images.shape
+        p = self.patch
+        if h % p or w % p:
+            raise SeqvprError(f"thumbnail-cnn: image size {w}x{h} is not a whole number of {p}-pixel patches")
+        grey = (images * self.luma.to(images.dtype)).sum(dim=1).view(b, 1, h // p, p, w // p, p)
+        mean = grey.mean(dim=(3, 5), keepdim=True)
+        std = grey.std(dim=(3, 5), keepdim=True, unbiased=False)
+        return ((grey - mean) / (std + self.eps)).view(b, 1, h, w)
+
+
+def _conv_bn_relu(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(in_channels, out_channels, 3, stride, 1, bias=False), nn.BatchNorm2d(out_channels),
+                         nn.ReLU(inplace=True))
+
+
+class ThumbnailCNN(nn.Module):
+    """A six-layer CNN over patch-normalised grey thumbnails (e.g. Nordland's 64x32), trained from scratch: three
+    stages of two 3x3 convolutions (``width``, 2x and 4x channels, stride 2 into stages 2 and 3), the map averaged
+    onto a fixed ``grid`` (rows, columns) and flattened into ``out_channels`` by a linear ``head``. The grid keeps
+    where things are in the frame, which a global pooling of a tiny map loses; ``features`` returns it as a 1x1 map,
+    so JIST's GeM and linear layer apply unchanged."""
+
+    def __init__(self, width: int = 32, grid: tuple[int, int] = (4, 8), out_channels: int = 512) -> None:
+        super().__init__()
+        self.patchnorm = PatchNorm2d()
+        self.stage1 = nn.Sequential(_conv_bn_relu(1, width, 1), _conv_bn_relu(width, width, 1))
+        self.stage2 = nn.Sequential(_conv_bn_relu(width, 2 * width, 2), _conv_bn_relu(2 * width, 2 * width, 1))
+        self.stage3 = nn.Sequential(_conv_bn_relu(2 * width, 4 * width, 2), _conv_bn_relu(4 * width, 4 * width, 1))
+        self.head = nn.Sequential(nn.AdaptiveAvgPool2d(grid), nn.Flatten(),
+                                  nn.Linear(4 * width * grid[0] * grid[1], out_channels), nn.ReLU())
+        self.out_channels = int(out_channels)
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, out_channels, 1, 1] (non-negative) of images [B, 3, H, W] in [0, 1]."""
+        x = self.stage3(self.stage2(self.stage1(self.patchnorm(images))))
+        return self.head(x)[:, :, None, None]
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.features(images)
+
+
+def thumbnail_cnn(weights: str | Path | None = None) -> ThumbnailCNN:
+    """The thumbnail CNN in eval mode: a random (seeded by the caller) initialisation, or a checkpoint of its own."""
+    model = ThumbnailCNN()
+    if weights is None:
+        return model.eval()
+    if weights == "imagenet":
+        raise SeqvprError("thumbnail-cnn trains from scratch: no ImageNet weights exist for it (omit --weights)")
+    path = Path(weights)
+    load_strict(model, load_state_dict_file(path), path)
+    return model.eval()

@@ -66,9 +66,14 @@ class TransformConfig:
         )
 
 
-JIST_BACKBONES = ("resnet18", "resnet50", "efficientnet-lite0")
-#: the backbone stages trained when none are named: the last one (the reference's layer4)
-DEFAULT_STAGES = {"resnet18": ("layer4",), "resnet50": ("layer4",), "efficientnet-lite0": ("stage7", "head")}
+JIST_BACKBONES = ("resnet18", "resnet50", "efficientnet-lite0", "thumbnail-cnn")
+#: the backbone stages trained when none are named: the last one (the reference's layer4); every stage of the
+#: thumbnail CNN, which trains from scratch
+DEFAULT_STAGES = {"resnet18": ("layer4",), "resnet50": ("layer4",), "efficientnet-lite0": ("stage7", "head"),
+                  "thumbnail-cnn": ("stage1", "stage2", "stage3", "head")}
+#: what JIST's loss trains: both branches (the paper's joint training), the sequence triplets alone, or the
+#: CosPlace classification of single images alone (the ablation's rows)
+JIST_BRANCHES = ("joint", "sequence", "images")
 
 
 @dataclass(frozen=True)
@@ -81,8 +86,10 @@ class JistConfig:
     ``stage1``..``stage7``, ``head`` for EfficientNet-Lite0; the top-level child names for an injected backbone.
     None (or empty) is the backbone's default, ``DEFAULT_STAGES``: its last stage.
     ``weights``: None (random, for tests), a checkpoint path (torchvision or CosPlace keys; a CosPlace file also
-    fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only). ``seqgem_normalize``: L2-normalise the
-    SeqGeM output (seqvpr's default); False is upstream's forward, searched by plain L2 as the reference does.
+    fills the GeM/Linear head), or 'imagenet' (EfficientNet-Lite0 only); ``thumbnail-cnn`` (a small CNN over
+    patch-normalised grey thumbnails) trains from scratch. ``seqgem_normalize``: L2-normalise the SeqGeM output
+    (seqvpr's default); False is upstream's forward, searched by plain L2 as the reference does. ``branches``: what
+    the loss trains (``JIST_BRANCHES``): a branch left out is not computed at all.
     """
 
     backbone: str = "resnet18"
@@ -98,8 +105,11 @@ class JistConfig:
     cosface_s: float = 30.0
     cosface_m: float = 0.4
     seqgem_normalize: bool = True
+    branches: str = "joint"
 
     def __post_init__(self) -> None:
+        if self.branches not in JIST_BRANCHES:
+            raise SeqvprError(f"branches {self.branches!r} is not known (choose from: {', '.join(JIST_BRANCHES)})")
         if self.backbone not in JIST_BACKBONES:
             raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(JIST_BACKBONES)})")
         if isinstance(self.trainable_stages, str):

@@ -170,6 +170,8 @@ class JistModel(nn.Module):
 def _make_backbone(config: JistConfig) -> tuple[nn.Module, tuple[float, ...], tuple[float, ...]]:
     if config.backbone == "efficientnet-lite0":
         return backbones.efficientnet_lite0(config.weights), backbones.LITE_MEAN, backbones.LITE_STD
+    if config.backbone == "thumbnail-cnn":  # its patch normalisation removes any input scaling
+        return backbones.thumbnail_cnn(config.weights), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
     depth = int(config.backbone.removeprefix("resnet"))
     return backbones.resnet(depth, config.weights), IMAGENET_MEAN, IMAGENET_STD
 

@@ -152,12 +152,12 @@ class JistLoss(nn.Module):
 
 def jist_losses(
     model: JistModel,
-    head: CosFaceHead,
-    windows_q: torch.Tensor,
-    windows_p: torch.Tensor,
-    windows_n: torch.Tensor,
-    images: torch.Tensor,
-    labels: torch.Tensor,
+    head: CosFaceHead | None,
+    windows_q: torch.Tensor | None,
+    windows_p: torch.Tensor | None,
+    windows_n: torch.Tensor | None,
+    images: torch.Tensor | None,
+    labels: torch.Tensor | None,
     config: JistConfig,
 ) -> dict[str, torch.Tensor]:
     """The joint objective of one step (digest section 3.7).
@@ -166,17 +166,26 @@ def jist_losses(
     5-D tensor means K = 1). All B*(2+K) windows go through the model in one pass. "sequence" is the mean over
     the B*K triplets of ``[|q-p| - |q-n| + margin]_+`` on sequence descriptors; "images" the CosFace
     cross-entropy of the single ``images`` [M, 3, H', W'] with ``labels`` [M]; "total" is
-    ``triplet_weight * sequence + classification_weight * images``.
+    ``triplet_weight * sequence + classification_weight * images``. A branch ``config.branches`` leaves out is
+    not computed (its inputs may be None) and reads 0.
     """
-    windows_n = _check_triplet_windows(windows_q, windows_p, windows_n)
-    if images.ndim != 4 or images.shape[1] != 3 or images.shape[0] < 1:
-        raise SeqvprError(f"images must be [B, 3, H, W] with B >= 1, got shape {tuple(images.shape)}")
-    b, k = windows_q.shape[0], windows_n.shape[1]
-    descriptors = model(torch.cat([windows_q, windows_p, windows_n.flatten(0, 1)]))
-    q, p, n = descriptors[:b], descriptors[b : 2 * b], descriptors[2 * b :].view(b, k, -1)
-    sequence = triplet_hinge(euclidean(q, p)[:, None].expand(b, k), euclidean(q[:, None], n), config.margin)
-    image_loss = cosface_loss(head, model.frames(images), labels)
-    total = config.triplet_weight * sequence + config.classification_weight * image_loss
+    zero = torch.zeros((), device=next(model.parameters()).device)
+    sequence = image_loss = zero
+    if config.branches != "images":
+        windows_n = _check_triplet_windows(windows_q, windows_p, windows_n)
+        b, k = windows_q.shape[0], windows_n.shape[1]
+        descriptors = model(torch.cat([windows_q, windows_p, windows_n.flatten(0, 1)]))
+        q, p, n = descriptors[:b], descriptors[b : 2 * b], descriptors[2 * b :].view(b, k, -1)
+        sequence = triplet_hinge(euclidean(q, p)[:, None].expand(b, k), euclidean(q[:, None], n), config.margin)
+    if config.branches != "sequence":
+        if images is None or images.ndim != 4 or images.shape[1] != 3 or images.shape[0] < 1:
+            shape = None if images is None else tuple(images.shape)
+            raise SeqvprError(f"images must be [B, 3, H, W] with B >= 1, got shape {shape}")
+        image_loss = cosface_loss(head, model.frames(images), labels)
+    weights = {"joint": (config.triplet_weight, config.classification_weight),
+               "sequence": (config.triplet_weight, 0.0), "images": (0.0, config.classification_weight)}
+    triplet_weight, classification_weight = weights[config.branches]
+    total = triplet_weight * sequence + classification_weight * image_loss
     return {"sequence": sequence, "images": image_loss, "total": total}
 
 
@@ -359,10 +368,13 @@ class JistLearner(SequenceLearner):
         group = self.groups[(step.index if settings.group_per == "iteration" else step.epoch - 1) % len(self.groups)]
         rows, labels, _ = classification_batch(self.class_ids, self.group_ids, group, settings.images_per_batch, rng)
         device = str(self.context.device)
-        images = self.store.batch([self.images.paths[i] for i in rows], device)
-        images = augment_images(images, rng, settings.jitter, settings.hue, settings.crop_scale)
-        tensors = self._triplet_images(batch) + (images,)
-        return jist_losses(model, loss.head(group), *tensors, torch.as_tensor(labels, device=device), self.jist)
+        images = labels_on = None
+        if self.jist.branches != "sequence":
+            images = self.store.batch([self.images.paths[i] for i in rows], device)
+            images = augment_images(images, rng, settings.jitter, settings.hue, settings.crop_scale)
+            labels_on = torch.as_tensor(labels, device=device)
+        windows = self._triplet_images(batch) if self.jist.branches != "images" else (None, None, None)
+        return jist_losses(model, loss.head(group), *windows, images, labels_on, self.jist)
 
     def _triplet_images(self, batch: Sequence[Triplet]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Query [B, L, ...], positive [B, L, ...] and negative [B, K, L, ...] window images of a triplet batch."""
@@ -394,11 +406,20 @@ class JistLearner(SequenceLearner):
         return read_tensors(Path(folder) / MODEL_FILE)
 
 
+def frame_size(traversal: Traversal) -> tuple[int, int]:
+    """(width, height) of a traversal's first image."""
+    from seqvpr.data.images import read_image
+
+    if not traversal.image_paths:
+        raise SeqvprError(f"{traversal.source or traversal.name}: JIST trains from images, this traversal has none")
+    return read_image(traversal.image_paths[0]).size
+
+
 def jist_setup(values: dict[str, Any], seq_length: int | None = None) -> tuple[JistConfig, JistTrainSettings]:
     """The JistConfig and JistTrainSettings of a flat table of their field values (plus the CosPlace cell's
     ``cell_m`` and ``min_images``); what is not given takes the dataclasses' defaults (the reference's, and the
     backbone's default trainable stages). ``seq-length`` overrides the table's."""
-    table = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    table = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k != "recipe"}
     grouping = CellGrouping(**{k: table.pop(k) for k in ("cell_m", "min_images") if k in table})
     model_keys = {f.name for f in fields(JistConfig)}
     model = {k: v for k, v in table.items() if k in model_keys}

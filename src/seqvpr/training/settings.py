@@ -242,3 +242,27 @@ class JistTrainSettings(SettingsRecord):
     def resume_key(self) -> dict[str, Any]:
         """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""
         return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images")}
+
+
+#: frames whose sides are both at most this many pixels are thumbnails (Nordland's 64x32)
+THUMBNAIL_SIDE = 128
+#: what ``seqvpr train jist`` trains thumbnails with unless told otherwise (BENCHMARKS.md, "JIST on Nordland"):
+#: a small CNN over patch-normalised grey frames, from scratch (ImageNet EfficientNet-Lite0 starts near chance on
+#: 64x32 grey frames, upsampled or not), at a learning rate for training from scratch, CosPlace classes of one
+#: frame (two images: the pair's conditions), and a schedule of about 7 minutes an epoch on 2 CPU cores
+THUMBNAIL_RECIPE: dict[str, Any] = {
+    "backbone": "thumbnail-cnn", "weights": None, "out_dim": 256, "lr": 1e-3, "epochs": 2, "refreshes": 5,
+    "queries_per_refresh": 400, "negative_pool": 1000, "max_iterations": 40, "batch_size": 8,
+    "images_per_batch": 64, "cell_m": 1.0, "min_images": 2, "jitter": 0.3, "hue": 0.0, "crop_scale": 0.8,
+}
+
+
+def with_recipe(values: dict[str, Any], size: tuple[int, int]) -> dict[str, Any]:
+    """The flat JIST table ``values`` (keys ``jist_setup`` takes; None: not given) over the recipe for frames of
+    ``size``: thumbnails take ``THUMBNAIL_RECIPE`` at their own size (rounded up to whole 8-pixel patches), other
+    frames the reference's defaults. A given value always wins; ``recipe`` in the result names the one used."""
+    given = {k: v for k, v in values.items() if v is not None}
+    if max(size) > THUMBNAIL_SIDE or given.get("backbone", "thumbnail-cnn") != "thumbnail-cnn":
+        return {**given, "recipe": "reference"}
+    width, height = (-(-side // 8) * 8 for side in size)
+    return {**THUMBNAIL_RECIPE, "width": width, "height": height, **given, "recipe": "thumbnails"}
