@@ -98,11 +98,11 @@ def score(method: str, reference: Traversal, query: Traversal, radius: Radius, m
     return evaluate_match(result, ground_truth_within_radius(query, reference, radius), KS)
 
 
-def jist_rows(folder: Path, test: tuple, radius: Radius) -> Evaluation:
+def jist_rows(folder: Path, test: tuple, radius: Radius, device: str = "cpu") -> Evaluation:
     """A JIST model folder scored as ``seqvpr match --model`` scores it."""
-    model = load_trained_model(folder)
+    model = load_trained_model(folder, device)
     models = {"jist": model}
-    reference, query = describe_for_models(*test, models, lambda r, q: (r, q))
+    reference, query = describe_for_models(*test, models, lambda r, q: (r, q), device=device)
     return score("jist", reference, query, radius, models)
 
 
@@ -128,7 +128,10 @@ def main() -> None:
     parser.add_argument("dataset", choices=("demo", "gardenspoint"))
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
-    parser.add_argument("--size", default=None, help="Training and test image size WxH (demo 160x120, GP 256x144).")
+    parser.add_argument("--size", default=None, help="Training and test image size WxH (demo 160x120; GP 256x144 on "
+                        "the CPU, the reference's 640x480 on CUDA).")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu, or cuda (mixed precision, JIST's default "
+                        "there: the GPU recipe).")
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--refreshes", type=int, default=6)
     parser.add_argument("--iterations", type=int, default=10, help="Steps per refresh (max_iterations).")
@@ -148,13 +151,15 @@ def main() -> None:
     if args.dataset == "demo":
         (train, validation, test, radius), size, cell = demo_pairs(args.out), args.size or "160x120", 10.0
     else:
-        (train, validation, test, radius), size, cell = gardenspoint_pairs(args.data, args.fold), args.size or "256x144", 4.0
+        gp_size = "640x480" if args.device.startswith("cuda") else "256x144"
+        (train, validation, test, radius), size, cell = gardenspoint_pairs(args.data, args.fold), args.size or gp_size, 4.0
     width, height = (int(v) for v in size.split("x"))
     values = {
         "backbone": "efficientnet-lite0", "weights": "imagenet", "trainable_stages": args.stages.split(","),
         "lr": args.lr, "width": width, "height": height, "epochs": args.epochs, "refreshes": args.refreshes,
         "max_iterations": args.iterations, "queries_per_refresh": 4 * args.iterations, "negative_pool": 1000,
         "cell_m": cell, "min_images": 4, "seed": args.seed, "ks": list(KS), "select_k": args.select,
+        "device": args.device,
     }
     config, settings = jist_setup(values, LENGTH)
     data = training_data("jist", train, validation, radius)
@@ -163,17 +168,18 @@ def main() -> None:
     result = train_jist(data, config, settings, args.out / "run", resume=True, classification=classification)
     trained_seconds = time.perf_counter() - started
     extractor = ExtractorConfig("efficientnet-lite0", "imagenet", width=width, height=height)
-    described = tuple(describe(t, "efficientnet-lite0", extractor=extractor) for t in test)
+    described = tuple(describe(t, "efficientnet-lite0", extractor=extractor, device=args.device) for t in test)
     rows = [
         ("single (ImageNet GeM)", score("single", *described, radius, {})),
         ("SeqGeM, untrained (ImageNet GeM)", score("seqgem", *described, radius, {})),
-        ("JIST frozen start", jist_rows(frozen_start(args.out / "frozen", values), test, radius)),
-        (f"JIST trained (epoch {result.best_epoch})", jist_rows(result.folder, test, radius)),
+        ("JIST frozen start", jist_rows(frozen_start(args.out / "frozen", values), test, radius, args.device)),
+        (f"JIST trained (epoch {result.best_epoch})", jist_rows(result.folder, test, radius, args.device)),
     ]
     text = table(rows)
     history = [{"epoch": r.epoch, "loss": round(r.loss, 3), "recall": r.recall, "seconds": round(r.epoch_seconds, 1)}
                for r in result.history]
-    report = (f"{args.dataset}: {cpu_model()}, {torch.get_num_threads()} threads, "
+    where = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"{cpu_model()}, {torch.get_num_threads()} threads"
+    report = (f"{args.dataset} at {width}x{height} on {args.device}: {where}, "
               f"{time.perf_counter() - started:.0f} s in all ({trained_seconds:.0f} s to train)\n\n{text}\n\n"
               f"settings: {json.dumps(values)}\nfold: {args.fold}, classification extra: {args.extra}\nmodel: {json.dumps(asdict(config))}\nhistory: {json.dumps(history)}\n")
     (args.out / "results.md").write_text(report)

@@ -23,6 +23,10 @@ from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
+from seqvpr.cli.train import jist_values
+from seqvpr.models.configs import JistConfig
+from seqvpr.training.jist import jist_setup
+from seqvpr.training.settings import THUMBNAIL_RECIPE, with_recipe
 from seqvpr.training.settings import JistTrainSettings
 from seqvpr.training.seqmatchnet import SeqMatchNetSettings
 from seqvpr.models.seqnet import load_seqnet
@@ -93,10 +97,22 @@ def test_option_defaults_are_each_models_settings_defaults():
     seqnet = {p.name: p.default for p in train_seqnet_command.params}
     assert seqnet["refresh_every"] is None and seqnet["w"] == 3 and seqnet["epochs"] == 200
     assert "velocities" not in seqnet and "hidden" not in seqnet
-    jist = {p.name: p.default for p in train_jist_command.params}
-    settings = JistTrainSettings()
-    assert (jist["epochs"], jist["refreshes"]) == (settings.epochs, settings.refreshes)
-    assert jist["image_size"] == f"{settings.width}x{settings.height}"
+    jist = {p.name: p for p in train_jist_command.params}
+    settings, model = JistTrainSettings(), JistConfig()
+    # JIST's recipe-dependent options are left unset and the recipe fills them: each help names both defaults,
+    # and a command line that gives none of them trains large frames with the settings' defaults
+    assert f"[default: {settings.epochs:g}; thumbnails: {THUMBNAIL_RECIPE['epochs']:g}]" in jist["epochs"].help
+    assert f"[default: {settings.width}x{settings.height}; thumbnails: their own size]" in jist["image_size"].help
+    parsed = train_jist_command.make_context("jist", ["-r", "a", "-q", "b", "--train-frames", "0:9", "--val-frames",
+                                                      "9:12", "--radius", "1f"]).params
+    for size, expected in (((640, 480), (settings, model)), ((64, 32), None)):
+        config, run = jist_setup(with_recipe(jist_values(parsed), size))
+        if expected is None:
+            assert (config.backbone, run.width, run.epochs) == ("thumbnail-cnn", 64, THUMBNAIL_RECIPE["epochs"])
+            continue
+        assert (run.epochs, run.refreshes, run.width, run.height, run.batch_size) == (
+            settings.epochs, settings.refreshes, settings.width, settings.height, settings.batch_size)
+        assert (config.backbone, config.lr, config.out_dim) == (model.backbone, model.lr, model.out_dim)
 
 
 def test_train_seqnet_writes_its_model_folder(seqnet_run):

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from seqvpr.features import backbones
 from seqvpr.features.backbones import SameConv2d, efficientnet_lite0, load_state_dict_file
@@ -131,3 +133,28 @@ def test_gem_matches_the_formula_and_learns_p():
     out.sum().backward()
     assert gem.p.grad is not None and torch.isfinite(gem.p.grad) and gem.p.grad != 0
     assert torch.allclose(GeM()(x).norm(dim=1), torch.ones(2))
+
+
+@given(st.integers(1, 4), st.integers(1, 3), st.integers(0, 2**31 - 1))
+def test_the_patch_norm_layer_is_the_patch_normalised_descriptor(columns, rows, seed):
+    """On grey images (Nordland's: R = G = B) the thumbnail CNN's first layer, flattened block by block and
+    L2-normalised, is ``features.patchnorm``'s descriptor of the same pixels."""
+    from seqvpr.features.backbones import PatchNorm2d
+    from seqvpr.features.patchnorm import patch_normalize
+
+    grey = np.random.default_rng(seed).integers(0, 256, size=(8 * rows, 8 * columns)).astype(np.float64)
+    images = torch.from_numpy(grey / 255.0).float().expand(1, 3, *grey.shape)
+    layer = PatchNorm2d()(images)[0, 0].double().numpy()
+    blocks = layer.reshape(rows, 8, columns, 8).swapaxes(1, 2).reshape(-1)
+    np.testing.assert_allclose(blocks / np.linalg.norm(blocks), patch_normalize(grey, 8), atol=2e-5)
+
+
+def test_the_thumbnail_cnn_reads_any_whole_patch_size_and_refuses_imagenet():
+    from seqvpr.features.backbones import thumbnail_cnn
+
+    model = thumbnail_cnn()
+    for width, height in ((64, 32), (32, 16), (128, 64)):
+        features = model.features(torch.rand(2, 3, height, width))
+        assert features.shape == (2, model.out_channels, 1, 1) and bool((features >= 0).all())
+    raises_one_line("not a whole number of 8-pixel patches", model.features, torch.rand(1, 3, 30, 60))
+    raises_one_line("trains from scratch", thumbnail_cnn, "imagenet")

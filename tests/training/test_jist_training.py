@@ -237,3 +237,28 @@ def test_frame_positions_count_frames_along_the_route(data):
     np.testing.assert_array_equal(placed.positions[:, 0], 2.0 * frame_aligned.frame_index)
     assert (placed.positions[:, 1] == 0).all() and (placed.headings == 0).all()
     assert frame_positions(data.val_query) is data.val_query  # positions already known: unchanged
+
+
+@pytest.mark.parametrize("branches", ["joint", "sequence", "images"])
+def test_each_branch_is_selectable_and_a_left_out_branch_is_never_computed(data, tmp_path, branches):
+    """The loss trains what ``branches`` names: the other part reads 0 in every epoch, and what only it would train
+    stays at its initial value (the CosFace heads without classification; the sequence pool without triplets)."""
+    config = dataclasses.replace(CONFIG, branches=branches)
+    settings = dataclasses.replace(SETTINGS, epochs=1, refreshes=1, max_iterations=2)
+    result = train_jist(data, config, settings, tmp_path / "run", backbone_factory=TinyBackbone)
+    parts = result.history[1].parts
+    assert (parts["sequence"] > 0) == (branches != "images") and (parts["images"] > 0) == (branches != "sequence")
+    state = read_tensors(tmp_path / "run" / MODEL_FILE)
+    start = build_jist(config, backbone=_seeded_backbone(settings.seed)).state_dict()
+    pool_moved = any(not torch.equal(state[k], start[k]) for k in start if k.startswith("sequence_pool."))
+    assert pool_moved == (branches != "images")
+    assert read_json(tmp_path / "run" / "config.json")["config"]["branches"] == branches
+
+
+def _seeded_backbone(seed: int) -> nn.Module:
+    torch.manual_seed(seed)
+    return TinyBackbone()
+
+
+def test_an_unknown_branch_is_one_line():
+    raises_one_line("branches 'both' is not known", JistConfig, branches="both")

@@ -332,13 +332,13 @@ def train_jist_command(out_dir, resume, **o) -> None:
     radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
     values = with_recipe(jist_values(o), frame_size(train_pair[0]))
     config, settings = jist_setup(values)
-    click.echo(f"recipe: {values['recipe']} ({config.backbone} at {settings.width}x{settings.height}, lr {config.lr:g}, "
-               f"{settings.epochs} epochs, branches {config.branches})", err=True)
     data = training_data("jist", train_pair, validation, *radii)
     classification = classification_traversals(data, o["class_images"], o["train_frames"], o["frames"])
     result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor(),
                         classification=classification)
     echo_best(result.best_epoch, result.best_recall, result.folder)
+    click.echo(f"recipe: {values['recipe']} ({config.backbone} at {settings.width}x{settings.height}, lr {config.lr:g}, "
+               f"{settings.epochs} epochs, branches {config.branches})")
 
 
 @click.group()

@@ -411,7 +411,8 @@ def frame_size(traversal: Traversal) -> tuple[int, int]:
     from seqvpr.data.images import read_image
 
     if not traversal.image_paths:
-        raise SeqvprError(f"{traversal.source or traversal.name}: JIST trains from images, this traversal has none")
+        raise SeqvprError(f"{traversal.source or traversal.name}: JIST trains from images, this traversal holds "
+                          f"descriptors only")
     return read_image(traversal.image_paths[0]).size
 
 

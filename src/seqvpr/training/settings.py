@@ -259,10 +259,12 @@ THUMBNAIL_RECIPE: dict[str, Any] = {
 
 def with_recipe(values: dict[str, Any], size: tuple[int, int]) -> dict[str, Any]:
     """The flat JIST table ``values`` (keys ``jist_setup`` takes; None: not given) over the recipe for frames of
-    ``size``: thumbnails take ``THUMBNAIL_RECIPE`` at their own size (rounded up to whole 8-pixel patches), other
-    frames the reference's defaults. A given value always wins; ``recipe`` in the result names the one used."""
+    ``size``: ``THUMBNAIL_RECIPE`` when the backbone is (or, not given, the frames are thumbnails and so it becomes)
+    the thumbnail CNN, at the frames' own size rounded up to whole 8-pixel patches (64x32 for larger frames); the
+    reference's defaults otherwise. A given value always wins; ``recipe`` in the result names the one used."""
     given = {k: v for k, v in values.items() if v is not None}
-    if max(size) > THUMBNAIL_SIDE or given.get("backbone", "thumbnail-cnn") != "thumbnail-cnn":
+    small = max(size) <= THUMBNAIL_SIDE
+    if given.get("backbone", "thumbnail-cnn" if small else None) != "thumbnail-cnn":
         return {**given, "recipe": "reference"}
-    width, height = (-(-side // 8) * 8 for side in size)
+    width, height = (-(-side // 8) * 8 for side in size) if small else (64, 32)
     return {**THUMBNAIL_RECIPE, "width": width, "height": height, **given, "recipe": "thumbnails"}
