@@ -44,19 +44,13 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.groundtruth import Radius
 from seqvpr.data.sources import load_pair
-from seqvpr.data.traversal import Traversal, slice_frame_range
+from seqvpr.data.traversal import slice_frame_range
 from seqvpr.evaluation.metrics import Evaluation
-from seqvpr.features.extraction import ExtractorConfig
-from seqvpr.api import match
-from seqvpr.methods import describe_for_models
-from seqvpr.models.jist import build_jist, save_jist
-from seqvpr.models.registry import load_trained_model
-from seqvpr.evaluation.scoring import evaluate_match
+from seqvpr.experiments.jist_ablation import JistSplit, save_start, score, score_model
 from seqvpr.features.describe import describe
-from seqvpr.matchers.settings import MatchSettings
-from seqvpr.sequences.windows import SequenceSpec
+from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.training.data import classification_traversals, training_data
 from seqvpr.training.jist import jist_setup, train_jist
 
@@ -89,30 +83,6 @@ def gardenspoint_pairs(data: Path, fold: str) -> tuple[tuple, tuple, tuple, Radi
     cut = lambda frames: tuple(slice_frame_range(t, frames, frames) for t in whole)  # noqa: E731
     train, select, test = GP_FOLDS[fold]
     return cut(train), cut(select), cut(test), Radius(2.0, "frames")
-
-
-def score(method: str, reference: Traversal, query: Traversal, radius: Radius, models: dict) -> Evaluation:
-    """Recall@KS of one method on described traversals at L = 5, through ``seqvpr.match``."""
-    settings = MatchSettings(SequenceSpec(LENGTH), k=max(KS))
-    result = match(reference, query, method, models=models, settings=settings)
-    return evaluate_match(result, ground_truth_within_radius(query, reference, radius), KS)
-
-
-def jist_rows(folder: Path, test: tuple, radius: Radius, device: str = "cpu") -> Evaluation:
-    """A JIST model folder scored as ``seqvpr match --model`` scores it."""
-    model = load_trained_model(folder, device)
-    models = {"jist": model}
-    reference, query = describe_for_models(*test, models, lambda r, q: (r, q), device=device)
-    return score("jist", reference, query, radius, models)
-
-
-def frozen_start(folder: Path, values: dict) -> Path:
-    """The JIST model a run starts from (same seed, same construction as the training loop's epoch 0), saved."""
-    config, settings = jist_setup(values, LENGTH)
-    torch.manual_seed(settings.seed)
-    save_jist(folder, build_jist(config), config, {"image_size": [settings.width, settings.height],
-                                                    "sequence": {"length": LENGTH}})
-    return folder
 
 
 def table(rows: list[tuple[str, Evaluation]]) -> str:
@@ -162,6 +132,7 @@ def main() -> None:
         "device": args.device,
     }
     config, settings = jist_setup(values, LENGTH)
+    split = JistSplit(train, validation, test, radius)
     data = training_data("jist", train, validation, radius)
     extra = [str(args.data / "gardenspoint_walking" / args.extra)] if args.extra else []
     classification = classification_traversals(data, extra, GP_FOLDS[args.fold][0])
@@ -170,10 +141,10 @@ def main() -> None:
     extractor = ExtractorConfig("efficientnet-lite0", "imagenet", width=width, height=height)
     described = tuple(describe(t, "efficientnet-lite0", extractor=extractor, device=args.device) for t in test)
     rows = [
-        ("single (ImageNet GeM)", score("single", *described, radius, {})),
-        ("SeqGeM, untrained (ImageNet GeM)", score("seqgem", *described, radius, {})),
-        ("JIST frozen start", jist_rows(frozen_start(args.out / "frozen", values), test, radius, args.device)),
-        (f"JIST trained (epoch {result.best_epoch})", jist_rows(result.folder, test, radius, args.device)),
+        ("single (ImageNet GeM)", score("single", described, split, LENGTH)),
+        ("SeqGeM, untrained (ImageNet GeM)", score("seqgem", described, split, LENGTH)),
+        ("JIST frozen start", score_model(save_start(args.out / "frozen", config, settings), split, device=args.device)),
+        (f"JIST trained (epoch {result.best_epoch})", score_model(result.folder, split, device=args.device)),
     ]
     text = table(rows)
     history = [{"epoch": r.epoch, "loss": round(r.loss, 3), "recall": r.recall, "seconds": round(r.epoch_seconds, 1)}

@@ -119,14 +119,14 @@ def save_start(folder: Path, config, settings) -> Path:
     return folder
 
 
-def score_model(folder: Path, split: JistSplit, length: int | None = None) -> Evaluation:
+def score_model(folder: Path, split: JistSplit, length: int | None = None, device: str = "cpu") -> Evaluation:
     """A JIST model folder scored on the test pair as ``seqvpr match --model`` scores it (its length unless
-    ``length``)."""
+    ``length``; frames described on ``device``)."""
     from seqvpr.methods import describe_for_models
     from seqvpr.models.registry import load_trained_model
 
-    models = {"jist": load_trained_model(folder)}
-    described = describe_for_models(*split.test, models, lambda r, q: (r, q))
+    models = {"jist": load_trained_model(folder, device)}
+    described = describe_for_models(*split.test, models, lambda r, q: (r, q), device=device)
     return score("jist", described, split, length or models["jist"].length, models)
 
 
