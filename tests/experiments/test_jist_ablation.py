@@ -92,6 +92,10 @@ def thumbnails(tmp_path_factory):
     (["--train-frames", "0:20", "--val-frames", "20:30", "--test-frames", "25:40"], "--val-frames 20:30 and --test-frames 25:40 overlap"),
     (["--train-frames", "0:20", "--val-frames", "20:30", "--test-frames", "30:40", "--cell-size", "4"],
      "wider than the negative radius"),
+    (["--train-frames", "0:20", "--val-frames", "20:30", "--test-frames", "30:40", "--variants", "joint,both"],
+     "JIST variant 'both' is not known"),
+    (["--train-frames", "0:20", "--val-frames", "20:30", "--test-frames", "30:40", "-r", "/nowhere/summer"],
+     "/nowhere/summer"),
 ])
 def test_a_bad_split_is_one_line_before_any_training(monkeypatch, capsys, tmp_path, thumbnails, args, fragment):
     out = tmp_path / "ablation"

@@ -78,14 +78,15 @@ def run_jist_ablation(
     from seqvpr.training.jist import check_cells, jist_setup, train_jist
 
     ensure_policy()
+    unknown = [v for v in variants if v not in JIST_BRANCHES]
+    if unknown or not variants:
+        raise SeqvprError(f"JIST variant {(unknown or [''])[0]!r} is not known (choose from: {', '.join(JIST_BRANCHES)})")
     out = Path(out_dir)
     config, settings = jist_setup(values)
     data = training_data("jist", split.train, split.select, split.radius)
     check_cells(settings.grouping, data.negative_radius)  # before any training: a bad split is one line
     rows = []
     for variant in variants:
-        if variant not in JIST_BRANCHES:
-            raise SeqvprError(f"JIST variant {variant!r} is not known (choose from: {', '.join(JIST_BRANCHES)})")
         folder = out / variant
         result = train_jist(data, replace(config, branches=variant), settings, folder,
                             resume=(folder / "train_state.json").is_file(),
