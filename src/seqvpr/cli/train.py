@@ -286,12 +286,11 @@ jist_options = with_options([
 
 def jist_values(o: dict) -> dict[str, Any]:
     """The JIST options as the flat table ``training.jist.jist_setup`` takes (the benchmark's ``[jist]`` table);
-    None where an option was not given (``training.jist.with_recipe`` fills it)."""
+    None where an option was not given (``training.settings.with_recipe`` fills it)."""
     width, height = parse_thumbnail(o["image_size"], "--image-size") if o["image_size"] else (None, None)
-    stages = parse_stages(o["trainable_stages"])
     return {
         "backbone": o["backbone"], "weights": o["weights"], "out_dim": o["out_dim"],
-        "trainable_stages": stages or None, "seq_length": o["seq_len"], "lr": o["lr"],
+        "trainable_stages": parse_stages(o["trainable_stages"]), "seq_length": o["seq_len"], "lr": o["lr"],
         "classifier_lr": o["classifier_lr"], "epochs": o["epochs"], "refreshes": o["refreshes"],
         "max_iterations": o["max_iterations"], "batch_size": o["batch_size"],
         "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
@@ -408,7 +407,7 @@ then the joint model at L = 3, 5, 10 and with each test window's frames reversed
 @jist_options
 @click.option("--test-frames", required=True, help="Source frames START:STOP of the test split (disjoint from the others).")
 @click.option("--variants", default=",".join(JIST_BRANCHES), show_default=True,
-              help="The JIST rows to train (comma list of joint, sequence, images).")
+              help="The JIST rows to train (comma list of joint, sequence, images); each sets its own --branches.")
 @click.option("--out", "out_dir", default="jist-ablation", show_default=True, type=OUT_FOLDER,
               help="Folder with one run per variant, the starting model, SeqNet's run, ablation.csv and ablation.md.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the tables.")

@@ -182,10 +182,7 @@ def jist_losses(
             shape = None if images is None else tuple(images.shape)
             raise SeqvprError(f"images must be [B, 3, H, W] with B >= 1, got shape {shape}")
         image_loss = cosface_loss(head, model.frames(images), labels)
-    weights = {"joint": (config.triplet_weight, config.classification_weight),
-               "sequence": (config.triplet_weight, 0.0), "images": (0.0, config.classification_weight)}
-    triplet_weight, classification_weight = weights[config.branches]
-    total = triplet_weight * sequence + classification_weight * image_loss
+    total = config.triplet_weight * sequence + config.classification_weight * image_loss  # a left-out part is 0
     return {"sequence": sequence, "images": image_loss, "total": total}
 
 
