@@ -225,7 +225,7 @@ class Captured(Exception):
 
 def test_jist_defaults_are_the_same_in_train_jist_and_the_benchmark(monkeypatch, capsys, tmp_path):
     """``seqvpr train jist`` with its defaults and the benchmark with an empty [jist] table hand ``train_jist`` the
-    same model config, run settings and radii (negatives at 2.5x the positive radius, trainable stages)."""
+    same model config, run settings and radii (negatives at 2.5x the positive radius, the recipe for the frames)."""
     import seqvpr.training.jist as jist
     from seqvpr.experiments.benchmark import Splits, train_kind
     from seqvpr.data.groundtruth import parse_radius
@@ -251,5 +251,5 @@ def test_jist_defaults_are_the_same_in_train_jist_and_the_benchmark(monkeypatch,
                     (reference.slice_frames(30, 40), query.slice_frames(30, 40)), None, parse_radius("10m"))
     with pytest.raises(Captured):
         train_kind("jist", splits, read_config(config), tmp_path / "bench")
-    assert seen[0] == seen[1]
-    assert seen[0][0].trainable_stages == ("layer4",) and seen[0][3].value == 25.0
+    assert seen[0] == seen[1]  # 64x48 frames: both took the thumbnail recipe
+    assert seen[0][0].backbone == "thumbnail-cnn" and seen[0][1].width == 64 and seen[0][3].value == 25.0

@@ -361,9 +361,10 @@ def train_kind(kind: str, splits: Splits, config: BenchmarkConfig, out: Path, mo
 
         settings = SeqNetSettings(**{**config.seqnet, "sequence": spec})
         return train_seqnet(data, settings, out, resume=True, monitor=monitor).folder
-    from seqvpr.training.jist import jist_setup, train_jist
+    from seqvpr.training.jist import frame_size, jist_setup, train_jist
+    from seqvpr.training.settings import with_recipe
 
-    model_config, settings = jist_setup(config.jist, config.seq_len)
+    model_config, settings = jist_setup(with_recipe(config.jist, frame_size(splits.train[0])), config.seq_len)
     return train_jist(data, model_config, settings, out, resume=True, monitor=monitor).folder
 
 
