@@ -136,10 +136,11 @@ def score(method: str, pair: Pair, split: JistSplit, length: int, models: dict |
     from seqvpr.api import match
 
     result = match(*pair, method, models=models or {}, settings=MatchSettings(SequenceSpec(length), k=10))
-    return evaluate_match(result, test_truth(split), (1, 5, 10))
+    return evaluate_match(result, split_truth(split), (1, 5, 10))
 
 
-def test_truth(split: JistSplit) -> GroundTruth:
+def split_truth(split: JistSplit) -> GroundTruth:
+    """The ground truth of the split's test pair (queries against the reference, within the split's radius)."""
     query, reference = split.test[1], split.test[0]
     return ground_truth_within_radius(query, reference, split.radius)
 
@@ -180,7 +181,7 @@ def robustness_rows(folder: Path, split: JistSplit, lengths: Sequence[int] = (3,
     model = load_trained_model(folder)
     reference, query = describe_for_models(*split.test, {"jist": model}, lambda r, q: (r, q))
     pool = model.module.sequence_pool
-    truth = test_truth(split)
+    truth = split_truth(split)
     rows = []
     for length in lengths:
         rows.append((f"L = {length}", ordered_scores(reference, query, truth, length, "forward", pool, seed)))
@@ -222,9 +223,12 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
 
 
 def centred_windows(n: int, spec: SequenceSpec) -> tuple[np.ndarray, np.ndarray]:
-    """The frames with a whole centred window (one segment) and each window's frame rows [n_windows, L]."""
-    rows = np.arange(spec.offset, n - (spec.length - 1 - spec.offset))
-    return rows, rows[:, None] - spec.offset + np.arange(spec.length)[None, :]
+    """The frames with a whole window under ``spec`` (one segment) and each window's frame rows [n_windows, L]."""
+    from seqvpr.sequences.windows import window_frames, window_starts
+
+    starts = window_starts(np.zeros(n, np.int64), spec.length, spec.offset, spec.boundary)
+    rows = np.flatnonzero(starts >= 0)
+    return rows, window_frames(starts[rows], spec.length)
 
 
 def reorder_windows(frames: np.ndarray, order: str, seed: int = 0) -> np.ndarray:
