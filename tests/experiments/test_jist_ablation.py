@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
@@ -43,6 +43,7 @@ def _route(n: int, seed: int, noise: float) -> tuple[Traversal, Traversal]:
 
 @settings(max_examples=examples(20), deadline=None)
 @given(st.integers(12, 40), st.sampled_from([1, 3, 5]), st.integers(0, 2**31 - 1))
+@example(12, 5, 0)  # fewer windows (8) than K (10): the top-K pads with -1/inf
 def test_forward_windows_score_as_seqvpr_match_and_seqgem_ignores_the_order(n, length, seed):
     reference, query = _route(n, seed, noise=1.0)
     truth = ground_truth_within_radius(query, reference, Radius(1.0, "frames"))

@@ -214,7 +214,7 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
         rows, dists = best_of(candidates, values, 10)
         indices = np.full((len(query), 10), -1, np.int64)
         top = np.full((len(query), 10), np.inf)
-        indices[qry_rows], top[qry_rows] = rows, dists
+        indices[qry_rows, : rows.shape[1]], top[qry_rows, : rows.shape[1]] = rows, dists  # fewer than 10 windows: -1/inf
         has = np.zeros(len(query), bool)
         has[qry_rows] = True
         result = MatchResult(reference, query, TopK(indices, top, has), MatchSettings(spec, k=10))
