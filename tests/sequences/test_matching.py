@@ -7,7 +7,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import BLOCK_BYTES, block_shape, frame_distances, sequence_distance_matrix, sequence_topk
+from seqvpr.sequences.matching import (
+    BLOCK_BYTES, block_shape, frame_distances, reference_rows, sequence_distance_matrix, sequence_topk,
+)
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
 from tests.helpers import examples
@@ -152,3 +154,26 @@ def test_dimension_mismatch_is_one_line_error():
 def test_sequence_longer_than_every_segment():
     with pytest.raises(SeqvprError, match="longer than every segment"):
         sequence_topk(torch.zeros(4, 2), torch.zeros(10, 2), SequenceSpec(5), 1)
+
+
+@pytest.mark.parametrize("kind", ["array", "memmap", "tensor"])
+@pytest.mark.parametrize("index", [slice(2, 7), np.array([0, 5, 3, 9])])
+def test_reference_rows_are_the_indexed_rows_in_the_likes_dtype(tmp_path, kind, index):
+    rows = np.random.default_rng(0).standard_normal((10, 4)).astype(np.float32)
+    if kind == "memmap":
+        reference = np.lib.format.open_memmap(tmp_path / "r.npy", mode="w+", dtype=np.float16, shape=rows.shape)
+        reference[:] = rows
+        rows = np.asarray(reference, np.float32)
+    else:
+        reference = torch.from_numpy(rows) if kind == "tensor" else rows
+    got = reference_rows(reference, index, torch.zeros(0, dtype=torch.float64))
+    assert got.dtype == torch.float64
+    np.testing.assert_array_equal(got.numpy(), rows[index].astype(np.float64))
+
+
+def test_reference_rows_index_a_device_tensor_where_it_lies():
+    """A reference already on a device (meta here: NumPy cannot read it, as it cannot read a CUDA tensor) is indexed
+    on that device, slice or row numbers, never through NumPy (what broke adaptive matching on CUDA)."""
+    reference, like = torch.empty((10, 4), device="meta"), torch.empty(0, device="meta")
+    assert reference_rows(reference, np.array([1, 3, 8]), like).shape == (3, 4)
+    assert reference_rows(reference, slice(2, 5), like).device.type == "meta"

@@ -140,7 +140,7 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
     """A shortlist's candidates re-ordered by adaptive distance (CaseVPR's hierarchy: sequence-descriptor start
     points, then adaptive frame matching inside each candidate stretch). Each candidate's reachable stretch is cut
     from the reference and the stretches are scored together as separate segments, so no path crosses two."""
-    from seqvpr.sequences.matching import frame_distances
+    from seqvpr.sequences.matching import frame_distances, reference_rows
     from seqvpr.sequences.topk import TopK, best_of
     from seqvpr.sequences.windows import window_frames, window_starts
 
@@ -157,10 +157,10 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
         spans = [(max(0, c - before), min(len(r_seg), c + after + 1)) for c in candidates]
         rows = np.concatenate([np.arange(lo, hi) for lo, hi in spans])
         labels = np.concatenate([np.full(hi - lo, n) for n, (lo, hi) in enumerate(spans)]) * (r_seg.max() + 1) + r_seg[rows]
-        stretch = torch.as_tensor(np.asarray(reference[rows]), dtype=query.dtype)
+        stretch = reference_rows(reference, rows, query)
         frames = torch.as_tensor(window_frames(q_starts[i : i + 1], spec.length)[0])
         scored = scorer(frame_distances(query[frames], stretch), np.zeros(1, np.int64), np.zeros(1, np.int64),
-                        labels, spec)[0].double().numpy()
+                        labels, spec)[0].double().cpu().numpy()
         anchors = np.cumsum([0] + [hi - lo for lo, hi in spans[:-1]]) + (candidates - [lo for lo, _ in spans])
         values = scored[anchors]
         rows, best = best_of(candidates, values, keep)

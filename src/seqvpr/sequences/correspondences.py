@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_path
-from seqvpr.sequences.matching import frame_distances, max_span, sequence_rows
+from seqvpr.sequences.matching import frame_distances, max_span, reference_rows, sequence_rows
 from seqvpr.sequences.windows import SequenceSpec, velocity_steps, window_frames, window_starts
 
 
@@ -51,8 +51,8 @@ def adaptive_correspondences(query: torch.Tensor, reference, best: np.ndarray, s
         j = int(best[i])
         lo, hi = max(0, j - reach_before), min(len(r_seg), j + reach_after + 1)
         frames = window_frames(q_starts[i : i + 1], spec.length)[0]
-        stretch = torch.as_tensor(np.asarray(reference[lo:hi]), dtype=query.dtype)
-        d = frame_distances(query[torch.as_tensor(frames)], stretch).numpy()
+        stretch = reference_rows(reference, slice(lo, hi), query)
+        d = frame_distances(query[torch.as_tensor(frames)], stretch).cpu().numpy()
         q_rows[i] = frames
         r_rows[i] = adaptive_path(d, j - lo, spec.offset, scorer, r_seg[lo:hi]) + lo
     return q_rows, r_rows
@@ -91,7 +91,7 @@ def trajectory_correspondences(query: torch.Tensor, reference, best: np.ndarray,
         j = int(best[i])
         lo, hi = max(0, j - halo), min(len(r_seg), j + halo + 1)
         frames = window_frames(q_starts[i : i + 1], spec.length)[0]
-        stretch = torch.as_tensor(np.asarray(reference[lo:hi]), dtype=query.dtype)
+        stretch = reference_rows(reference, slice(lo, hi), query)
         d = frame_distances(query[torch.as_tensor(frames)], stretch)
         score = scorer.locate(frames, lo) if hasattr(scorer, "locate") else (scorer or sequence_rows)
         scores = [float(score(d, np.array([spec.offset]), np.array([0]), r_seg[lo:hi],

@@ -93,7 +93,10 @@ class SeqNet(nn.Module):
             raise SeqvprError(f"seqnet: the model expects {self.in_dim}-D descriptors, these are {dim}-D")
         # column k of `shifted_means` is the mean of the frames at kernel tap k over all L-w+1 positions
         shifted_means = F.avg_pool1d(windows.transpose(1, 2), kernel_size=length - self.w + 1, stride=1)
-        return F.normalize(self.conv(shifted_means).squeeze(-1), dim=-1)
+        # a conv with one output position is a linear map; as a matrix product it is exact float32 on CUDA too
+        # (cuDNN convolutions default to TF32 there, which re-orders near neighbours against the CPU)
+        out = F.linear(shifted_means.flatten(1), self.conv.weight.flatten(1), self.conv.bias)
+        return F.normalize(out, dim=-1)
 
 
 class SeqGeM(nn.Module):

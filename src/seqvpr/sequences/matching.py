@@ -343,7 +343,7 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None
     for first in range(0, n_r, columns):
         last = min(first + columns, n_r)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
-        block = _reference_block(reference, lo, hi, query)
+        block = reference_rows(reference, slice(lo, hi), query)
         rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer, lo)
         merged.push_columns(rows[:, first - lo : last - lo], first)
     values, picked = merged.values, merged.rows
@@ -353,10 +353,14 @@ def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None
     return all_values, all_picked
 
 
-def _reference_block(reference: ReferenceRows, lo: int, hi: int, like: torch.Tensor) -> torch.Tensor:
-    """Reference rows [lo, hi) as a tensor of ``like``'s dtype and device: a view when they already are (a
-    writable float32 memory map on CPU too), else a converted copy of the chunk."""
-    rows = reference[lo:hi]
+def reference_rows(reference: ReferenceRows, index: slice | np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """Reference rows at ``index`` (a slice or row numbers) as a tensor of ``like``'s dtype and device: a view when
+    they already are (a writable float32 memory map on CPU too), else a converted copy of those rows. A reference
+    already on a device is indexed there, never through NumPy."""
+    if isinstance(reference, torch.Tensor):
+        rows = reference[index if isinstance(index, slice) else torch.as_tensor(index, device=reference.device)]
+        return rows.to(device=like.device, dtype=like.dtype)
+    rows = reference[index]
     if isinstance(rows, torch.Tensor):
         return rows.to(device=like.device, dtype=like.dtype)
     if rows.flags.writeable and str(rows.dtype) == str(like.dtype).removeprefix("torch.") and like.device.type == "cpu":
@@ -425,7 +429,7 @@ def distances_to_reference(
     for lo in range(0, len(reference), columns):
         hi = min(lo + columns, len(reference))
         dots = torch.from_numpy(out[:, lo:hi]) if len(query) == 1 else torch.empty(len(query), hi - lo)
-        torch.mm(query, _reference_block(reference, lo, hi, query).T, out=dots)
+        torch.mm(query, reference_rows(reference, slice(lo, hi), query).T, out=dots)
         values = dots.numpy()
         distances_from_dots_(values, query_sq, norms[lo:hi])
         out[:, lo:hi] = values
