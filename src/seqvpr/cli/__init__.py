@@ -24,7 +24,7 @@ COMMANDS = {
     "benchmark": "seqvpr.cli.experiments:benchmark", "demo": "seqvpr.cli.experiments:demo",
     "import": "seqvpr.cli.published:import_command", "map": "seqvpr.cli.maps:map_group",
     "localize": "seqvpr.cli.localize:localize", "convert": "seqvpr.cli.convert:convert",
-    "doctor": "seqvpr.cli.doctor:doctor",
+    "doctor": "seqvpr.cli.doctor:doctor", "node": "seqvpr.cli.robot:node", "play": "seqvpr.cli.robot:play",
 }
 
 

@@ -13,7 +13,7 @@ import click
 from seqvpr.cli.options import (
     DEVICE,
     COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
-    bag_topic_options, locks_output
+    bag_topic_options, locks_output, with_options
 )
 from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
@@ -27,6 +27,42 @@ RUN_FILE = "run.json"
 LOCALIZE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Ground truth and scoring", "Output", "Compute")
 
 
+#: the options that open a localiser (method, map, localiser, device): ``seqvpr localize`` and ``seqvpr node``
+localiser_options = with_options([
+    option("Method", "--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
+        help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through it; "
+             "hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet with its "
+             "--model]"),
+    option("Method", "-L", "--seq-len", type=COUNT, default=5, show_default=True, help="Frames of a causal window."),
+    option("Method", "--model", "model_dirs", multiple=True, type=click.Path(),
+        help="The model(s) the map was built through."),
+    option("Map", "--shortlist", type=NONNEGATIVE, default=0, show_default=True,
+        help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map)."),
+    option("Map", "--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
+        help="With --shortlist: the H frames before the window place candidates too."),
+    option("Map", "--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits."),
+    option("Localiser", "--threshold", type=FINITE,
+        help="Score from which an estimate is localised [default: the map's calibrated one for these settings, else "
+             "the method's default]."),
+    option("Localiser", "--lost-after", type=COUNT, default=5, show_default=True,
+        help="Frames below the threshold before 'lost'."),
+    option("Localiser", "--exclusion", type=NONNEGATIVE, default=10, show_default=True,
+        help="Frames around the best that are not 'another place' for the score."),
+    option("Localiser", "--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
+        help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all)."),
+    option("Method", "--min-step", type=NONNEGATIVE, default=0, show_default=True,
+        help="hmm: fewest map frames moved per frame."),
+    option("Method", "--max-step", type=NONNEGATIVE, default=2, show_default=True,
+        help="hmm: most map frames moved per frame (at most 1000)."),
+    option("Method", "--floor", type=FRACTION, default=1e-3, show_default=True,
+        help="hmm: chance per frame of a jump anywhere."),
+    option("Method", "--sharpness", type=POSITIVE, default=1.5, show_default=True,
+        help="hmm: how sharply worse distances count."),
+    option("Compute", "--device", type=DEVICE, default="cpu", show_default=True,
+        help="torch device, e.g. cpu or cuda."),
+])
+
+
 @click.command("localize", cls=SectionedCommand, sections=LOCALIZE_SECTIONS, epilog="""\b
 Examples:
   seqvpr localize --map maps/summer -q winter/ --radius 1f --calibrate --target-precision 0.99
@@ -36,34 +72,7 @@ Examples:
 @option("Input", "-q", "--query", required=True, type=click.Path(),
         help="The query traversal, replayed frame by frame.")
 @option("Input", "--frames", help="Keep query frames START:STOP (e.g. 17:2000).")
-@option("Method", "--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
-        help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through it; "
-             "hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet with its "
-             "--model]")
-@option("Method", "-L", "--seq-len", type=COUNT, default=5, show_default=True, help="Frames of a causal window.")
-@option("Method", "--model", "model_dirs", multiple=True, type=click.Path(),
-        help="The model(s) the map was built through.")
-@option("Map", "--shortlist", type=NONNEGATIVE, default=0, show_default=True,
-        help="Re-rank only candidates from the map's frame index, S per query frame (0: exact over the map).")
-@option("Map", "--shortlist-history", "history", type=NONNEGATIVE, default=0, show_default=True,
-        help="With --shortlist: the H frames before the window place candidates too.")
-@option("Map", "--nprobe", type=COUNT, default=16, show_default=True, help="IVF lists a shortlist search visits.")
-@option("Localiser", "--threshold", type=FINITE, help="Score from which an estimate is localised [default: the map's "
-                                                      "calibrated one for these settings, else the method's default].")
-@option("Localiser", "--lost-after", type=COUNT, default=5, show_default=True,
-        help="Frames below the threshold before 'lost'.")
-@option("Localiser", "--exclusion", type=NONNEGATIVE, default=10, show_default=True,
-        help="Frames around the best that are not 'another place' for the score.")
-@option("Localiser", "--keyframe-distance", type=NONNEGATIVE_FLOAT, default=0.0, show_default=True,
-        help="Skip frames closer than this (descriptor distance) to the last kept one (0: keep all).")
-@option("Method", "--min-step", type=NONNEGATIVE, default=0, show_default=True,
-        help="hmm: fewest map frames moved per frame.")
-@option("Method", "--max-step", type=NONNEGATIVE, default=2, show_default=True,
-        help="hmm: most map frames moved per frame (at most 1000).")
-@option("Method", "--floor", type=FRACTION, default=1e-3, show_default=True,
-        help="hmm: chance per frame of a jump anywhere.")
-@option("Method", "--sharpness", type=POSITIVE, default=1.5, show_default=True,
-        help="hmm: how sharply worse distances count.")
+@localiser_options
 @option("Ground truth and scoring", "--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
 @option("Ground truth and scoring", "--ground-truth", "gt_file", type=click.Path(),
         help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
@@ -77,7 +86,6 @@ Examples:
 @option("Ground truth and scoring", "--k", "ks", default="1,5,10,20", show_default=True, help="Recall@K values.")
 @option("Localiser", "--resume-state", type=click.Path(), help="Start from a saved localiser state.")
 @option("Output", "--save-state", type=OUT_FILE, help="Save the localiser's state after the last frame.")
-@option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @option("Output", "--out", "out_dir", default="seqvpr-localize", show_default=True, type=OUT_FOLDER,
         help="Folder for stream.csv, run.json and report/.")
 @option("Output", "--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
@@ -101,7 +109,7 @@ def localize(**o: Any) -> None:
     from seqvpr import distributed
 
     with distributed.process_group(o["device"]) as world:  # under torchrun over a sharded map: ranks share it
-        localizer = _open(o, max(k_values))
+        localizer = open_localizer(o, max(k_values))
         query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
         gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"]) \
             if (o["radius"] or o["gt_file"]) else None
@@ -119,7 +127,7 @@ def localize(**o: Any) -> None:
     _report(o, localizer, run, gt, k_values)
 
 
-def _open(o: dict[str, Any], k: int):
+def open_localizer(o: dict[str, Any], k: int):
     """The localiser the options describe (settings checked before any frame is read)."""
     from seqvpr.localization import Localizer
     from seqvpr.sequences.filter import FilterSettings

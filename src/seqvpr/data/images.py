@@ -44,3 +44,33 @@ def read_image(path: str | Path, mode: str = "RGB") -> Image.Image:
         raise SeqvprError(f"{path}: too large to decode safely ({' '.join(str(error).split())})") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as error:
         raise SeqvprError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
+
+
+#: bytes per pixel of the raw encodings a ``sensor_msgs/Image`` may hold that seqvpr reads
+RAW_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2}
+
+
+def raw_pixels(encoding: str, height: int, width: int, step: int, bigendian: bool, data, where: str) -> np.ndarray:
+    """An RGB (or gray) uint8 array of the raw pixels a ``sensor_msgs/Image`` holds (rgb8, bgr8, rgba8, bgra8,
+    mono8; mono16 by its high byte): one line naming ``where`` for an unknown encoding, an empty image, or a buffer
+    whose size is not what its height, width and step say."""
+    channels = RAW_CHANNELS.get(encoding)
+    if channels is None:
+        raise SeqvprError(f"{where}: image encoding {encoding!r} is not supported ({', '.join(RAW_CHANNELS)})")
+    if height < 1 or width < 1:
+        raise SeqvprError(f"{where}: an empty image ({width}x{height} {encoding})")
+    if step < width * channels:
+        raise SeqvprError(f"{where}: step {step} is shorter than a row of {width} {encoding} pixels "
+                          f"({width * channels} bytes)")
+    buffer = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
+    if buffer.size != height * step:
+        raise SeqvprError(f"{where}: {buffer.size} bytes of pixels, where a {width}x{height} {encoding} image with "
+                          f"step {step} holds {height * step}")
+    rows = buffer.reshape(height, step)[:, : width * channels]
+    if encoding == "mono16":
+        wide = rows.view(">u2" if bigendian else "<u2").reshape(height, width)
+        return (wide >> 8).astype(np.uint8)
+    pixels = rows.reshape(height, width, channels) if channels > 1 else rows.reshape(height, width)
+    if encoding.startswith("bgr"):
+        pixels = pixels[..., 2::-1]
+    return np.ascontiguousarray(pixels[..., :3] if channels == 4 else pixels)

@@ -252,20 +252,22 @@ class Localizer:
         latlon = utm_to_latlon(frames.positions[row], frames.crs)
         return position, name, None if latlon is None else (float(latlon[0, 0]), float(latlon[0, 1]))
 
-    def save_state(self, path: str | Path) -> None:
-        """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``)."""
+    def save_state(self, path: str | Path, extra: Mapping[str, Any] | None = None) -> None:
+        """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``); ``extra``
+        (JSON values) is what the caller keeps beside it (``restore`` returns it), in the same file."""
         header = {"format": STATE_FORMAT, "version": STATE_VERSION, "map": map_record(self.saved.info),
                   "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
-                  "since_reset": self.since_reset}
+                  "since_reset": self.since_reset, "extra": dict(extra or {})}
         arrays = {f"matcher_{k}": v for k, v in self.stepper.state().items()}
         if self.last_kept is not None:
             arrays["last_kept"] = self.last_kept.numpy()
         with atomic_write(path, "wb") as handle:
             np.savez(handle, header=np.array(json.dumps(header)), **arrays)
 
-    def restore(self, path: str | Path) -> None:
+    def restore(self, path: str | Path) -> dict[str, Any]:
         """Go on from a state ``save_state`` wrote, for this map (by its identity) and these settings, its counters
-        and arrays sound (``localization.saved``); anything else is one line and leaves the localiser as it was."""
+        and arrays sound (``localization.saved``); anything else is one line and leaves the localiser as it was.
+        Returns the ``extra`` saved with it ({} if none)."""
         from seqvpr.arrays import open_npz
 
         with reading(path, "a localiser state"):
@@ -280,6 +282,8 @@ class Localizer:
                                      if k.startswith("matcher_")})
             self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))
             self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
+        extra = header.get("extra", {})
+        return extra if isinstance(extra, dict) else {}
 
 
 def _load_models(saved: SavedMap, model: str | Path | Sequence[str | Path] | None, device: str) -> dict[str, TrainedModel]:

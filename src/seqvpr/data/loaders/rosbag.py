@@ -137,9 +137,9 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
     folder = writable_folder(frames_root() if folder is None else folder)
     try:
         with AnyReader([path]) as reader:
-            image = _one_topic(reader, IMAGE_TYPES, topics.image, path, "image")
+            image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
             frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
-            position = _position_topic(reader, topics, path)
+            position = position_connection(reader, topics, path)
             fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
     except (OSError, ValueError, KeyError) as error:
         raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {error})") from None
@@ -157,7 +157,7 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
                      position.topic if position else None)
 
 
-def _one_topic(reader, types: tuple[str, ...], topic: str | None, path: Path, what: str):
+def topic_connection(reader, types: tuple[str, ...], topic: str | None, path: Path, what: str):
     """The connection of ``topic`` (checked to be of ``types``), or the bag's only one of those types."""
     found = [c for c in reader.connections if c.msgtype in types and (topic is None or c.topic == topic)]
     names = sorted({c.topic for c in reader.connections if c.msgtype in types})
@@ -169,12 +169,12 @@ def _one_topic(reader, types: tuple[str, ...], topic: str | None, path: Path, wh
     return found[0]
 
 
-def _position_topic(reader, topics: BagTopics, path: Path):
+def position_connection(reader, topics: BagTopics, path: Path):
     """The named gps or odom topic (checked), else the bag's NavSatFix topic, else its Odometry topic, else None."""
     if topics.gps:
-        return _one_topic(reader, (GPS_TYPE,), topics.gps, path, "NavSatFix")
+        return topic_connection(reader, (GPS_TYPE,), topics.gps, path, "NavSatFix")
     if topics.odom:
-        return _one_topic(reader, (ODOM_TYPE,), topics.odom, path, "Odometry")
+        return topic_connection(reader, (ODOM_TYPE,), topics.odom, path, "Odometry")
     for msgtype in (GPS_TYPE, ODOM_TYPE):
         found = [c for c in reader.connections if c.msgtype == msgtype]
         if found:
@@ -238,30 +238,16 @@ def _write_frame(file: Path, message, compressed: bool, path: Path) -> None:
     """Write one frame's file atomically (a half-written file never carries the name)."""
     from PIL import Image
 
+    from seqvpr.data.images import raw_pixels
     from seqvpr.io import atomic_write
 
     with atomic_write(file, "wb") as handle:
         if compressed:
             handle.write(memoryview(np.ascontiguousarray(message.data)))
         else:
-            Image.fromarray(_raw_pixels(message, path)).save(handle, format="PNG", compress_level=1)
-
-
-def _raw_pixels(message, path: Path) -> np.ndarray:
-    """An RGB (or gray) uint8 array of a raw Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16: its high byte)."""
-    data, encoding = np.frombuffer(bytes(message.data), np.uint8), message.encoding
-    h, w, step = int(message.height), int(message.width), int(message.step)
-    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2}.get(encoding)
-    if channels is None:
-        raise SeqvprError(f"{path}: image encoding {encoding!r} is not supported (rgb8, bgr8, rgba8, bgra8, mono8, mono16)")
-    rows = data.reshape(h, step)[:, : w * channels]
-    if encoding == "mono16":
-        wide = rows.view(">u2" if message.is_bigendian else "<u2").reshape(h, w)
-        return (wide >> 8).astype(np.uint8)
-    pixels = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
-    if encoding.startswith("bgr"):
-        pixels = pixels[..., 2::-1]
-    return np.ascontiguousarray(pixels[..., :3] if channels == 4 else pixels)
+            pixels = raw_pixels(message.encoding, int(message.height), int(message.width), int(message.step),
+                                bool(message.is_bigendian), message.data, str(path))
+            Image.fromarray(pixels).save(handle, format="PNG", compress_level=1)
 
 
 def _positions(recording: Recording, tolerance: float, path: Path) -> tuple[list[int], np.ndarray | None]:

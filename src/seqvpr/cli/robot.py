@@ -1,0 +1,111 @@
+"""``seqvpr node`` (the localiser as a live ROS 2 participant over DDS) and ``seqvpr play`` (a bag published live, to
+try the node without a robot). Both need the ``ros2`` extra (cyclonedds)."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import click
+
+from seqvpr.cli.help import SectionedCommand, option
+from seqvpr.cli.localize import localiser_options
+from seqvpr.cli.options import NONNEGATIVE_FLOAT, OUT_FILE, POSITIVE
+from seqvpr.errors import SeqvprError
+
+NODE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Topics", "Output", "Compute")
+DOMAIN = click.IntRange(0, 232)
+
+
+@click.command("node", cls=SectionedCommand, sections=NODE_SECTIONS, epilog="""\b
+Examples:
+  seqvpr node --map maps/campus --topic /camera/image_raw/compressed --gps-topic /fix
+  seqvpr node --map maps/campus --no-drop --state node.npz      # a replay: every frame; state kept on shutdown
+  seqvpr node --map maps/campus --state node.npz --restore      # go on where the last run stopped""")
+@option("Input", "--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
+@localiser_options
+@option("Topics", "--topic", "camera", default="/camera/image_raw", show_default=True,
+        help="The camera topic: sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16) or CompressedImage.")
+@option("Topics", "--image-type", type=click.Choice(["raw", "compressed"]),
+        help="The camera topic's message type  [default: compressed when the topic ends in /compressed, else raw].")
+@option("Topics", "--gps-topic", help="A sensor_msgs/NavSatFix topic: its distance to the estimate is in the status.")
+@option("Topics", "--odom-topic", help="A nav_msgs/Odometry topic, as --gps-topic (a map in local metres).")
+@option("Topics", "--domain", type=DOMAIN, help="DDS domain  [default: $ROS_DOMAIN_ID, else 0].")
+@option("Localiser", "--no-drop", is_flag=True,
+        help="Process every frame in order (a replay), never only the newest when behind.")
+@option("Output", "--frame-id", default="map", show_default=True, help="The frame_id of the published pose.")
+@option("Output", "--state", type=OUT_FILE, help="Save the localiser's state here on SIGTERM or SIGINT.")
+@option("Localiser", "--restore", is_flag=True, help="Start from the state saved in --state.")
+def node(**o: Any) -> None:
+    """Localise a live camera topic: each frame's estimate on /seqvpr/pose (PoseWithCovarianceStamped, not while
+    warming up or lost) and /seqvpr/status (DiagnosticArray); /seqvpr/reset (std_msgs/Empty) restarts it."""
+    from seqvpr.cli.localize import open_localizer
+    from seqvpr.ros2.dds import Bus, require_cyclonedds
+    from seqvpr.ros2.frames import camera_type
+    from seqvpr.ros2.messages import NAVSATFIX, ODOMETRY
+    from seqvpr.ros2.node import POSE_TOPIC, RESET_TOPIC, STATUS_TOPIC, LocalizerNode, NodeSettings
+
+    require_cyclonedds()
+    if o["gps_topic"] and o["odom_topic"]:
+        raise SeqvprError("give --gps-topic or --odom-topic, not both")
+    if o["restore"] and not o["state"]:
+        raise SeqvprError("--restore starts from the state in --state: give --state PATH")
+    if o["restore"] and not Path(o["state"]).is_file():
+        raise SeqvprError(f"--restore: {o['state']}: no such state file")
+    localizer = open_localizer(o, 20)
+    fix_topic = o["gps_topic"] or o["odom_topic"]
+    settings = NodeSettings(o["camera"], camera_type(o["camera"], o["image_type"]), fix_topic,
+                            (NAVSATFIX if o["gps_topic"] else ODOMETRY) if fix_topic else None, o["no_drop"],
+                            o["frame_id"], Path(o["state"]) if o["state"] else None)
+    bus = Bus(o["domain"])
+    running = LocalizerNode(localizer, bus, settings)
+    if o["restore"]:
+        running.restore(settings.state)
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    policy = "every frame in order" if settings.keep_all else "the newest frame when behind"
+    click.echo(f"seqvpr node: {o['map_dir']} ({localizer.saved.info.count} frames, {localizer.settings.method}); "
+               f"listening on {settings.camera} ({settings.camera_type}, {policy}) in domain {bus.domain}; publishing "
+               f"{POSE_TOPIC if running.track is not None else '(no pose: the map has no positions)'} and "
+               f"{STATUS_TOPIC}; {RESET_TOPIC} restarts", err=True)
+    running.run(stop)
+    saved = f"; state saved to {settings.state}" if settings.state else ""
+    click.echo(f"seqvpr node: stopped after {running.processed} frames ({running.inbox.received} received, "
+               f"{running.inbox.dropped} dropped, {running.malformed} malformed){saved}", err=True)
+
+
+@click.command("play", epilog="""\b
+Examples:
+  seqvpr play drive.bag --topic /camera/image_raw/compressed --gps-topic /fix
+  seqvpr play drive_ros2/ --rate 2 --frames 100:400""")
+@click.argument("bag", type=click.Path())
+@click.option("--topic", help="The image topic to publish  [default: the bag's only image topic].")
+@click.option("--gps-topic", help="The NavSatFix topic to publish with it  [default: the bag's, else its Odometry].")
+@click.option("--odom-topic", help="The nav_msgs/Odometry topic to publish with it.")
+@click.option("--rate", type=POSITIVE, default=1.0, show_default=True, help="Times the recorded pace.")
+@click.option("--frames", help="Publish camera frames START:STOP (in recorded order) and the fixes between them.")
+@click.option("--wait", type=NONNEGATIVE_FLOAT, default=2.0, show_default=True,
+              help="Seconds to wait for a subscriber to the camera topic before the first frame (0: none).")
+@click.option("--domain", type=DOMAIN, help="DDS domain  [default: $ROS_DOMAIN_ID, else 0].")
+def play(**o: Any) -> None:
+    """Publish a bag's camera topic (and position topic) live over DDS at its recorded rate, as ros2 bag play."""
+    from seqvpr.cli.progress import tqdm_progress
+    from seqvpr.data.loaders.rosbag import BagTopics, is_rosbag
+    from seqvpr.ros2.dds import Bus, require_cyclonedds
+    from seqvpr.ros2.play import play_bag
+
+    require_cyclonedds()
+    if not is_rosbag(Path(o["bag"])):
+        raise SeqvprError(f"{o['bag']}: not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if o["gps_topic"] and o["odom_topic"]:
+        raise SeqvprError("give --gps-topic or --odom-topic, not both")
+    topics = BagTopics(o["topic"], o["gps_topic"], o["odom_topic"])
+    played = play_bag(o["bag"], topics, Bus(o["domain"]), o["rate"], o["frames"], o["wait"],
+                      tqdm_progress)
+    heard = "" if played.matched or o["wait"] == 0 else " (no subscriber matched before the first frame)"
+    click.echo(f"played {played.frames} frames of {played.camera_topic}"
+               + (f" and {played.fixes} fixes of {played.position_topic}" if played.position_topic else "")
+               + f" in {played.seconds:.1f} s{heard}")

@@ -1,0 +1,234 @@
+"""``seqvpr node``: the online localiser as a ROS 2 participant. Camera frames come in on a topic, each goes through
+the ``Localizer``, and the estimate goes out as a pose (``/seqvpr/pose``) and a diagnostic status
+(``/seqvpr/status``); ``/seqvpr/reset`` restarts it.
+
+A receiving thread takes samples as they arrive and hands them to the localiser through an ``Inbox``: by default
+the newest frame waits and an older one still waiting is dropped (counted), so the node answers for the latest
+frame when it falls behind; with ``keep_all`` (``--no-drop``) every frame is processed in order, as a replay must.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from seqvpr.errors import SeqvprError
+from seqvpr.localization.localizer import Localizer
+from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, SENSOR_DATA, Bus
+from seqvpr.ros2.frames import (
+    LEVELS, WARN, TimeGaps, Track, camera_image, fix_in_map, pose_of, stamp_seconds, stamp_text, status_of,
+)
+from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, outgoing
+
+POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset"
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """What the node listens to and how: the camera topic and its message type, an optional NavSatFix or Odometry
+    topic (its distance to the estimate goes in the status), every frame or the newest (``keep_all``), the frame id
+    of what it publishes, and where its state is saved on shutdown (None: not saved)."""
+
+    camera: str
+    camera_type: str
+    fix_topic: str | None = None
+    fix_type: str | None = None
+    keep_all: bool = False
+    frame_id: str = "map"
+    state: Path | None = None
+
+
+class Inbox:
+    """Camera frames from the receiving thread to the localiser: every one in order (``keep_all``), or only the
+    newest, counting each one a newer frame replaced before it was processed; and a pending reset."""
+
+    def __init__(self, keep_all: bool) -> None:
+        self.keep_all = keep_all
+        self.frames: deque = deque()
+        self.ready = threading.Condition()
+        self.received = self.dropped = 0
+        self.reset_pending = False
+
+    def put(self, item: Any) -> None:
+        with self.ready:
+            self.received += 1
+            if not self.keep_all and self.frames:
+                self.dropped += len(self.frames)
+                self.frames.clear()
+            self.frames.append(item)
+            self.ready.notify()
+
+    def request_reset(self) -> None:
+        with self.ready:
+            self.reset_pending = True
+            self.ready.notify()
+
+    def get(self, timeout: float) -> tuple[bool, Any]:
+        """(whether a reset came first, the next frame or None) within ``timeout`` seconds."""
+        with self.ready:
+            if not self.frames and not self.reset_pending:
+                self.ready.wait(timeout)
+            reset, self.reset_pending = self.reset_pending, False
+            return reset, (self.frames.popleft() if self.frames else None)
+
+
+class LocalizerNode:
+    """The localiser on DDS: ``run(stop)`` until ``stop`` is set, then the state saved (when asked)."""
+
+    def __init__(self, localizer: Localizer, bus: Bus, settings: NodeSettings) -> None:
+        self.localizer, self.bus, self.settings = localizer, bus, settings
+        frames = localizer.saved.frames
+        self.track = Track.of(frames.positions, frames.segment_ids, frames.crs)
+        self.gaps = TimeGaps()
+        self.inbox = Inbox(settings.keep_all)
+        self.malformed, self.processed, self.last_error = 0, 0, ""
+        self.fix: Any = None
+        outputs = EVERY_SAMPLE if settings.keep_all else DEFAULT
+        self.pose_writer = bus.writer(POSE_TOPIC, POSE, outputs)
+        self.status_writer = bus.writer(STATUS_TOPIC, STATUS, outputs)
+        self.camera = bus.reader(settings.camera, settings.camera_type, EVERY_SAMPLE if settings.keep_all
+                                 else SENSOR_DATA)
+        self.reset_reader = bus.reader(RESET_TOPIC, EMPTY, DEFAULT)
+        self.fix_reader = bus.reader(settings.fix_topic, settings.fix_type, SENSOR_DATA) if settings.fix_topic \
+            else None
+
+    def restore(self, path: Path) -> None:
+        """Go on from a saved state (the localiser's, and the time-gap rule's last stamp and steps)."""
+        extra = self.localizer.restore(path)
+        self.gaps.load(extra.get("time_gaps", {}))
+
+    def save(self) -> None:
+        if self.settings.state is not None:
+            self.localizer.save_state(self.settings.state, {"time_gaps": self.gaps.state(),
+                                                            "frames_processed": self.processed})
+
+    def run(self, stop: threading.Event, on_frame: Callable[[dict[str, Any]], None] | None = None) -> None:
+        """Process frames until ``stop`` is set; ``on_frame`` sees each frame's status values."""
+        receiver = threading.Thread(target=self._receive, args=(stop,), name="seqvpr-receive", daemon=True)
+        receiver.start()
+        try:
+            while not stop.is_set():
+                reset, item = self.inbox.get(0.1)
+                if reset:
+                    self.localizer.reset()
+                if item is not None:
+                    values = self.handle(*item)
+                    if on_frame is not None:
+                        on_frame(values)
+        finally:
+            stop.set()
+            receiver.join(timeout=2.0)
+            self.save()
+
+    def _receive(self, stop: threading.Event) -> None:
+        """Take every sample as it arrives: frames into the inbox (stamped with their arrival), resets, fixes."""
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+        from cyclonedds.util import duration
+
+        waitset = WaitSet(self.bus.participant)
+        mask = SampleState.Any | ViewState.Any | InstanceState.Any
+        readers = [r for r in (self.camera, self.reset_reader, self.fix_reader) if r is not None]
+        conditions = [ReadCondition(r, mask) for r in readers]
+        for condition in conditions:
+            waitset.attach(condition)
+        while not stop.is_set():
+            waitset.wait(duration(milliseconds=100))
+            for sample in _valid(self.camera.take(64)):
+                self.inbox.put((sample, time.perf_counter()))
+            if _valid(self.reset_reader.take(64)):
+                self.inbox.request_reset()
+            fixes = _valid(self.fix_reader.take(64)) if self.fix_reader is not None else []
+            if fixes:
+                self.fix = fixes[-1].message
+
+    def handle(self, sample: Any, arrived: float) -> dict[str, Any]:
+        """One camera sample: decoded, localised (a restart first where the stamps break), published; a malformed
+        frame is counted and reported, and leaves the localiser as it was."""
+        value = sample.message
+        try:
+            image = camera_image(value, self.settings.camera_type)
+        except SeqvprError as error:
+            return self._report_malformed(value, str(error))
+        stamp = stamp_seconds(value)
+        if self.gaps.starts_segment(stamp):
+            self.localizer.reset()
+        estimate = self.localizer.update(image, stamp)
+        self.processed += 1
+        pose = pose_of(estimate, self.localizer.misses, self.track, value.header.stamp, self.settings.frame_id) \
+            if self.track is not None else None
+        if pose is not None:
+            self.pose_writer.write(outgoing(POSE, pose))
+        values = self._values(estimate, value, arrived)
+        text = estimate.status if not self.last_error else f"{estimate.status}; last malformed frame: {self.last_error}"
+        self.status_writer.write(outgoing(STATUS, status_of(values, LEVELS[estimate.status], text, value.header.stamp,
+                                                            self.settings.frame_id, self._hardware_id())))
+        return values
+
+    def _report_malformed(self, value: Any, error: str) -> dict[str, Any]:
+        self.malformed += 1
+        self.last_error = error
+        last = self.localizer.last
+        values = {"frame": "", "stamp": _stamp_or_empty(value), "state": last.status if last else "warming up",
+                  "malformed": self.malformed, "received": self.inbox.received, "dropped": self.inbox.dropped,
+                  "error": error}
+        self.status_writer.write(outgoing(STATUS, status_of(values, WARN, f"malformed frame: {error}",
+                                                            _header_stamp(value), self.settings.frame_id,
+                                                            self._hardware_id())))
+        return values
+
+    def _values(self, estimate: Any, value: Any, arrived: float) -> dict[str, Any]:
+        """The status's key-values: the estimate, the stage latencies, what was received, dropped and malformed."""
+        names = self.localizer.saved.frames.names
+        name = lambda row: "" if row is None or names is None else names[row]  # noqa: E731
+        values: dict[str, Any] = {
+            "frame": estimate.frame, "stamp": stamp_text(value), "state": estimate.status,
+            "map_index": "" if estimate.index is None else estimate.index, "map_frame": name(estimate.index),
+            "best_index": "" if estimate.best is None else estimate.best, "best_frame": name(estimate.best),
+            "score": estimate.score, "threshold": self.localizer.threshold,
+            **{f"{stage}_ms": float(ms) for stage, ms in estimate.latency.items()},
+            "latency_ms": (time.perf_counter() - arrived) * 1e3,
+            "received": self.inbox.received, "dropped": self.inbox.dropped, "malformed": self.malformed,
+        }
+        values["fix_distance_m"] = self._fix_distance(estimate)
+        return values
+
+    def _fix_distance(self, estimate: Any) -> float | None:
+        """Metres from the latest position fix to the localised map frame (None without both)."""
+        if self.fix is None or estimate.index is None or self.track is None:
+            return None
+        where = fix_in_map(self.fix, self.settings.fix_type, self.track.crs)
+        if where is None:
+            return None
+        x, y = self.track.positions[estimate.index]
+        return float(((where[0] - x) ** 2 + (where[1] - y) ** 2) ** 0.5)
+
+    def _hardware_id(self) -> str:
+        return str(self.localizer.saved.folder)
+
+
+def _valid(samples: list) -> list[Received]:
+    """The samples that carry data (a writer leaving sends others: instance state changes)."""
+    return [s for s in samples if isinstance(s, Received)]
+
+
+def _header_stamp(value: Any) -> Any:
+    """The stamp of a message's header, or a zero stamp when it has none that reads."""
+    from seqvpr.ros2.messages import message
+
+    try:
+        return value.header.stamp
+    except AttributeError:
+        return message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
+
+
+def _stamp_or_empty(value: Any) -> str:
+    try:
+        return stamp_text(value)
+    except (AttributeError, TypeError, ValueError):
+        return ""
+
