@@ -35,7 +35,7 @@ class Played:
 def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, frames: str | None = None,
              wait: float = 2.0, progress: ProgressFactory | None = None) -> Played:
     """Publish the camera frames ``frames`` (``START:STOP`` of its camera messages in recorded order) of ``bag``,
-    and its position fixes over the same time, at ``rate`` x the recorded pace; wait up to ``wait`` s for a
+    and its position fixes over the same time (from ``FIX_LEAD`` s before the first), at ``rate`` x the recorded pace; wait up to ``wait`` s for a
     subscriber first. Every message goes out reliably; the call returns once subscribers acknowledged them."""
     from rosbags.highlevel import AnyReader
 
@@ -51,7 +51,9 @@ def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, fr
         writers = {c.topic: bus.writer(c.topic, c.msgtype, EVERY_SAMPLE) for c in (camera, position) if c}
         matched = wait_for_match(writers[camera.topic], wait) if wait > 0 else False
         began, first, sent = time.monotonic(), times[start], {"frames": 0, "fixes": 0}
-        low, high = first - int(FIX_LEAD * 1e9), times[stop - 1]
+        # fixes from FIX_LEAD s before the first frame to the next frame left out (the bag's ends where it ends)
+        low = first - int(FIX_LEAD * 1e9) if start > 0 else -1
+        high = times[stop] - 1 if stop < len(times) else float("inf")
         index = -1
         for connection, stamp, raw in reader.messages(connections=[c for c in (camera, position) if c]):
             is_camera = connection.topic == camera.topic

@@ -1,0 +1,191 @@
+"""``seqvpr node`` and ``seqvpr play`` over real DDS on loopback, as a robot engineer runs them: a Gardens Point
+night drive played into the node gives, frame for frame, what ``seqvpr localize`` gives on the same bag; a SIGTERM
+mid-stream and a restart with ``--restore`` go on as if uninterrupted; malformed frames are counted, not fatal."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from seqvpr.ros2.frames import status_values
+from seqvpr.ros2.messages import IMAGE, POSE, STATUS, message, outgoing
+from tests.bags import fixes, write_bag
+from tests.helpers import run_cli
+from tests.ros2.conftest import ROOT, Collector, start_seqvpr
+
+pytestmark = pytest.mark.slow
+NODE = ("--topic", "/camera/image_raw", "--image-type", "compressed", "--threshold", "0.01")
+
+
+def seqvpr(*args) -> str:
+    """Run a ``seqvpr`` command to its end; its stdout."""
+    done = subprocess.run([sys.executable, "-m", "seqvpr.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=ROOT, env={"SEQVPR_THREADS": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT / "src"),
+                                         "HOME": str(Path.home())})
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
+@pytest.fixture(scope="module")
+def drive(shared_data, tmp_path_factory):
+    """Gardens Point Walking written as two drives (JPEG frames, NavSatFix a metre a frame, 0.5 s apart): the day
+    drive's map, the night bag, and what ``seqvpr localize`` reports for it frame by frame."""
+    root = tmp_path_factory.mktemp("drive")
+    for side, offset in (("day_left", 0.0), ("night_right", 0.5)):
+        images = sorted((shared_data / "gardenspoint_walking" / side).glob("*.jpg"))
+        write_bag(root / side, images, *fixes(len(images), offset), ros1=False, compressed=True)
+    seqvpr("map", "build", root / "day_left", "--out", root / "map")
+    seqvpr("localize", "--map", root / "map", "-q", root / "night_right", "--threshold", "0.01", "--out", root / "loc")
+    with open(root / "loc" / "stream.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    return root, rows
+
+
+def same_as_localize(statuses: list[dict], rows: list[dict]) -> list[str]:
+    """Where the node's published estimates differ from ``seqvpr localize``'s rows (index, best, score, state)."""
+    wrong = []
+    for i, (got, want) in enumerate(zip(statuses, rows, strict=True)):
+        score = "" if got["score"] == "nan" else f"{float(got['score']):.6f}"
+        if (got["state"], got["map_index"], got["best_index"], score) != \
+                (want["status"], want["localised_row"], want["best_row"], want["score"]):
+            wrong.append(f"frame {i}: {got} != {want}")
+    return wrong
+
+
+def stop(node: subprocess.Popen) -> tuple[str, str]:
+    node.send_signal(signal.SIGTERM)
+    out, err = node.communicate(timeout=60)
+    assert node.returncode == 0, err
+    return out, err
+
+
+def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
+    root, rows = drive
+    statuses, poses = Collector("/seqvpr/status", STATUS), Collector("/seqvpr/pose", POSE)
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop")
+    try:
+        played = subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20",
+                                 "--wait", "30"], env=dds, cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert played.returncode == 0 and "played 200 frames of /camera/image_raw and 200 fixes" in played.stdout, \
+            played.stderr
+        got = [status_values(s.message) for s in statuses.wait_for(len(rows), 120)]
+        pose_messages = poses.wait_for(sum(r["status"] in ("localised", "uncertain") for r in rows), 30)
+    finally:
+        _, err = stop(node)
+        statuses.close()
+        poses.close()
+    assert len(got) == len(rows) == 200
+    assert same_as_localize(got, rows) == []
+    assert "stopped after 200 frames (200 received, 0 dropped, 0 malformed)" in err
+    localised = [(int(r["localised_row"]), float(r["x"]), float(r["y"])) for r in rows if r["status"] == "localised"]
+    placed = {(p.message.pose.pose.position.x, p.message.pose.pose.position.y) for p in pose_messages}
+    assert len(pose_messages) == sum(r["status"] in ("localised", "uncertain") for r in rows)
+    assert all((round(x, 3), round(y, 3)) in {(round(a, 3), round(b, 3)) for a, b in placed} for _, x, y in localised)
+
+
+def test_sigterm_mid_stream_saves_the_state_and_restore_goes_on_as_uninterrupted(drive, dds, tmp_path):
+    root, rows = drive
+    state = tmp_path / "node.npz"
+    statuses = Collector("/seqvpr/status", STATUS)
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--state", state)
+    player = start_seqvpr(dds, "play", root / "night_right", "--rate", "4", "--wait", "30")
+    try:
+        statuses.wait_for(90, 120)
+        _, err = stop(node)  # mid-stream: the player is still publishing
+        assert player.poll() is None
+    finally:
+        player.kill()
+        player.communicate()
+        statuses.close()
+    assert f"state saved to {state}" in err
+    with np.load(state, allow_pickle=False) as saved:
+        done = json.loads(str(saved["header"]))["frame"]
+    assert 90 <= done < 200
+    statuses = Collector("/seqvpr/status", STATUS)
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--state", state, "--restore")
+    try:
+        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20", "--wait",
+                        "30", "--frames", f"{done}:"], env=dds, cwd=ROOT, check=True, capture_output=True, timeout=300)
+        got = [status_values(s.message) for s in statuses.wait_for(200 - done, 120)]
+    finally:
+        stop(node)
+        statuses.close()
+    assert [int(v["frame"]) for v in got] == list(range(done, 200))
+    assert same_as_localize(got, rows[done:]) == []
+
+
+@pytest.fixture
+def small_map(tmp_path):
+    """A map of 12 small synthetic frames (patch-normalised), for the node's fault handling."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(12):
+        Image.fromarray(rng.integers(0, 255, (4, 6, 3), dtype=np.uint8)).resize((48, 32)).save(folder / f"{i:03d}.png")
+    seqvpr("map", "build", folder, "--out", tmp_path / "map")
+    return tmp_path / "map"
+
+
+def frame(i: int, encoding: str = "rgb8", size: int | None = None):
+    pixels = np.random.default_rng(i).integers(0, 255, (32, 48, 3), dtype=np.uint8)
+    data = pixels.ravel() if size is None else np.zeros(size, np.uint8)
+    stamp = message("builtin_interfaces/msg/Time", sec=100 + i, nanosec=0)
+    return message(IMAGE, header=message("std_msgs/msg/Header", stamp=stamp, frame_id="cam"), height=32, width=48,
+                   encoding=encoding, is_bigendian=0, step=144, data=data)
+
+
+def test_malformed_frames_are_counted_and_reported_never_a_crash(small_map, dds):
+    from seqvpr.ros2.dds import EVERY_SAMPLE, Bus, wait_for_match
+
+    statuses = Collector("/seqvpr/status", STATUS)
+    node = start_seqvpr(dds, "node", "--map", small_map, "--no-drop", "-L", "2")
+    try:
+        writer = Bus().writer("/camera/image_raw", IMAGE, EVERY_SAMPLE)
+        assert wait_for_match(writer, 30)
+        for value in (frame(0), frame(1, size=10), frame(2, "yuv422"), frame(3, size=0), frame(4), frame(5)):
+            writer.write(outgoing(IMAGE, value))
+        got = [status_values(s.message) for s in statuses.wait_for(6, 60)]
+        levels = [s.message.status[0].message for s in statuses.samples]
+    finally:
+        _, err = stop(node)
+        statuses.close()
+    assert [v["malformed"] for v in got] == ["0", "1", "2", "3", "3", "3"]
+    assert "10 bytes of pixels" in got[1]["error"] and "'yuv422' is not supported" in got[2]["error"]
+    assert "0 bytes of pixels" in got[3]["error"] and levels[1].startswith("malformed frame: ")
+    assert [got[i]["frame"] for i in (0, 4, 5)] == ["0", "1", "2"] and "3 malformed" in err
+    assert got[0]["state"] == "warming up" and got[4]["state"] != "warming up"
+
+
+def test_a_map_or_model_mismatch_is_one_line_at_start_up(small_map, tmp_path, monkeypatch, capsys):
+    from seqvpr.models.configs import TransformConfig
+    from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
+
+    save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(16, out_dim=8), seed=3), {})
+    for args, said in [(("--model", tmp_path / "smn"), "build the map through the SeqMatchNet model"),
+                       (("-L", "50"), "-L 50 is longer than every segment"),
+                       (("--restore",), "--restore starts from the state in --state")]:
+        code, out, err = run_cli(monkeypatch, capsys, "node", "--map", small_map, *args)
+        assert code == 2 and len(error_lines(err)) == 1 and said in error_lines(err)[0], err
+    code, _, err = run_cli(monkeypatch, capsys, "node", "--map", tmp_path / "nowhere")
+    assert code == 2 and len(error_lines(err)) == 1 and "nowhere" in err
+
+
+def error_lines(err: str) -> list[str]:
+    """The error lines a command printed (progress lines may come before them)."""
+    return [line for line in err.splitlines() if line.startswith("seqvpr: error:")]
+
+
+def test_without_cyclonedds_the_commands_name_the_extra(small_map, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "cyclonedds", None)
+    monkeypatch.setitem(sys.modules, "cyclonedds.domain", None)
+    for args in (("node", "--map", small_map), ("play", small_map)):
+        code, _, err = run_cli(monkeypatch, capsys, *args)
+        assert code == 2 and len(error_lines(err)) == 1 and "pip install 'seqvpr[ros2]'" in err, err
