@@ -13,8 +13,8 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "seqvpr"
 
-#: lower layers never import higher ones (the README's data flow: cli -> experiments -> methods -> training ->
-#: pipeline -> models -> evaluation/features -> data/sequences/synthetic -> errors/io)
+#: lower layers never import higher ones (the README's data flow: cli -> ros2 -> localization -> experiments/maps ->
+#: methods -> training -> matchers -> models -> evaluation/features -> data/sequences/synthetic -> errors/io)
 LAYERS = {
     "seqvpr": 0, "seqvpr.errors": 0, "seqvpr.io": 0, "seqvpr.threads": 0, "seqvpr.progress": 0, "seqvpr.cache": 0,
     "seqvpr.identity": 0, "seqvpr.arrays": 0,
@@ -26,7 +26,8 @@ LAYERS = {
     "seqvpr.methods": 6,
     "seqvpr.experiments": 7, "seqvpr.maps": 7, "seqvpr.api": 7,
     "seqvpr.localization": 8,
-    "seqvpr.cli": 9,
+    "seqvpr.ros2": 9,
+    "seqvpr.cli": 10,
 }
 HEAVY = ("torch", "numba", "faiss", "matplotlib", "scipy")
 

@@ -12,7 +12,7 @@ from seqvpr.ros2.messages import (
     COMPRESSED, EMPTY, IMAGE, MESSAGE_TYPES, NAVSATFIX, ODOMETRY, POSE, STATUS, decode, dds_topic, dds_typename, encode,
     message, outgoing, typestore, wire_type,
 )
-from tests.ros2.conftest import Collector
+from seqvpr.ros2.dds import Recorder
 
 cyclonedds_idl = pytest.importorskip("cyclonedds.idl")
 
@@ -117,7 +117,7 @@ def test_the_bytes_on_the_wire_are_rosbags_cdr(dds):
     from seqvpr.ros2.dds import EVERY_SAMPLE, Bus, wait_for_match
 
     value = sample(IMAGE, np.random.default_rng(5), size=999)
-    collector = Collector("/camera/image_raw", IMAGE)
+    collector = Recorder("/camera/image_raw", IMAGE)
     try:
         writer = Bus().writer("/camera/image_raw", IMAGE, EVERY_SAMPLE)
         assert wait_for_match(writer, 10)

@@ -19,7 +19,8 @@ from seqvpr.ros2.frames import status_values
 from seqvpr.ros2.messages import IMAGE, POSE, STATUS, message, outgoing
 from tests.bags import fixes, write_bag
 from tests.helpers import run_cli
-from tests.ros2.conftest import ROOT, Collector, start_seqvpr
+from seqvpr.ros2.dds import Recorder
+from tests.ros2.conftest import ROOT, start_seqvpr
 
 pytestmark = pytest.mark.slow
 NODE = ("--topic", "/camera/image_raw", "--image-type", "compressed", "--threshold", "0.01")
@@ -27,9 +28,9 @@ NODE = ("--topic", "/camera/image_raw", "--image-type", "compressed", "--thresho
 
 def seqvpr(*args) -> str:
     """Run a ``seqvpr`` command to its end; its stdout."""
+    env = {"SEQVPR_THREADS": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT / "src"), "HOME": str(Path.home())}
     done = subprocess.run([sys.executable, "-m", "seqvpr.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=ROOT, env={"SEQVPR_THREADS": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT / "src"),
-                                         "HOME": str(Path.home())})
+                          cwd=ROOT, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     return done.stdout
 
@@ -69,7 +70,7 @@ def stop(node: subprocess.Popen) -> tuple[str, str]:
 
 def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
     root, rows = drive
-    statuses, poses = Collector("/seqvpr/status", STATUS), Collector("/seqvpr/pose", POSE)
+    statuses, poses = Recorder("/seqvpr/status", STATUS), Recorder("/seqvpr/pose", POSE)
     node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop")
     try:
         played = subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20",
@@ -94,7 +95,7 @@ def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
 def test_sigterm_mid_stream_saves_the_state_and_restore_goes_on_as_uninterrupted(drive, dds, tmp_path):
     root, rows = drive
     state = tmp_path / "node.npz"
-    statuses = Collector("/seqvpr/status", STATUS)
+    statuses = Recorder("/seqvpr/status", STATUS)
     node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--state", state)
     player = start_seqvpr(dds, "play", root / "night_right", "--rate", "4", "--wait", "30")
     try:
@@ -109,7 +110,7 @@ def test_sigterm_mid_stream_saves_the_state_and_restore_goes_on_as_uninterrupted
     with np.load(state, allow_pickle=False) as saved:
         done = json.loads(str(saved["header"]))["frame"]
     assert 90 <= done < 200
-    statuses = Collector("/seqvpr/status", STATUS)
+    statuses = Recorder("/seqvpr/status", STATUS)
     node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--state", state, "--restore")
     try:
         subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20", "--wait",
@@ -145,7 +146,7 @@ def frame(i: int, encoding: str = "rgb8", size: int | None = None):
 def test_malformed_frames_are_counted_and_reported_never_a_crash(small_map, dds):
     from seqvpr.ros2.dds import EVERY_SAMPLE, Bus, wait_for_match
 
-    statuses = Collector("/seqvpr/status", STATUS)
+    statuses = Recorder("/seqvpr/status", STATUS)
     node = start_seqvpr(dds, "node", "--map", small_map, "--no-drop", "-L", "2")
     try:
         writer = Bus().writer("/camera/image_raw", IMAGE, EVERY_SAMPLE)

@@ -4,6 +4,7 @@ readers and writers of ROS 2 topics (``rt/`` + the topic, ROS 2's type names) wi
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass
 
@@ -93,3 +94,35 @@ def wait_for_match(writer, seconds: float) -> bool:
             return False
         time.sleep(0.01)
     return True
+
+
+class Recorder:
+    """Every sample of a topic as it arrives (a reliable, keep-all subscriber read by a thread of its own): what
+    ``ros2 topic echo`` shows, kept for a test or a benchmark to read."""
+
+    def __init__(self, topic: str, msgtype: str, domain: int | None = None) -> None:
+        from seqvpr.ros2.messages import Received
+
+        self.bus = Bus(domain)
+        self.reader = self.bus.reader(topic, msgtype, EVERY_SAMPLE)
+        self.samples: list[Received] = []
+        self._received = Received
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._take, name=f"seqvpr-record{topic}", daemon=True)
+        self._thread.start()
+
+    def _take(self) -> None:
+        while not self._stop.is_set():
+            self.samples.extend(s for s in self.reader.take(256) if isinstance(s, self._received))
+            time.sleep(0.005)
+
+    def wait_for(self, count: int, seconds: float) -> list:
+        """The samples once ``count`` came (or ``seconds`` passed)."""
+        deadline = time.monotonic() + seconds
+        while len(self.samples) < count and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return list(self.samples)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)

@@ -35,8 +35,9 @@ class Played:
 def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, frames: str | None = None,
              wait: float = 2.0, progress: ProgressFactory | None = None) -> Played:
     """Publish the camera frames ``frames`` (``START:STOP`` of its camera messages in recorded order) of ``bag``,
-    and its position fixes over the same time (from ``FIX_LEAD`` s before the first), at ``rate`` x the recorded pace; wait up to ``wait`` s for a
-    subscriber first. Every message goes out reliably; the call returns once subscribers acknowledged them."""
+    and its position fixes over the same time (from ``FIX_LEAD`` s before the first), at ``rate`` x the recorded
+    pace; wait up to ``wait`` s for a subscriber first. Every message goes out reliably; the call returns once
+    subscribers acknowledged them."""
     from rosbags.highlevel import AnyReader
 
     if not rate > 0:
