@@ -28,7 +28,7 @@ def dds(monkeypatch) -> dict[str, str]:
     monkeypatch.setenv("ROS_DOMAIN_ID", domain)
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
     return {**os.environ, "ROS_DOMAIN_ID": domain, "CYCLONEDDS_URI": LOOPBACK, "SEQVPR_THREADS": "1",
-            "PYTHONPATH": str(ROOT / "src")}
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
 
 
 def start_seqvpr(env: dict[str, str], *args) -> subprocess.Popen:

@@ -9,6 +9,7 @@ frame when it falls behind; with ``keep_all`` (``--no-drop``) every frame is pro
 
 from __future__ import annotations
 
+import io
 import threading
 import time
 from collections import deque
@@ -17,13 +18,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from seqvpr.errors import SeqvprError
 from seqvpr.localization.localizer import Localizer
 from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, SENSOR_DATA, Bus
 from seqvpr.ros2.frames import (
     LEVELS, WARN, TimeGaps, Track, camera_image, fix_in_map, pose_of, stamp_seconds, stamp_text, status_of,
 )
-from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, outgoing
+from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, outgoing
 
 POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset"
 
@@ -88,14 +91,33 @@ class LocalizerNode:
         self.inbox = Inbox(settings.keep_all)
         self.malformed, self.processed, self.last_error = 0, 0, ""
         self.fix: Any = None
+        self.warm_up()
         outputs = EVERY_SAMPLE if settings.keep_all else DEFAULT
         self.pose_writer = bus.writer(POSE_TOPIC, POSE, outputs)
         self.status_writer = bus.writer(STATUS_TOPIC, STATUS, outputs)
-        self.camera = bus.reader(settings.camera, settings.camera_type, EVERY_SAMPLE if settings.keep_all
-                                 else SENSOR_DATA)
-        self.reset_reader = bus.reader(RESET_TOPIC, EMPTY, DEFAULT)
-        self.fix_reader = bus.reader(settings.fix_topic, settings.fix_type, SENSOR_DATA) if settings.fix_topic \
-            else None
+
+    def warm_up(self) -> None:
+        """Pay the one-off costs before the first frame, not on it: the message codecs (built on first use), the
+        describing network's first pass (and CUDA's start-up). The localiser itself is left untouched."""
+        from PIL import Image
+
+        from seqvpr.ros2.messages import COMPRESSED, IMAGE, decode, message
+
+        stamp = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
+        head = message("std_msgs/msg/Header", stamp=stamp, frame_id="")
+        jpeg = io.BytesIO()
+        Image.new("RGB", (64, 48)).save(jpeg, format="JPEG")
+        blank = message(IMAGE, header=head, height=1, width=1, encoding="mono8", is_bigendian=0, step=1,
+                        data=np.zeros(1, np.uint8)) if self.settings.camera_type == IMAGE else \
+            message(COMPRESSED, header=head, format="jpeg", data=np.frombuffer(jpeg.getvalue(), np.uint8))
+        camera_image(decode(encode(blank, self.settings.camera_type), self.settings.camera_type),
+                     self.settings.camera_type)
+        encode(status_of({"state": ""}, 0, "", stamp, "", ""), STATUS)
+        if self.track is not None:
+            seen = Estimate0()
+            encode(pose_of(seen, 0, self.track, stamp, ""), POSE)
+        if self.localizer.encoder is not None:
+            self.localizer.encoder.encode(Image.new("RGB", (64, 48)))
 
     def restore(self, path: Path) -> None:
         """Go on from a saved state (the localiser's, and the time-gap rule's last stamp and steps)."""
@@ -109,7 +131,8 @@ class LocalizerNode:
 
     def run(self, stop: threading.Event, on_frame: Callable[[dict[str, Any]], None] | None = None) -> None:
         """Process frames until ``stop`` is set; ``on_frame`` sees each frame's status values."""
-        receiver = threading.Thread(target=self._receive, args=(stop,), name="seqvpr-receive", daemon=True)
+        readers = self._subscribe()  # only now: a frame that came before anyone took it would wait, then be dropped
+        receiver = threading.Thread(target=self._receive, args=(stop, *readers), name="seqvpr-receive", daemon=True)
         receiver.start()
         try:
             while not stop.is_set():
@@ -125,26 +148,34 @@ class LocalizerNode:
             receiver.join(timeout=2.0)
             self.save()
 
-    def _receive(self, stop: threading.Event) -> None:
+    def _subscribe(self) -> tuple:
+        """The camera reader (every sample with ``keep_all``, else ROS 2's sensor-data profile), the reset reader and
+        the position reader (None without a position topic)."""
+        camera = self.bus.reader(self.settings.camera, self.settings.camera_type,
+                                 EVERY_SAMPLE if self.settings.keep_all else SENSOR_DATA)
+        fixes = self.bus.reader(self.settings.fix_topic, self.settings.fix_type, SENSOR_DATA) \
+            if self.settings.fix_topic else None
+        return camera, self.bus.reader(RESET_TOPIC, EMPTY, DEFAULT), fixes
+
+    def _receive(self, stop: threading.Event, camera, resets, fixes) -> None:
         """Take every sample as it arrives: frames into the inbox (stamped with their arrival), resets, fixes."""
         from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
         from cyclonedds.util import duration
 
         waitset = WaitSet(self.bus.participant)
         mask = SampleState.Any | ViewState.Any | InstanceState.Any
-        readers = [r for r in (self.camera, self.reset_reader, self.fix_reader) if r is not None]
-        conditions = [ReadCondition(r, mask) for r in readers]
+        conditions = [ReadCondition(r, mask) for r in (camera, resets, fixes) if r is not None]
         for condition in conditions:
             waitset.attach(condition)
         while not stop.is_set():
             waitset.wait(duration(milliseconds=100))
-            for sample in _valid(self.camera.take(64)):
+            for sample in _valid(camera.take(64)):
                 self.inbox.put((sample, time.perf_counter()))
-            if _valid(self.reset_reader.take(64)):
+            if _valid(resets.take(64)):
                 self.inbox.request_reset()
-            fixes = _valid(self.fix_reader.take(64)) if self.fix_reader is not None else []
-            if fixes:
-                self.fix = fixes[-1].message
+            taken = _valid(fixes.take(64)) if fixes is not None else []
+            if taken:
+                self.fix = taken[-1].message
 
     def handle(self, sample: Any, arrived: float) -> dict[str, Any]:
         """One camera sample: decoded, localised (a restart first where the stamps break), published; a malformed
@@ -209,6 +240,12 @@ class LocalizerNode:
 
     def _hardware_id(self) -> str:
         return str(self.localizer.saved.folder)
+
+
+class Estimate0:
+    """A localised estimate at map row 0: what ``warm_up`` encodes a pose of."""
+
+    status, index, best = "localised", 0, 0
 
 
 def _valid(samples: list) -> list[Received]:

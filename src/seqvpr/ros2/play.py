@@ -17,6 +17,8 @@ from seqvpr.ros2.messages import encode, outgoing
 
 #: seconds of position fixes published before the first camera frame of a ``--frames`` range
 FIX_LEAD = 1.0
+#: seconds between a subscriber matching and the first frame
+SETTLE = 0.5
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,8 @@ def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, fr
         advance = progress(stop - start, "play") if progress is not None else None
         writers = {c.topic: bus.writer(c.topic, c.msgtype, EVERY_SAMPLE) for c in (camera, position) if c}
         matched = wait_for_match(writers[camera.topic], wait) if wait > 0 else False
+        if matched:  # the subscriber's side of discovery completes a moment later: frames before it come in a burst
+            time.sleep(SETTLE)
         began, first, sent = time.monotonic(), times[start], {"frames": 0, "fixes": 0}
         # fixes from FIX_LEAD s before the first frame to the next frame left out (the bag's ends where it ends)
         low = first - int(FIX_LEAD * 1e9) if start > 0 else -1
