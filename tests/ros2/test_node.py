@@ -9,14 +9,16 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from seqvpr.data.geo import latlon_to_utm
 from seqvpr.ros2.frames import status_values
-from seqvpr.ros2.messages import IMAGE, POSE, STATUS, message, outgoing
+from seqvpr.ros2.messages import EMPTY, IMAGE, POSE, STATUS, message, outgoing
 from tests.bags import fixes, write_bag
 from tests.helpers import run_cli
 from seqvpr.ros2.dds import Recorder
@@ -71,7 +73,7 @@ def stop(node: subprocess.Popen) -> tuple[str, str]:
 def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
     root, rows = drive
     statuses, poses = Recorder("/seqvpr/status", STATUS), Recorder("/seqvpr/pose", POSE)
-    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop")
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--gps-topic", "/gps/fix")
     try:
         played = subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20",
                                  "--wait", "30"], env=dds, cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -86,6 +88,12 @@ def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
     assert len(got) == len(rows) == 200
     assert same_as_localize(got, rows) == []
     assert "stopped after 200 frames (200 received, 0 dropped, 0 malformed)" in err
+    # the distance from the latest fix (this frame's, or the one before: a metre apart) to the localised frame
+    fix_xy, _ = latlon_to_utm(*fixes(len(rows), 0.5), "night")
+    for i, (v, r) in enumerate(zip(got, rows)):
+        if r["status"] == "localised" and i > 0:
+            expected = np.hypot(*(fix_xy[i] - [float(r["x"]), float(r["y"])]))
+            assert abs(float(v["fix_distance_m"]) - expected) <= 1.01, (i, v["fix_distance_m"], expected)
     localised = [(int(r["localised_row"]), float(r["x"]), float(r["y"])) for r in rows if r["status"] == "localised"]
     placed = {(p.message.pose.pose.position.x, p.message.pose.pose.position.y) for p in pose_messages}
     assert len(pose_messages) == sum(r["status"] in ("localised", "uncertain") for r in rows)
@@ -154,6 +162,12 @@ def test_malformed_frames_are_counted_and_reported_never_a_crash(small_map, dds)
         for value in (frame(0), frame(1, size=10), frame(2, "yuv422"), frame(3, size=0), frame(4), frame(5)):
             writer.write(outgoing(IMAGE, value))
         got = [status_values(s.message) for s in statuses.wait_for(6, 60)]
+        reset = Bus().writer("/seqvpr/reset", EMPTY, EVERY_SAMPLE)
+        assert wait_for_match(reset, 30)
+        reset.write(outgoing(EMPTY, message(EMPTY, structure_needs_at_least_one_member=0)))
+        time.sleep(1.0)  # the reset is on its own topic: let it arrive before the next frame
+        writer.write(outgoing(IMAGE, frame(6)))
+        after = status_values(statuses.wait_for(7, 60)[-1].message)
         levels = [s.message.status[0].message for s in statuses.samples]
     finally:
         _, err = stop(node)
@@ -163,6 +177,7 @@ def test_malformed_frames_are_counted_and_reported_never_a_crash(small_map, dds)
     assert "0 bytes of pixels" in got[3]["error"] and levels[1].startswith("malformed frame: ")
     assert [got[i]["frame"] for i in (0, 4, 5)] == ["0", "1", "2"] and "3 malformed" in err
     assert got[0]["state"] == "warming up" and got[4]["state"] != "warming up"
+    assert after["state"] == "warming up" and after["frame"] == "3"  # /seqvpr/reset restarted the window
 
 
 def test_a_map_or_model_mismatch_is_one_line_at_start_up(small_map, tmp_path, monkeypatch, capsys):

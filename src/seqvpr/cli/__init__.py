@@ -1,5 +1,5 @@
 """The ``seqvpr`` command: the click group and ``main``. One module per command family (``match``: match, eval,
-extract; ``train``: train, ablate; ``experiments``: benchmark, demo; ``published``: import; ``maps``: map build, map info; ``localize``) parses options, calls
+extract; ``train``: train, ablate; ``experiments``: benchmark, demo; ``published``: import; ``maps``: map build, map info; ``localize``; ``robot``: node, play) parses options, calls
 the library and prints; shared options live in ``options`` and progress bars in ``progress``. Importing the CLI
 loads no torch, numba, faiss or matplotlib: each command imports what it uses when it runs."""
 

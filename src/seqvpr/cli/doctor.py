@@ -13,7 +13,8 @@ from typing import Any
 
 import click
 
-PACKAGES = ("seqvpr", "torch", "numpy", "scipy", "faiss-cpu", "numba", "safetensors", "pillow", "rosbags", "click")
+PACKAGES = ("seqvpr", "torch", "numpy", "scipy", "faiss-cpu", "numba", "safetensors", "pillow", "rosbags", "click",
+            "cyclonedds")
 
 
 @click.command("doctor")
