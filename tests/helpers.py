@@ -2,6 +2,7 @@
 
 import os
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -110,7 +111,10 @@ def _own_failure(context, first):
 
 def run_bad_case(monkeypatch, capsys, args, fragment: str, world, out) -> str:
     """Run one bad-input table case (``{w}``/``{out}`` in ``args`` filled in) and check the promise: exit 2, one
-    ``seqvpr: error`` line containing ``fragment`` and no traceback, nothing under ``out``. The stderr, returned."""
+    ``seqvpr: error`` line containing ``fragment`` and no traceback, nothing under ``out``. The stderr, returned.
+    It runs in ``out``'s folder, the test's own: a case without ``--out`` writes (or locks) the default output
+    folder there, never in a folder other tests share."""
+    monkeypatch.chdir(Path(out).parent)
     code, _, err = run_cli(monkeypatch, capsys, *(a.format(w=world, out=out) for a in args))
     lines = [line for line in err.strip().splitlines() if line.startswith("seqvpr: error")]
     assert code == 2, f"exit {code}: {err}"
