@@ -139,3 +139,11 @@ def test_received_images_are_not_copied_into_python_lists():
     value.data = pixels
     back = wire_type(IMAGE).deserialize(encode(value, IMAGE))
     assert isinstance(back.message.data, np.ndarray) and np.array_equal(back.message.data, pixels)
+
+
+def test_bytes_that_are_not_the_type_are_a_received_error_not_an_exception():
+    """cyclonedds checks CDR against the type on both ends, so a peer cannot send such bytes; should any arrive,
+    the reader thread gets a Received naming them (the node counts it as a malformed frame), never an exception."""
+    got = wire_type(IMAGE).deserialize(b"\0\1\0\0\7\7\7")
+    assert got.message is None and got.data == b"\0\1\0\0\7\7\7"
+    assert "7 bytes that are not a sensor_msgs/msg/Image" in got.error

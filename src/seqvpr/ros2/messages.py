@@ -59,10 +59,12 @@ def dds_topic(topic: str) -> str:
 
 @dataclass
 class Received:
-    """A sample as it came: the ``rosbags`` message and its bytes (``sample_info`` is set by cyclonedds)."""
+    """A sample as it came: the ``rosbags`` message (None where the bytes do not decode as its type: ``error``
+    says why) and its bytes (``sample_info`` is set by cyclonedds)."""
 
     message: Any
     data: bytes
+    error: str = ""
     sample_info: Any = field(default=None, repr=False)
 
 
@@ -79,7 +81,10 @@ def wire_type(msgtype: str) -> type:
 
     def deserialize(cls, data: bytes, has_header: bool = True, use_version_2: bool | None = None) -> Received:
         raw = bytes(data)
-        return Received(decode(raw, msgtype), raw)
+        try:
+            return Received(decode(raw, msgtype), raw)
+        except Exception as error:  # a peer's malformed bytes: reported by whoever reads them, never a dead reader
+            return Received(None, raw, f"{len(raw)} bytes that are not a {msgtype} ({type(error).__name__})")
 
     def serialize(self, buffer=None, endianness=None, use_version_2=None) -> bytes:
         return self._seqvpr_bytes

@@ -10,12 +10,13 @@ frame when it falls behind; with ``keep_all`` (``--no-drop``) every frame is pro
 from __future__ import annotations
 
 import io
+import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -26,9 +27,11 @@ from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, SENSOR_DATA, Bus
 from seqvpr.ros2.frames import (
     LEVELS, WARN, TimeGaps, Track, camera_image, fix_in_map, pose_of, stamp_seconds, stamp_text, status_of,
 )
-from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, outgoing
+from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, message, outgoing
 
 POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset"
+#: the stamp of what has none (a frame whose bytes do not decode)
+ZERO_STAMP = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
 
 
 @dataclass(frozen=True)
@@ -101,10 +104,9 @@ class LocalizerNode:
         describing network's first pass (and CUDA's start-up). The localiser itself is left untouched."""
         from PIL import Image
 
-        from seqvpr.ros2.messages import COMPRESSED, IMAGE, decode, message
+        from seqvpr.ros2.messages import COMPRESSED, IMAGE, decode
 
-        stamp = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
-        head = message("std_msgs/msg/Header", stamp=stamp, frame_id="")
+        head = message("std_msgs/msg/Header", stamp=ZERO_STAMP, frame_id="")
         jpeg = io.BytesIO()
         Image.new("RGB", (64, 48)).save(jpeg, format="JPEG")
         blank = message(IMAGE, header=head, height=1, width=1, encoding="mono8", is_bigendian=0, step=1,
@@ -112,10 +114,10 @@ class LocalizerNode:
             message(COMPRESSED, header=head, format="jpeg", data=np.frombuffer(jpeg.getvalue(), np.uint8))
         camera_image(decode(encode(blank, self.settings.camera_type), self.settings.camera_type),
                      self.settings.camera_type)
-        encode(status_of({"state": ""}, 0, "", stamp, "", ""), STATUS)
+        encode(status_of({"state": ""}, 0, "", ZERO_STAMP, "", ""), STATUS)
         if self.track is not None:
-            seen = Estimate0()
-            encode(pose_of(seen, 0, self.track, stamp, ""), POSE)
+            localised = SimpleNamespace(status="localised", index=0, best=0)
+            encode(pose_of(localised, 0, self.track, ZERO_STAMP, ""), POSE)
         if self.localizer.encoder is not None:
             self.localizer.encoder.encode(Image.new("RGB", (64, 48)))
 
@@ -126,11 +128,10 @@ class LocalizerNode:
 
     def save(self) -> None:
         if self.settings.state is not None:
-            self.localizer.save_state(self.settings.state, {"time_gaps": self.gaps.state(),
-                                                            "frames_processed": self.processed})
+            self.localizer.save_state(self.settings.state, {"time_gaps": self.gaps.state()})
 
-    def run(self, stop: threading.Event, on_frame: Callable[[dict[str, Any]], None] | None = None) -> None:
-        """Process frames until ``stop`` is set; ``on_frame`` sees each frame's status values."""
+    def run(self, stop: threading.Event) -> None:
+        """Process frames until ``stop`` is set; then save the state (when asked)."""
         readers = self._subscribe()  # only now: a frame that came before anyone took it would wait, then be dropped
         receiver = threading.Thread(target=self._receive, args=(stop, *readers), name="seqvpr-receive", daemon=True)
         receiver.start()
@@ -140,9 +141,7 @@ class LocalizerNode:
                 if reset:
                     self.localizer.reset()
                 if item is not None:
-                    values = self.handle(*item)
-                    if on_frame is not None:
-                        on_frame(values)
+                    self.handle(*item)
         finally:
             stop.set()
             receiver.join(timeout=2.0)
@@ -181,6 +180,8 @@ class LocalizerNode:
         """One camera sample: decoded, localised (a restart first where the stamps break), published; a malformed
         frame is counted and reported, and leaves the localiser as it was."""
         value = sample.message
+        if value is None:
+            return self._report_malformed(None, sample.error)
         try:
             image = camera_image(value, self.settings.camera_type)
         except SeqvprError as error:
@@ -204,12 +205,12 @@ class LocalizerNode:
         self.malformed += 1
         self.last_error = error
         last = self.localizer.last
-        values = {"frame": "", "stamp": _stamp_or_empty(value), "state": last.status if last else "warming up",
-                  "malformed": self.malformed, "received": self.inbox.received, "dropped": self.inbox.dropped,
-                  "error": error}
-        self.status_writer.write(outgoing(STATUS, status_of(values, WARN, f"malformed frame: {error}",
-                                                            _header_stamp(value), self.settings.frame_id,
-                                                            self._hardware_id())))
+        values = {"frame": "", "stamp": "" if value is None else stamp_text(value),
+                  "state": last.status if last else "warming up", "malformed": self.malformed,
+                  "received": self.inbox.received, "dropped": self.inbox.dropped, "error": error}
+        stamp = ZERO_STAMP if value is None else value.header.stamp
+        self.status_writer.write(outgoing(STATUS, status_of(values, WARN, f"malformed frame: {error}", stamp,
+                                                            self.settings.frame_id, self._hardware_id())))
         return values
 
     def _values(self, estimate: Any, value: Any, arrived: float) -> dict[str, Any]:
@@ -236,36 +237,12 @@ class LocalizerNode:
         if where is None:
             return None
         x, y = self.track.positions[estimate.index]
-        return float(((where[0] - x) ** 2 + (where[1] - y) ** 2) ** 0.5)
+        return math.hypot(where[0] - x, where[1] - y)
 
     def _hardware_id(self) -> str:
         return str(self.localizer.saved.folder)
 
 
-class Estimate0:
-    """A localised estimate at map row 0: what ``warm_up`` encodes a pose of."""
-
-    status, index, best = "localised", 0, 0
-
-
 def _valid(samples: list) -> list[Received]:
     """The samples that carry data (a writer leaving sends others: instance state changes)."""
     return [s for s in samples if isinstance(s, Received)]
-
-
-def _header_stamp(value: Any) -> Any:
-    """The stamp of a message's header, or a zero stamp when it has none that reads."""
-    from seqvpr.ros2.messages import message
-
-    try:
-        return value.header.stamp
-    except AttributeError:
-        return message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
-
-
-def _stamp_or_empty(value: Any) -> str:
-    try:
-        return stamp_text(value)
-    except (AttributeError, TypeError, ValueError):
-        return ""
-
