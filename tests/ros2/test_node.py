@@ -205,3 +205,49 @@ def test_without_cyclonedds_the_commands_name_the_extra(small_map, monkeypatch, 
     for args in (("node", "--map", small_map), ("play", small_map)):
         code, _, err = run_cli(monkeypatch, capsys, *args)
         assert code == 2 and len(error_lines(err)) == 1 and "pip install 'seqvpr[ros2]'" in err, err
+
+
+def tiny_images(folder: Path, n: int) -> list[Path]:
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    files = [folder / f"{i:03d}.png" for i in range(n)]
+    for file in files:
+        Image.fromarray(rng.integers(0, 255, (8, 12, 3), dtype=np.uint8)).save(file)
+    return files
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_play_publishes_a_range_of_frames_and_their_fixes_as_ros2_messages(tmp_path, dds, ros1):
+    """A ROS 2 bag's frames go out as its bytes, a ROS 1 bag's as the same ROS 2 messages; ``frames`` picks camera
+    frames in recorded order and the fixes from a second before them."""
+    from seqvpr.data.loaders.rosbag import BagTopics
+    from seqvpr.ros2.dds import Bus
+    from seqvpr.ros2.messages import NAVSATFIX
+    from seqvpr.ros2.play import play_bag
+
+    files = tiny_images(tmp_path / "img", 12)
+    bag = write_bag(tmp_path / ("drive.bag" if ros1 else "drive"), files, *fixes(12), ros1=ros1)
+    frames, gps = Recorder("/camera/image_raw", IMAGE), Recorder("/gps/fix", NAVSATFIX)
+    try:
+        played = play_bag(bag, BagTopics(), Bus(), rate=50.0, frames="4:9", wait=30)
+        got, fixed = frames.wait_for(5, 30), gps.wait_for(7, 30)
+    finally:
+        frames.close()
+        gps.close()
+    # frames 0.5 s apart, each fix 0.1 s after its frame: fixes 2-8 lie from 1 s before frame 4 to frame 9
+    assert (played.frames, played.fixes, played.matched) == (5, 7, True)
+    pixels = [np.asarray(Image.open(f).convert("RGB")) for f in files[4:9]]
+    assert [np.array_equal(s.message.data.reshape(8, 12, 3), p) for s, p in zip(got, pixels)] == [True] * 5
+    assert [s.message.header.stamp.sec for s in got] == [102, 102, 103, 103, 104]
+    assert len(fixed) == 7 and fixed[0].message.latitude < fixed[-1].message.latitude
+
+
+def test_bad_play_input_is_one_line(tmp_path, dds, monkeypatch, capsys):
+    files = tiny_images(tmp_path / "img", 3)
+    bag = write_bag(tmp_path / "drive", files, *fixes(3), ros1=False)
+    for args, said in [((tmp_path / "nowhere",), "nowhere: not a ROS bag"),
+                       ((bag, "--frames", "5:9"), "--frames 5:9: "),
+                       ((bag, "--topic", "/nope"), "no image topic /nope"),
+                       ((bag, "--rate", "0"), "--rate")]:
+        code, _, err = run_cli(monkeypatch, capsys, "play", *args, "--wait", "0")
+        assert code == 2 and len(error_lines(err)) == 1 and said in error_lines(err)[0], err
