@@ -42,6 +42,7 @@ def node(**o: Any) -> None:
     """Localise a live camera topic: each frame's estimate on /seqvpr/pose (PoseWithCovarianceStamped, not while
     warming up or lost) and /seqvpr/status (DiagnosticArray); /seqvpr/reset (std_msgs/Empty) restarts it."""
     from seqvpr.cli.localize import open_localizer
+    from seqvpr.localization.localizer import LocalizerSettings
     from seqvpr.ros2.dds import Bus, require_cyclonedds
     from seqvpr.ros2.frames import camera_type
     from seqvpr.ros2.messages import NAVSATFIX, ODOMETRY
@@ -54,7 +55,7 @@ def node(**o: Any) -> None:
         raise SeqvprError("--restore starts from the state in --state: give --state PATH")
     if o["restore"] and not Path(o["state"]).is_file():
         raise SeqvprError(f"--restore: {o['state']}: no such state file")
-    localizer = open_localizer(o, 20)
+    localizer = open_localizer(o, LocalizerSettings.k)  # the localiser's own top-K: the status shows the best
     fix_topic = o["gps_topic"] or o["odom_topic"]
     settings = NodeSettings(o["camera"], camera_type(o["camera"], o["image_type"]), fix_topic,
                             (NAVSATFIX if o["gps_topic"] else ODOMETRY) if fix_topic else None, o["no_drop"],
