@@ -13,7 +13,8 @@
                           map.json's ``crs`` (``utm:32N``: they go back to latitude/longitude; ``local``)
     MAP/timestamps.npy    [N] float64 seconds (only when every source has them); likewise headings.npy (degrees)
     MAP/names.txt         one name per frame: its image path, or a bag frame's ``BAG:TOPIC@STAMP`` (only when
-                          every source is images)
+                          every source is images), with names_offsets.npy [N + 1] int64: each line's byte offset
+                          (``names``: opened memory-mapped, a name decoded when asked for)
 
 ``map.json`` is written last, inside a temporary folder that is renamed to MAP when complete, so a half-built
 map never carries the name. A sharded map (``shards.json`` beside ``shard-000/`` ... maps; ``seqvpr.maps.shards``
@@ -38,6 +39,7 @@ from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
 from seqvpr.maps.codes import SIDE_FILES, decoded_rows, encode, parse_storage, stored_shape
+from seqvpr.maps.names import FramePaths, open_names, write_names
 
 MAP_FORMAT = "seqvpr-map"
 MAP_VERSION = 2  # 2: map.json records each file's digest and the map's identity
@@ -113,7 +115,7 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
         for column in columns:
             np.save(tmp / f"{column}.npy", np.asarray(getattr(frames, column), dtype=np.float64))
         if names is not None:
-            (tmp / "names.txt").write_text("".join(f"{n}\n" for n in names))
+            write_names(tmp, names)
         write_sealed_info(tmp, info)
         open_map(tmp)  # what a reader will do, before the map replaces anything
     return Path(folder)
@@ -178,9 +180,8 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     rows["sources.npy"] = remapped.astype(np.int32)
     for name, values in rows.items():
         np.save(folder / name, values)
-    names = saved.folder / "names.txt"
-    if names.is_file():
-        (folder / "names.txt").write_text("".join(f"{line}\n" for line in names.read_text().splitlines()[lo:hi]))
+    if saved.frames.names is not None:
+        write_names(folder, saved.frames.names[lo:hi])
     sources = tuple(MapSource(saved.info.sources[int(k)].source, saved.info.sources[int(k)].name,
                               int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
                     for i, k in enumerate(kept))
@@ -291,7 +292,8 @@ def with_crs(values: dict[str, Any]) -> dict[str, Any]:
 
 
 def open_map(folder: str | Path) -> SavedMap:
-    """Open a saved map: descriptors memory-mapped read-only, the per-frame table read, every file checked. A
+    """Open a saved map: descriptors and the per-frame table memory-mapped read-only (names decoded on access),
+    every file checked. A
     sharded map (``seqvpr map shard``) opens as the whole map, its rows read through its shards."""
     folder = Path(folder)
     if (folder / SHARDS_FILE).is_file():
@@ -299,13 +301,10 @@ def open_map(folder: str | Path) -> SavedMap:
     info = read_map_info(folder)
     verify_map_files(folder, info)
     descriptors = _stored_rows(folder, info)
-    column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype)  # noqa: E731
+    column = lambda name, shape, dtype: _load_column(folder, f"{name}.npy", shape, dtype, mmap=True)  # noqa: E731
     optional = {c: column(c, (info.count, 2) if c == "positions" else (info.count,), "float64") for c in info.columns}
-    names_file = folder / "names.txt"
-    names = tuple(names_file.read_text().splitlines()) if names_file.is_file() else None
-    if names is not None and len(names) != info.count:
-        raise SeqvprError(f"{names_file}: {len(names)} names for {info.count} frames")
-    paths = None if names is None else tuple(Path(name) for name in names)
+    names = open_names(folder, info.count)
+    paths = None if names is None else FramePaths(names)
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
                        column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder),
                        names=names, crs=info.crs, stored=info.dtype, **optional)
