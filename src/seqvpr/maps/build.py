@@ -157,18 +157,56 @@ def build_map(
         described.append(transformed_by(traversal, models, device))
     whole = concatenate_traversals(described, Path(out).name)
     assert whole.descriptors is not None
-    vectors = np.require(whole.descriptors, dtype=np.float32, requirements=["C", "W"])  # no copy if it is one
-    if normalize:  # in place, by the same torch operation matching applies to a reference (identical rows)
-        import torch
-
-        rows = torch.from_numpy(vectors)
-        unit_rows(rows, out=rows)
+    # normalised a chunk at a time as the map is written, by the torch operation matching applies to a reference
+    rows = UnitRows(whole.descriptors) if normalize else whole.descriptors
     recorded = description.descriptor if image_model(models) is None else image_model(models).kind
-    info = MapInfo(len(whole), int(vectors.shape[1]), dtype, normalize,
+    info = MapInfo(len(whole), int(rows.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},
                    map_sources(described, list(sources)), model_records(models))
-    write_indexed_map(Path(out), whole.with_descriptors(vectors), info, indexed)
+    write_indexed_map(Path(out), whole.with_descriptors(rows), info, indexed)
     return open_map(out)
+
+
+class RowChain:
+    """Arrays of one width laid end to end, read like one [N, D] array by slices (nothing is concatenated)."""
+
+    ndim = 2
+
+    def __init__(self, parts: Sequence[Any]) -> None:
+        self.parts = list(parts)
+        self.starts = np.cumsum([0] + [len(p) for p in self.parts])
+        self.shape = (int(self.starts[-1]), int(self.parts[0].shape[1]))
+        self.dtype = np.result_type(*(p.dtype for p in self.parts))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        start, stop, _ = key.indices(len(self))
+        pieces = [np.asarray(part[max(start - lo, 0) : min(stop, hi) - lo])
+                  for part, lo, hi in zip(self.parts, self.starts[:-1], self.starts[1:]) if start < hi and stop > lo]
+        return np.concatenate(pieces) if pieces else np.zeros((0, self.shape[1]), self.dtype)
+
+
+class UnitRows:
+    """Rows L2-normalised on access, a block at a time (``unit_rows``: what matching applies to a reference), so a
+    map of any size is normalised without a copy of it in memory."""
+
+    ndim = 2
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, rows: Any) -> None:
+        self.rows, self.shape = rows, (len(rows), int(rows.shape[1]))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        import torch
+
+        block = np.array(self.rows[key], dtype=np.float32)  # a copy: the source is never written
+        unit_rows(torch.from_numpy(block), out=torch.from_numpy(block))
+        return block
 
 
 def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
@@ -189,7 +227,8 @@ def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
 
 
 def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Traversal:
-    """One traversal of several described ones, each keeping its own segments (a window never spans two)."""
+    """One traversal of several described ones, each keeping its own segments (a window never spans two); their
+    descriptors are read through them (``RowChain``), never copied into one array."""
     if not traversals:
         raise SeqvprError("a map needs at least one source")
     dims = {t.descriptors.shape[1] for t in traversals if t.descriptors is not None}
@@ -210,7 +249,7 @@ def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Tr
     positioned = all(t.positions is not None for t in traversals)
     crs = common_crs((t.source or t.name, t.crs) for t in traversals) if positioned else None
     return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
-                     np.concatenate([t.descriptors for t in traversals]), paths, column("positions"),
+                     RowChain([t.descriptors for t in traversals]), paths, column("positions"),
                      column("timestamps"), column("headings"), source=name, names=names, crs=crs)
 
 

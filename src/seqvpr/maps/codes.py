@@ -71,33 +71,75 @@ class ProductCodes(ScalarCodes):
         return np.concatenate(parts, axis=-1)
 
 
-def encode(rows: np.ndarray, storage: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
-    """The stored array of ``rows`` [N, D] and its side array (None for the plain storages)."""
+#: rows read, normalised and encoded at a time when a map is written (peak memory does not grow with the map)
+CHUNK_ROWS = PQ_TRAIN_ROWS
+
+
+def row_chunks(rows, chunk: int = CHUNK_ROWS):
+    """``(start, float32 block)`` over the rows of any array-like indexed by slices (a memory map, lazy rows)."""
+    for start in range(0, len(rows), chunk):
+        yield start, np.asarray(rows[start : start + chunk], dtype=np.float32)
+
+
+def sampled_rows(rows, picked: np.ndarray, chunk: int = CHUNK_ROWS) -> np.ndarray:
+    """The rows at sorted row numbers ``picked``, read a chunk at a time."""
+    parts = []
+    for start in range(0, len(rows), chunk):
+        inside = picked[(picked >= start) & (picked < start + chunk)]
+        if len(inside):
+            parts.append(np.asarray(rows[start : start + chunk], dtype=np.float32)[inside - start])
+    return np.concatenate(parts)
+
+
+def write_encoded(path, rows, storage: str, seed: int = 0) -> np.ndarray | None:
+    """``rows`` [N, D] (read a chunk at a time) stored as ``storage`` into the ``.npy`` at ``path``, written a chunk
+    at a time; the side array returned (None for the plain storages). The same bytes as encoding them whole: sq8's
+    range is the exact minimum and maximum, pq's codebooks are trained on a seeded sample."""
+    from numpy.lib import format as npy
+
     kind, m = parse_storage(storage, rows.shape[1])
+    shape, dtype = stored_shape(storage, len(rows), rows.shape[1])
+    coder, side = _coder(rows, kind, m, seed)
+    # plain writes, not a memory map: a full device is an OSError here, where a mapped write would be a SIGBUS
+    with open(path, "wb") as handle:
+        npy.write_array_header_1_0(handle, {"descr": npy.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
+                                            "shape": shape})
+        for _, block in row_chunks(rows):
+            handle.write(np.ascontiguousarray(coder(block), dtype=dtype).tobytes())
+    return side
+
+
+def _coder(rows, kind: str, m: int, seed: int):
+    """The function from a float32 block to its stored block, and the side array it was fitted with."""
     if kind in PLAIN:
-        return np.ascontiguousarray(rows, dtype=kind), None
+        return (lambda block: block.astype(kind)), None
     if kind == "sq8":
-        low, high = rows.min(axis=0), rows.max(axis=0)
+        ranges = [(block.min(axis=0), block.max(axis=0)) for _, block in row_chunks(rows)]  # one pass
+        low, high = np.min([r[0] for r in ranges], axis=0), np.max([r[1] for r in ranges], axis=0)
         step = np.maximum((high - low) / 255.0, np.finfo(np.float32).tiny).astype(np.float32)
-        codes = np.clip(np.rint((rows - low) / step), 0, 255).astype(np.uint8)
-        return codes, np.stack([low.astype(np.float32), step])
-    return _product_quantize(np.ascontiguousarray(rows, dtype=np.float32), m, seed)
+        return (lambda block: np.clip(np.rint((block - low) / step), 0, 255).astype(np.uint8)), \
+            np.stack([low.astype(np.float32), step])
+    quantizer = _train_product_quantizer(rows, m, seed)
+    centroids = _faiss().vector_to_array(quantizer.centroids).reshape(m, 256, rows.shape[1] // m)
+    return (lambda block: quantizer.compute_codes(np.ascontiguousarray(block)).astype(np.uint8)), centroids
 
 
-def _product_quantize(rows: np.ndarray, m: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """PQ codes [N, M] and centroids [M, 256, D / M], trained by faiss on a seeded sample of the rows."""
-    import faiss
-
-    n, dim = rows.shape
+def _train_product_quantizer(rows, m: int, seed: int):
+    """A faiss product quantiser of M sub-vectors, trained on a seeded sample of the rows."""
+    n, dim = len(rows), rows.shape[1]
     if n < 256:
         raise SeqvprError(f"--dtype pq:{m} needs at least 256 frames to train its codebooks, the map has {n}")
-    quantizer = faiss.ProductQuantizer(dim, m, 8)
+    quantizer = _faiss().ProductQuantizer(dim, m, 8)
     quantizer.cp.seed = seed
     sample = np.sort(np.random.default_rng(seed).choice(n, size=min(n, PQ_TRAIN_ROWS), replace=False))
-    quantizer.train(np.ascontiguousarray(rows[sample]))
-    codes = np.concatenate([quantizer.compute_codes(rows[b : b + PQ_TRAIN_ROWS]) for b in range(0, n, PQ_TRAIN_ROWS)])
-    centroids = faiss.vector_to_array(quantizer.centroids).reshape(m, 256, dim // m)
-    return codes.astype(np.uint8), centroids
+    quantizer.train(np.ascontiguousarray(sampled_rows(rows, sample)))
+    return quantizer
+
+
+def _faiss():
+    import faiss
+
+    return faiss
 
 
 def decoded_rows(storage: str, stored: np.ndarray, side: np.ndarray | None):

@@ -38,7 +38,7 @@ from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
-from seqvpr.maps.codes import SIDE_FILES, decoded_rows, encode, parse_storage, stored_shape
+from seqvpr.maps.codes import SIDE_FILES, decoded_rows, parse_storage, stored_shape, write_encoded
 from seqvpr.maps.names import FramePaths, open_names, write_names
 
 MAP_FORMAT = "seqvpr-map"
@@ -90,22 +90,23 @@ class MapInfo:
 
 def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
     """Write a map folder atomically: the rows checked (finite; unit length in a normalised map) before anything is
-    written, the descriptors in ``info.dtype``, the per-frame table (names as ``Traversal.image_names``), each
+    written, the descriptors in ``info.dtype`` (read, encoded and written a chunk at a time: ``frames.descriptors``
+    may be a memory map or lazy rows, never held whole), the per-frame table (names as ``Traversal.image_names``), each
     file's digest and the map's identity in ``map.json``, written last (its ``crs`` the frames'); the folder is
     opened as a reader would before it replaces an old map, so a map that cannot be opened never takes the name."""
     from seqvpr import __version__
 
     assert frames.descriptors is not None
+    parse_storage(info.dtype, frames.descriptors.shape[1])  # an unknown storage fails before anything is written
     check_rows(frames.descriptors, info.normalized, f"{folder}: the map's rows")
     names = frames.image_names()
     check_names(names, folder)
-    stored, side = encode(frames.descriptors, info.dtype)  # an unknown storage fails before anything is written
     columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns,
                       "crs": frames.crs, "version": MAP_VERSION})
     with atomic_folder(folder, INFO_FILE) as tmp:
-        np.save(tmp / DESCRIPTORS_FILE, stored)
+        side = write_encoded(tmp / DESCRIPTORS_FILE, frames.descriptors, info.dtype)  # a chunk at a time
         if side is not None:
             np.save(tmp / SIDE_FILES[parse_storage(info.dtype)[0]], side)
         np.save(tmp / "segments.npy", frames.segment_ids.astype(np.int64))

@@ -48,8 +48,9 @@ def load_descriptor_array(source: str | Path) -> np.ndarray:
 
 
 def _load_npy(path: Path) -> np.ndarray:
+    """The array memory-mapped read-only (a map of ten million rows is read as it is used, never whole)."""
     try:
-        return load_npy(path)
+        return load_npy(path, mmap_mode="r")
     except SeqvprError:
         raise
     except ValueError as error:
@@ -101,6 +102,10 @@ def _numeric(value) -> bool:
     return np.issubdtype(dtype, np.number)
 
 
+#: rows checked at a time
+CHECK_ROWS = 1 << 16
+
+
 def _validated(array, label: str) -> np.ndarray:
     """Dense float array [N, D] without NaN/inf, else a one-line error naming the file and row."""
     if sp.issparse(array):
@@ -116,7 +121,8 @@ def _validated(array, label: str) -> np.ndarray:
         raise SeqvprError(f"{label}: descriptors have dimension 0")
     if not np.issubdtype(array.dtype, np.floating):
         array = array.astype(np.float32)
-    bad = ~np.isfinite(array).all(axis=1)
-    if bad.any():
-        raise SeqvprError(f"{label}: row {int(np.flatnonzero(bad)[0])} contains NaN or infinity")
+    for start in range(0, len(array), CHECK_ROWS):  # a block at a time: no full-size temporary
+        bad = ~np.isfinite(array[start : start + CHECK_ROWS]).all(axis=1)
+        if bad.any():
+            raise SeqvprError(f"{label}: row {start + int(np.flatnonzero(bad)[0])} contains NaN or infinity")
     return array
