@@ -3,6 +3,7 @@
 Run from the repository root (CPU; about 5 minutes and 4 GB of disk in ``--work``):
 
     .venv/bin/python bench/bench_maps.py --work runs/bench-maps [--sizes 10000,100000,1000000]
+    .venv/bin/python bench/bench_maps.py --work runs/bench-maps --sizes 1000000,10000000 --builds float32,float16,sq8
 
 For each map size N (D = 256, float32 unit vectors: random directions, each ``--run`` consecutive frames a slowly
 turning path so that sequences exist) the script writes the reference as a traversal file, builds the map with
@@ -45,9 +46,10 @@ from seqvpr.sequences.windows import SequenceSpec
 DIM, QUERIES, LENGTH, K = 256, 1000, 5, 20
 
 
-def unit_rows(rng: np.random.Generator, n: int, run: int = 50) -> np.ndarray:
-    """N unit vectors in runs of ``run`` frames that turn slowly (neighbouring frames alike, as along a route)."""
-    out = np.empty((n, DIM), dtype=np.float32)
+def unit_rows(rng: np.random.Generator, n: int, run: int = 50, out: np.ndarray | None = None) -> np.ndarray:
+    """N unit vectors in runs of ``run`` frames that turn slowly (neighbouring frames alike, as along a route),
+    made 100,000 at a time into ``out`` (a memory-mapped file for ten million) or a new array."""
+    out = np.empty((n, DIM), dtype=np.float32) if out is None else out
     for begin in range(0, n, 100_000):
         size = min(100_000, n - begin)
         anchors = rng.standard_normal((size // run + 2, DIM)).astype(np.float32)
@@ -71,6 +73,47 @@ def write_sources(work: Path, n: int, seed: int = 0) -> tuple[Path, Path]:
     noisy = rows[first : first + QUERIES] + 0.1 * rng.standard_normal((QUERIES, DIM)).astype(np.float32)
     save_traversal_npz(query, Traversal.from_descriptors(noisy, "query", positions=positions[first : first + QUERIES]))
     return reference, query
+
+
+def write_npy_source(work: Path, n: int, seed: int = 0) -> Path:
+    """The reference rows alone as a ``.npy`` written 100,000 rows at a time (what a map of ten million frames is
+    built from: a memory-mapped source)."""
+    from numpy.lib.format import open_memmap
+
+    path = work / f"ref_{n}.npy"
+    if not path.exists():
+        partial = work / f"ref_{n}.partial.npy"
+        rows = open_memmap(partial, mode="w+", dtype=np.float32, shape=(n, DIM))
+        unit_rows(np.random.default_rng(seed), n, out=rows)
+        rows.flush()
+        del rows
+        partial.rename(path)
+    return path
+
+
+def measure_builds(work: Path, n: int, dtypes: list[str]) -> list[dict]:
+    """``seqvpr map build`` of an N-frame ``.npy`` into each storage: wall seconds, peak RSS, map bytes a frame."""
+    import shutil
+
+    source = write_npy_source(work, n)
+    rows = []
+    for dtype in dtypes:
+        folder = work / f"map_{n}_{dtype.replace(':', '')}"
+        shutil.rmtree(folder, ignore_errors=True)
+        seconds, peak = timed_cli(seqvpr_command("map", "build", source, "--dtype", dtype, "--out", folder))
+        stored = (folder / "descriptors.npy").stat().st_size
+        rows.append({"n": n, "dtype": dtype, "build_s": seconds, "build_gb": peak, "bytes": stored / n})
+        shutil.rmtree(folder)
+        print(rows[-1], flush=True)
+    return rows
+
+
+def build_table(rows: list[dict]) -> str:
+    lines = ["| map frames | storage | build (CLI) | build peak RSS | stored bytes a frame |",
+             "|---:|---|---:|---:|---:|"]
+    lines += [f"| {r['n']:,} | {r['dtype']} | {r['build_s']:.1f} s | {r['build_gb']:.2f} GiB | {r['bytes']:.0f} |"
+              for r in rows]
+    return "\n".join(lines)
 
 
 def seqvpr_command(*args: str | Path) -> list[str]:
@@ -154,8 +197,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, required=True, help="Folder for the data, maps and outputs.")
     parser.add_argument("--sizes", default="10000,100000,1000000", help="Map sizes, comma-separated.")
+    parser.add_argument("--builds", help="Only build: these storages (e.g. float32,float16,sq8) from a .npy of each "
+                                         "size, with their peak memory")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.builds:
+        built = [r for n in args.sizes.split(",") for r in measure_builds(args.work, int(n), args.builds.split(","))]
+        text = f"{cpu_model()}, map build from a memory-mapped .npy, D = {DIM}\n\n{build_table(built)}\n"
+        (args.work / "builds.md").write_text(text)
+        print(text)
+        return
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
         rows.append(measure(args.work, n))
