@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
@@ -240,3 +242,39 @@ def test_an_unwritable_default_cache_is_a_warning_and_the_map_is_built(tmp_path,
         saved = build_map([str(images)], tmp_path / "m",
                           FrameDescription("efficientnet-lite0", extractor=ExtractorConfig(width=32, height=24)))
     assert saved.info.count == 3
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(1, 3), st.integers(300, 700), st.integers(2, 9), st.sampled_from(["float32", "float16", "sq8",
+                                                                                     "pq:4"]), st.integers(0, 99))
+def test_a_streamed_build_writes_what_a_whole_one_would(tmp_path_factory, n_sources, n, dim, storage, seed):
+    """Sources memory-mapped and laid end to end, rows normalised, encoded and written a few at a time: the stored
+    rows are those of the whole array normalised at once and encoded by the same rule (sq8: the exact range; the
+    float storages: a cast; pq: codes that decode to within the rows' spread)."""
+    import torch
+
+    import seqvpr.maps.codes as codes
+    from seqvpr.sequences.matching import unit_rows
+
+    folder = tmp_path_factory.mktemp("stream")
+    rng = np.random.default_rng(seed)
+    parts = [rng.standard_normal((n + 7 * i, dim * 4)).astype(np.float32) * 3 for i in range(n_sources)]
+    for i, part in enumerate(parts):
+        np.save(folder / f"s{i}.npy", part)
+    patch = pytest.MonkeyPatch()
+    patch.setattr(codes, "CHUNK_ROWS", 97)  # many chunks, and chunk edges inside every source
+    try:
+        saved = build_map([str(folder / f"s{i}.npy") for i in range(n_sources)], folder / "map", dtype=storage)
+    finally:
+        patch.undo()
+    whole = np.concatenate(parts)
+    unit_rows(torch.from_numpy(whole), out=torch.from_numpy(whole))
+    stored = np.load(folder / "map" / "descriptors.npy")
+    if storage.startswith("float"):
+        assert np.array_equal(stored, whole.astype(storage))
+    elif storage == "sq8":
+        low, high = whole.min(axis=0), whole.max(axis=0)
+        step = np.maximum((high - low) / 255.0, np.finfo(np.float32).tiny).astype(np.float32)
+        assert np.array_equal(stored, np.clip(np.rint((whole - low) / step), 0, 255).astype(np.uint8))
+    else:
+        assert stored.shape == (len(whole), 4) and np.abs(saved.descriptors[:] - whole).mean() < 0.5

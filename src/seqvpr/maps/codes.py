@@ -75,14 +75,17 @@ class ProductCodes(ScalarCodes):
 CHUNK_ROWS = PQ_TRAIN_ROWS
 
 
-def row_chunks(rows, chunk: int = CHUNK_ROWS):
-    """``(start, float32 block)`` over the rows of any array-like indexed by slices (a memory map, lazy rows)."""
+def row_chunks(rows, chunk: int | None = None):
+    """``(start, float32 block)`` over the rows of any array-like indexed by slices (a memory map, lazy rows),
+    ``chunk`` rows at a time (``CHUNK_ROWS`` by default)."""
+    chunk = chunk or CHUNK_ROWS
     for start in range(0, len(rows), chunk):
         yield start, np.asarray(rows[start : start + chunk], dtype=np.float32)
 
 
-def sampled_rows(rows, picked: np.ndarray, chunk: int = CHUNK_ROWS) -> np.ndarray:
+def sampled_rows(rows, picked: np.ndarray, chunk: int | None = None) -> np.ndarray:
     """The rows at sorted row numbers ``picked``, read a chunk at a time."""
+    chunk = chunk or CHUNK_ROWS
     parts = []
     for start in range(0, len(rows), chunk):
         inside = picked[(picked >= start) & (picked < start + chunk)]
