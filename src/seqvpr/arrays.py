@@ -168,3 +168,32 @@ def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:
             kind = "a function handle" if isinstance(value, MatlabFunction) else "a MATLAB class object"
             raise SeqvprError(f"{path}: variable {name!r} is {kind}; seqvpr reads only numeric arrays and structs")
     return contents
+
+
+def file_mapped(array: np.ndarray) -> bool:
+    """Whether ``array`` is a view of a memory-mapped file (its pages can be handed back and read again)."""
+    import mmap
+
+    node = array
+    while node is not None:
+        if isinstance(node, (np.memmap, mmap.mmap)):
+            return True
+        node = getattr(node, "base", None)
+    return False
+
+
+def release_pages(view: np.ndarray) -> None:
+    """Hand the pages under a contiguous view of a memory-mapped file back (``MADV_DONTNEED``): they stay in the
+    page cache but leave this process's memory, so reading a large file end to end does not grow it. Anything not
+    file-mapped (where the advice would discard data) is left alone, as is a platform without ``madvise``."""
+    import ctypes
+    import mmap
+
+    if not (view.size and view.flags.c_contiguous and file_mapped(view) and hasattr(mmap, "MADV_DONTNEED")):
+        return
+    start, end = view.ctypes.data, view.ctypes.data + view.nbytes
+    first = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE  # the whole pages inside the view: a neighbour's stay
+    last = end // mmap.PAGESIZE * mmap.PAGESIZE
+    if last > first:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.madvise(ctypes.c_void_p(first), ctypes.c_size_t(last - first), ctypes.c_int(mmap.MADV_DONTNEED))

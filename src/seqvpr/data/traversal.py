@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from seqvpr.data.geo import LOCAL, parse_crs
+from seqvpr.arrays import file_mapped
 from seqvpr.errors import SeqvprError
 
 if TYPE_CHECKING:
@@ -218,8 +219,8 @@ def _check_descriptors(traversal: Traversal, descriptors: np.ndarray) -> None:
         raise SeqvprError(f"{traversal._label()}: descriptors have dimension 0")
     if not np.issubdtype(descriptors.dtype, np.floating):
         raise SeqvprError(f"{traversal._label()}: descriptors must be floating point, got {descriptors.dtype}")
-    if isinstance(descriptors, np.memmap) or not isinstance(descriptors, np.ndarray):
-        return  # a saved map's rows (memory-mapped or coded) were checked when it was written: not loaded here
+    if not isinstance(descriptors, np.ndarray) or file_mapped(descriptors):
+        return  # a memory-mapped file's rows were checked a block at a time as they were read: not loaded here
     finite = np.isfinite(descriptors).all(axis=1)
     if not finite.all():
         row = int(np.flatnonzero(~finite)[0])

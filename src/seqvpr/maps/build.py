@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from seqvpr.arrays import file_mapped, release_pages
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.geo import common_crs
 from seqvpr.data.traversal import Traversal, slice_frame_range
@@ -157,8 +158,9 @@ def build_map(
         described.append(transformed_by(traversal, models, device))
     whole = concatenate_traversals(described, Path(out).name)
     assert whole.descriptors is not None
-    # normalised a chunk at a time as the map is written, by the torch operation matching applies to a reference
-    rows = UnitRows(whole.descriptors) if normalize else whole.descriptors
+    # read a chunk at a time (a memory-mapped source's pages handed back after each), normalised as it is written
+    # by the torch operation matching applies to a reference
+    rows = UnitRows(paged(whole.descriptors)) if normalize else paged(whole.descriptors)
     recorded = description.descriptor if image_model(models) is None else image_model(models).kind
     info = MapInfo(len(whole), int(rows.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},
@@ -186,6 +188,33 @@ class RowChain:
         pieces = [np.asarray(part[max(start - lo, 0) : min(stop, hi) - lo])
                   for part, lo, hi in zip(self.parts, self.starts[:-1], self.starts[1:]) if start < hi and stop > lo]
         return np.concatenate(pieces) if pieces else np.zeros((0, self.shape[1]), self.dtype)
+
+
+class PagedRows:
+    """A memory-mapped array read by slices into copies, each slice's pages then handed back
+    (``arrays.release_pages``): they stay in the page cache, but not in this process, so reading a
+    ten-million-row source end to end does not grow its memory."""
+
+    ndim = 2
+
+    def __init__(self, rows: np.ndarray) -> None:
+        self.rows, self.shape, self.dtype = rows, rows.shape, rows.dtype
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        view = self.rows[key]
+        block = np.array(view)
+        release_pages(view)
+        return block
+
+
+def paged(rows: Any) -> Any:
+    """``rows`` read through ``PagedRows`` where they are a memory-mapped file (each part of a ``RowChain``)."""
+    if isinstance(rows, RowChain):
+        return RowChain([paged(part) for part in rows.parts])
+    return PagedRows(rows) if isinstance(rows, np.ndarray) and rows.ndim == 2 and file_mapped(rows) else rows
 
 
 class UnitRows:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from seqvpr.arrays import check_regular_file, load_mat, load_npy, open_npz
+from seqvpr.arrays import check_regular_file, load_mat, load_npy, open_npz, release_pages
 from seqvpr.errors import SeqvprError
 
 DESCRIPTOR_SUFFIXES = (".npy", ".npz", ".mat")
@@ -122,7 +122,9 @@ def _validated(array, label: str) -> np.ndarray:
     if not np.issubdtype(array.dtype, np.floating):
         array = array.astype(np.float32)
     for start in range(0, len(array), CHECK_ROWS):  # a block at a time: no full-size temporary
-        bad = ~np.isfinite(array[start : start + CHECK_ROWS]).all(axis=1)
+        block = array[start : start + CHECK_ROWS]
+        bad = ~np.isfinite(block).all(axis=1)
+        release_pages(block)  # a memory-mapped file's pages go back as they are checked
         if bad.any():
             raise SeqvprError(f"{label}: row {start + int(np.flatnonzero(bad)[0])} contains NaN or infinity")
     return array
