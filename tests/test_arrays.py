@@ -9,6 +9,7 @@ import threading
 import time
 import tracemalloc
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,3 +166,27 @@ def test_a_matlab_function_handle_is_one_line(tmp_path):
     message = raises_one_line("variable 'GT' is a function handle; seqvpr reads only numeric arrays and structs",
                               load_mat, tmp_path / "fn.mat")
     assert str(tmp_path / "fn.mat") in message
+
+
+def _file_rss_kb() -> int:
+    with open(f"/proc/{os.getpid()}/status") as handle:
+        return next(int(line.split()[1]) for line in handle if line.startswith("RssFile:"))
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads this process's memory from /proc")
+def test_released_pages_leave_the_process_and_read_back_the_same(tmp_path):
+    """A memory-mapped file's pages handed back leave this process's memory and read back as they were; memory
+    that is not a mapped file is never advised (the advice would zero it)."""
+    from seqvpr.arrays import file_mapped, load_npy, release_pages
+
+    values = np.random.default_rng(0).standard_normal((4096, 1024)).astype(np.float32)  # 16 MiB
+    np.save(tmp_path / "a.npy", values)
+    mapped = np.asarray(load_npy(tmp_path / "a.npy", mmap_mode="r"))
+    assert file_mapped(mapped) and not file_mapped(values)
+    assert np.array_equal(mapped, values)
+    before = _file_rss_kb()
+    release_pages(mapped)
+    assert _file_rss_kb() < before - 8 * 1024
+    assert np.array_equal(mapped, values)
+    release_pages(values)
+    assert np.array_equal(values, np.random.default_rng(0).standard_normal((4096, 1024)).astype(np.float32))
