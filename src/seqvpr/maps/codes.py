@@ -122,27 +122,25 @@ def _coder(rows, kind: str, m: int, seed: int):
         step = np.maximum((high - low) / 255.0, np.finfo(np.float32).tiny).astype(np.float32)
         return (lambda block: np.clip(np.rint((block - low) / step), 0, 255).astype(np.uint8)), \
             np.stack([low.astype(np.float32), step])
+    import faiss
+
     quantizer = _train_product_quantizer(rows, m, seed)
-    centroids = _faiss().vector_to_array(quantizer.centroids).reshape(m, 256, rows.shape[1] // m)
+    centroids = faiss.vector_to_array(quantizer.centroids).reshape(m, 256, rows.shape[1] // m)
     return (lambda block: quantizer.compute_codes(np.ascontiguousarray(block)).astype(np.uint8)), centroids
 
 
 def _train_product_quantizer(rows, m: int, seed: int):
     """A faiss product quantiser of M sub-vectors, trained on a seeded sample of the rows."""
+    import faiss
+
     n, dim = len(rows), rows.shape[1]
     if n < 256:
         raise SeqvprError(f"--dtype pq:{m} needs at least 256 frames to train its codebooks, the map has {n}")
-    quantizer = _faiss().ProductQuantizer(dim, m, 8)
+    quantizer = faiss.ProductQuantizer(dim, m, 8)
     quantizer.cp.seed = seed
     sample = np.sort(np.random.default_rng(seed).choice(n, size=min(n, PQ_TRAIN_ROWS), replace=False))
     quantizer.train(np.ascontiguousarray(sampled_rows(rows, sample)))
     return quantizer
-
-
-def _faiss():
-    import faiss
-
-    return faiss
 
 
 def decoded_rows(storage: str, stored: np.ndarray, side: np.ndarray | None):
