@@ -69,13 +69,15 @@ class FullPass:
 
         self.rows = rows
         self.norms = reference_squared_norms(rows)
+        self.distances = np.empty((1, len(rows)), dtype=np.float32)  # reused: no allocation of the map's size
 
     def measure(self, frame: torch.Tensor) -> tuple[np.ndarray, float]:
-        """The frame's distances to every reference row [N], and the milliseconds they took."""
+        """The frame's distances to every reference row [N] (a buffer the next frame overwrites), and the
+        milliseconds they took."""
         from seqvpr.sequences.matching import distances_to_reference
 
         started = time.perf_counter()
-        return distances_to_reference(frame[None], self.rows, self.norms)[0], elapsed_ms(started)
+        return distances_to_reference(frame[None], self.rows, self.norms, out=self.distances)[0], elapsed_ms(started)
 
 
 class DiagonalStepper(FullPass):

@@ -416,15 +416,16 @@ def reference_squared_norms(reference: ReferenceRows, columns: int = 65536) -> n
 
 
 def distances_to_reference(
-    query: torch.Tensor, reference: ReferenceRows, norms: np.ndarray, columns: int = 65536
+    query: torch.Tensor, reference: ReferenceRows, norms: np.ndarray, columns: int = 65536,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Frame distances [b, N] (float32) of a few query rows to every reference row, read chunk by chunk (a saved
     map's memory map is never loaded whole), with the rows' squared ``norms`` given (one pass over the rows, not
-    two). The same values as ``frame_distances``."""
+    two), into ``out`` when given (a buffer reused frame after frame). The same values as ``frame_distances``."""
     from seqvpr.sequences._fused import distances_from_dots_, squared_norms
 
     query = query.float().cpu()
-    out = np.empty((len(query), len(reference)), dtype=np.float32)
+    out = np.empty((len(query), len(reference)), dtype=np.float32) if out is None else out
     query_sq = squared_norms(query.numpy())
     for lo in range(0, len(reference), columns):
         hi = min(lo + columns, len(reference))

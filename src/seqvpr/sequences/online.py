@@ -28,6 +28,8 @@ class DiagonalSums:
         self.length = length
         self.window_exists = window_starts(segments, length, length - 1, "drop") >= 0
         self.partial = np.full((length, len(segments)), np.inf)  # row j: sum of the last j + 1 terms
+        self.missing = np.flatnonzero(~self.window_exists)  # the few frames that end no window
+        self.means = np.empty(len(segments))  # each step's result, reused: no allocation of the map's size a frame
         self.count = 0
 
     def reset(self) -> None:
@@ -36,7 +38,8 @@ class DiagonalSums:
 
     def push(self, distances: np.ndarray) -> np.ndarray | None:
         """Add one query frame's distances to every reference frame; the window means [N] (+inf where a window
-        does not exist), or None while fewer than L frames have come since the start or the last reset."""
+        does not exist; a buffer the next push overwrites), or None while fewer than L frames have come since the
+        start or the last reset."""
         p = self.partial
         if distances.shape != (p.shape[1],):
             raise SeqvprError(f"expected distances to the {p.shape[1]} reference frames, got shape {distances.shape}")
@@ -47,7 +50,9 @@ class DiagonalSums:
         self.count += 1
         if self.count < self.length:
             return None
-        return np.where(self.window_exists, p[self.length - 1] / self.length, np.inf)
+        np.divide(p[self.length - 1], self.length, out=self.means)
+        self.means[self.missing] = np.inf
+        return self.means
 
     def state(self) -> dict[str, np.ndarray]:
         return {"partial": self.partial.copy(), "count": np.array(self.count)}

@@ -45,16 +45,15 @@ def best_of(rows: np.ndarray, distances: np.ndarray, k: int | None = None) -> tu
 
 def best_k(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``k`` best rows of one dense vector of distances (row r's distance at ``values[r]``), ranked by
-    ``rank_order``: only the rows at or below the k-th value are sorted (a partition first), so a step over a
-    large map costs one pass; -1/+inf pad."""
+    ``rank_order``: one scan that keeps a running top-K (``TopKMerge``'s, the tie rule), so a step over a large map
+    costs one pass and allocates nothing of the map's size; -1/+inf pad."""
     k = min(k, len(values))
-    if k < len(values):  # every row below the k-th value, then the lowest rows equal to it (a stable cut)
-        kth = np.partition(values, k - 1)[k - 1]
-        below = np.flatnonzero(values < kth)
-        picked = np.concatenate([below, np.flatnonzero(values == kth)[: k - len(below)]])
-    else:
-        picked = np.arange(len(values))
-    return best_of(picked, values[picked], k)
+    if k == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    merged = TopKMerge(1, k)
+    merged.push_columns(torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64))[None], 0, scan=True)
+    found = merged.result(np.ones(1, bool))
+    return found.indices[0], found.distances[0]
 
 
 class TopKMerge:
