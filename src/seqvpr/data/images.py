@@ -28,22 +28,31 @@ def to_8bit(image: Image.Image, mode: str = "RGB") -> Image.Image:
 def read_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     """The image file as 8-bit ``mode``, fully decoded (a truncated file fails here, not later); one with more pixels
     than PIL's ``Image.MAX_IMAGE_PIXELS`` (a decompression bomb) is one line with its size, never a warning."""
-    import warnings
-
     if Path(path).exists():
         check_regular_file(path, "an image")
     try:
+        return decode_image(path, str(path), mode)
+    except FileNotFoundError:
+        raise SeqvprError(f"{path}: no such image") from None
+
+
+def decode_image(source, where: str, mode: str = "RGB", what: str = "image") -> Image.Image:
+    """An image file or binary stream (a camera message's bytes) decoded whole as 8-bit ``mode``; a decompression
+    bomb or anything unreadable is one line naming ``where`` (``what`` says what it should have been)."""
+    import warnings
+
+    try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
-            with Image.open(path) as image:
+            with Image.open(source) as image:
                 image.load()
                 return to_8bit(image, mode)
     except FileNotFoundError:
-        raise SeqvprError(f"{path}: no such image") from None
+        raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
-        raise SeqvprError(f"{path}: too large to decode safely ({' '.join(str(error).split())})") from None
+        raise SeqvprError(f"{where}: too large to decode safely ({' '.join(str(error).split())})") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as error:
-        raise SeqvprError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
+        raise SeqvprError(f"{where}: not a readable {what} ({type(error).__name__}: {error})") from None
 
 
 #: bytes per pixel of the raw encodings a ``sensor_msgs/Image`` may hold that seqvpr reads

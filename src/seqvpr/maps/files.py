@@ -38,7 +38,7 @@ from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
-from seqvpr.maps.codes import SIDE_FILES, decoded_rows, parse_storage, stored_shape, write_encoded
+from seqvpr.maps.codes import SIDE_FILES, decoded_rows, parse_storage, row_chunks, stored_shape, write_encoded
 from seqvpr.maps.names import FramePaths, open_names, write_names
 
 MAP_FORMAT = "seqvpr-map"
@@ -130,11 +130,10 @@ def write_sealed_info(folder: Path, info: MapInfo) -> MapInfo:
     return sealed
 
 
-def check_rows(rows, normalized: bool, what: str, chunk: int = 1 << 16) -> None:
+def check_rows(rows, normalized: bool, what: str) -> None:
     """Every row finite and, in a normalised map, of unit length: one line naming the first bad row otherwise (read a
-    chunk at a time, so a memory-mapped million rows are never held)."""
-    for start in range(0, len(rows), chunk):
-        block = np.asarray(rows[start:start + chunk], dtype=np.float32)
+    chunk at a time, ``codes.row_chunks``, so a memory-mapped million rows are never held)."""
+    for start, block in row_chunks(rows):
         squares = np.einsum("ij,ij->i", block, block)  # NaN or inf for a row that is not finite (or huge)
         bad = ~np.isfinite(block).all(axis=1) if not np.isfinite(squares).all() else np.zeros(len(block), bool)
         if bad.any():

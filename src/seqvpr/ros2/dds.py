@@ -9,7 +9,7 @@ import time
 from dataclasses import dataclass
 
 from seqvpr.errors import SeqvprError
-from seqvpr.ros2.messages import dds_topic, wire_type
+from seqvpr.ros2.messages import Received, dds_topic, wire_type
 
 #: the highest domain id ROS 2 allows (ports stay valid on every platform)
 MAX_DOMAIN = 232
@@ -101,19 +101,16 @@ class Recorder:
     ``ros2 topic echo`` shows, kept for a test or a benchmark to read."""
 
     def __init__(self, topic: str, msgtype: str, domain: int | None = None) -> None:
-        from seqvpr.ros2.messages import Received
-
         self.bus = Bus(domain)
         self.reader = self.bus.reader(topic, msgtype, EVERY_SAMPLE)
         self.samples: list[Received] = []
-        self._received = Received
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._take, name=f"seqvpr-record{topic}", daemon=True)
         self._thread.start()
 
     def _take(self) -> None:
         while not self._stop.is_set():
-            self.samples.extend(s for s in self.reader.take(256) if isinstance(s, self._received))
+            self.samples.extend(s for s in self.reader.take(256) if isinstance(s, Received))
             time.sleep(0.005)
 
     def wait_for(self, count: int, seconds: float) -> list:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from seqvpr.data.images import raw_pixels, to_8bit
+from seqvpr.data.images import decode_image, raw_pixels
 from seqvpr.data.loaders.dbstruct import GAP_FACTOR
 from seqvpr.errors import SeqvprError
 from seqvpr.data.geo import LOCAL, parse_crs
@@ -53,13 +53,7 @@ def camera_image(value: Any, msgtype: str) -> Image.Image:
         data = np.ascontiguousarray(value.data).tobytes()
         if not data:
             raise SeqvprError(f"{where}: an empty compressed image")
-        try:
-            with Image.open(io.BytesIO(data)) as image:
-                image.load()
-                return to_8bit(image, "RGB")
-        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
-            raise SeqvprError(f"{where}: not a readable {value.format or 'compressed'} image "
-                              f"({type(error).__name__})") from None
+        return decode_image(io.BytesIO(data), where, "RGB", f"{value.format or 'compressed'} image")
     pixels = raw_pixels(str(value.encoding), int(value.height), int(value.width), int(value.step),
                         bool(value.is_bigendian), value.data, where)
     return Image.fromarray(pixels).convert("RGB")

@@ -74,10 +74,7 @@ def wire_type(msgtype: str) -> type:
     samples through ``rosbags``' codec. ``deserialize`` gives a ``Received``; ``outgoing`` makes the samples a
     writer sends. (cyclonedds' own encoding of the declared fields stays reachable as ``IdlStruct.serialize``: the
     test that holds it equal to ``rosbags``' bytes.)"""
-    from cyclonedds.idl import make_idl_struct
-
-    fields = {name: _field_type(node) for name, node in typestore().fielddefs[msgtype][1]}
-    declared = make_idl_struct(msgtype.rsplit("/", 1)[1], dds_typename(msgtype), fields)
+    declared = _declaration(msgtype)
 
     def deserialize(cls, data: bytes, has_header: bool = True, use_version_2: bool | None = None) -> Received:
         raw = bytes(data)
@@ -128,10 +125,13 @@ def _field_type(node: tuple) -> Any:
     return t.sequence[_field_type(inner), size] if size else t.sequence[_field_type(inner)]
 
 
-@functools.cache
-def _nested_type(msgtype: str) -> type:
-    """A message type inside another, declared with cyclonedds' own codec (it is never sent alone)."""
+def _declaration(msgtype: str) -> type:
+    """A new cyclonedds struct of ``msgtype``'s fields, named as ROS 2 names it on DDS."""
     from cyclonedds.idl import make_idl_struct
 
     fields = {name: _field_type(node) for name, node in typestore().fielddefs[msgtype][1]}
     return make_idl_struct(msgtype.rsplit("/", 1)[1], dds_typename(msgtype), fields)
+
+
+#: a message type inside another, declared with cyclonedds' own codec (it is never sent alone)
+_nested_type = functools.cache(_declaration)
