@@ -83,15 +83,15 @@ def calibrated_maps(w) -> None:
 def damaged_states(w) -> None:
     saved_state(w / "map", w / "state.npz")
     saved_state(w / "map", w / "state_hmm.npz", method="hmm")
-    rewrite_state(w / "state.npz", w / "state_v2.npz", {"version": 2})
+    rewrite_state(w / "state.npz", w / "state_v2.npz", {"version": 99})
     rewrite_state(w / "state.npz", w / "state_negative.npz", {"misses": -1})
     rewrite_state(w / "state.npz", w / "state_inf.npz", {"frame": float("inf")})
     rewrite_state(w / "state.npz", w / "state_fraction.npz", {"since_reset": 2.5})
     rewrite_state(w / "state.npz", w / "state_count.npz", arrays={"matcher_count": np.array(np.inf)})
     with np.load(w / "state.npz") as data:
-        partial = data["matcher_partial"].copy()
+        partial = data["matcher_ring"].copy()
     partial[0, 3] = np.nan
-    rewrite_state(w / "state.npz", w / "state_sums.npz", arrays={"matcher_partial": partial})
+    rewrite_state(w / "state.npz", w / "state_sums.npz", arrays={"matcher_ring": partial})
     with np.load(w / "state_hmm.npz") as data:
         belief = data["matcher_belief"].copy()
     rewrite_state(w / "state_hmm.npz", w / "state_belief.npz", arrays={"matcher_belief": belief * 3})
@@ -144,7 +144,7 @@ CASES = {
                                                 "--resume"), "trained on other data"),
     # --- localiser states
     "localize: a state of another format version": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_v2.npz"),
-                                                    "state_v2.npz: localiser state version 2"),
+                                                    "state_v2.npz: localiser state version 99"),
     "localize: a negative counter": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_negative.npz"),
                                      "state_negative.npz: misses -1 is not a count"),
     "localize: an infinite counter": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_inf.npz"),
@@ -153,8 +153,8 @@ CASES = {
                                        "since_reset 2.5 is not a count"),
     "localize: an infinite matcher count": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_count.npz"),
                                             "matcher_count"),
-    "localize: NaN running sums": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_sums.npz"),
-                                   "matcher_partial holds NaN"),
+    "localize: NaN distance rows": ((*LOCALIZE, "--map", "{w}/map", "--resume-state", "{w}/state_sums.npz"),
+                                   "matcher_ring holds NaN"),
     "localize: a last frame of another dimension": ((*LOCALIZE, "--map", "{w}/map", "--resume-state",
                                                     "{w}/state_kept.npz"), "state_kept.npz: last_kept has shape (3,)"),
     "localize: a belief above 1": ((*LOCALIZE, "--map", "{w}/map", "--method", "hmm", "--resume-state",

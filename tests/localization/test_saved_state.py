@@ -12,6 +12,7 @@ import pytest
 
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings, read_calibrations, store_calibration, stored_threshold
+from seqvpr.localization.saved import STATE_VERSION
 from seqvpr.maps import build_map, open_map
 from tests.helpers import raises_one_line, write_route_files
 
@@ -52,7 +53,7 @@ def test_a_map_without_an_identity_keeps_todays_check(route, tmp_path):
         shutil.copytree(tmp_path / "old", tmp_path / "again")  # same count, dimension and creation: accepted
         Localizer.open(open_map(tmp_path / "again")).restore(tmp_path / "state.npz")
     header = json.loads(str(np.load(tmp_path / "state.npz")["header"]))
-    assert "identity" not in header["map"] and header["version"] == 1
+    assert "identity" not in header["map"] and header["version"] == STATE_VERSION
 
 
 def test_a_state_names_its_map_by_identity(route, tmp_path):

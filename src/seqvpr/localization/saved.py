@@ -18,7 +18,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.maps.files import MapInfo
 
 STATE_FORMAT = "seqvpr-localizer-state"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: sequence matching keeps its last L distance rows (``ring``), not running sums
 CALIBRATION_FILE = "localizer.json"
 CALIBRATION_FORMAT = "seqvpr-localizer"
 CALIBRATION_VERSION = 1
@@ -55,7 +55,7 @@ def check_state_header(path: str | Path, header: Any, info: MapInfo) -> None:
 
 def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray], dim: int) -> None:
     """A state's arrays: numbers; counts whole and >= 0; beliefs probabilities summing to 1; frames finite and of
-    the map's dimension ``dim``; running sums free of NaN and -inf (+inf marks a window that does not exist)."""
+    the map's dimension ``dim``; distance rows finite and >= 0; other values free of NaN and -inf."""
     for name, array in arrays.items():
         if name == "header":
             continue
@@ -73,6 +73,9 @@ def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray], dim: int
                 raise SeqvprError(f"{path}: {name} has shape {array.shape}; the map's frames are {dim}-D")
             if not np.isfinite(array).all():
                 raise SeqvprError(f"{path}: {name} holds NaN or infinite values (damaged)")
+        elif name.endswith("ring"):
+            if not np.isfinite(array).all() or (array < 0).any():
+                raise SeqvprError(f"{path}: {name} holds NaN, infinite or negative distances (damaged)")
         elif array.dtype.kind == "f" and (np.isnan(array).any() or np.isneginf(array).any()):
             raise SeqvprError(f"{path}: {name} holds NaN or -inf (damaged)")
 

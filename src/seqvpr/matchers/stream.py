@@ -54,13 +54,6 @@ def elapsed_ms(since: float) -> float:
     return (time.perf_counter() - since) * 1e3
 
 
-def ranked(values: np.ndarray, k: int, exclusion: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """The K best rows of a dense vector and the uniqueness of the best (over a list long enough to hold the best
-    other place)."""
-    indices, best = best_k(values, max(k, 2 * exclusion + 2))
-    return indices[:k], best[:k], uniqueness(indices, best, exclusion)
-
-
 class FullPass:
     """One distance pass a frame over every reference row, the rows' squared norms computed once."""
 
@@ -69,15 +62,16 @@ class FullPass:
 
         self.rows = rows
         self.norms = reference_squared_norms(rows)
-        self.distances = np.empty((1, len(rows)), dtype=np.float32)  # reused: no allocation of the map's size
+        self.distances = np.empty(len(rows), dtype=np.float32)  # reused: no allocation of the map's size
 
-    def measure(self, frame: torch.Tensor) -> tuple[np.ndarray, float]:
-        """The frame's distances to every reference row [N] (a buffer the next frame overwrites), and the
-        milliseconds they took."""
+    def measure(self, frame: torch.Tensor, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """The frame's distances to every reference row [N] (into ``out``, else a buffer the next frame
+        overwrites), and the milliseconds they took."""
         from seqvpr.sequences.matching import distances_to_reference
 
         started = time.perf_counter()
-        return distances_to_reference(frame[None], self.rows, self.norms, out=self.distances)[0], elapsed_ms(started)
+        into = (self.distances if out is None else out)[None]
+        return distances_to_reference(frame[None], self.rows, self.norms, out=into)[0], elapsed_ms(started)
 
 
 class DiagonalStepper(FullPass):
@@ -94,13 +88,14 @@ class DiagonalStepper(FullPass):
         self.sums.reset()
 
     def push(self, frame: torch.Tensor) -> Scored | None:
-        distances, distance_ms = self.measure(frame)
+        distances, distance_ms = self.measure(frame, out=self.sums.next_row())  # straight into the ring
         measured = time.perf_counter()
-        means = self.sums.push(distances)
-        if means is None:
+        found = self.sums.push_topk(distances, max(self.k, 2 * self.exclusion + 2))  # enough for the score
+        if found is None:
             return None
-        indices, values, score = ranked(means, self.k, self.exclusion)
-        return Scored(indices, values, score, distance_ms, elapsed_ms(measured))
+        indices, values = found
+        score = uniqueness(indices, values, self.exclusion)
+        return Scored(indices[: self.k], values[: self.k], score, distance_ms, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.sums.state()

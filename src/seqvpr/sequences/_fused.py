@@ -232,3 +232,112 @@ def window_distances(query: np.ndarray, reference: np.ndarray, query_starts: np.
     _window_distances(query, reference, np.ascontiguousarray(query_starts, dtype=np.int64),
                       np.ascontiguousarray(reference_starts, dtype=np.int64), length, out)
     return out
+
+
+DIAGONAL_BLOCK = 4096  # rows summed at a time: a float64 block that stays in cache
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _diagonal_block(ring, newest, length, lo, hi, out):
+    """``out[:hi - lo]`` = the means of the causal windows ending at reference rows ``lo .. hi - 1`` (``lo`` at
+    least L - 1): the last ``length`` distance rows of the ring (``newest`` its latest slot) along each diagonal,
+    summed oldest first in float64 (exact for float32 terms), term by term over the block (vectorised)."""
+    width = hi - lo
+    oldest = newest - (length - 1)
+    if oldest < 0:
+        oldest += length
+    first = ring[oldest]
+    shift = lo - (length - 1)
+    for i in range(width):
+        out[i] = np.float64(first[shift + i])
+    for j in range(length - 2, -1, -1):
+        slot = newest - j
+        if slot < 0:
+            slot += length
+        row = ring[slot]
+        shift = lo - j
+        for i in range(width):
+            out[i] += np.float64(row[shift + i])
+    for i in range(width):
+        out[i] /= length
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _diagonal_means(ring, newest, length, exists, out):
+    n = exists.shape[0]
+    start = length - 1
+    for r in range(min(start, n)):
+        out[r] = np.inf
+    blocks = (n - start + DIAGONAL_BLOCK - 1) // DIAGONAL_BLOCK if n > start else 0
+    for b in prange(blocks):
+        lo = start + b * DIAGONAL_BLOCK
+        hi = min(lo + DIAGONAL_BLOCK, n)
+        _diagonal_block(ring, newest, length, lo, hi, out[lo:hi])
+        for r in range(lo, hi):
+            if not exists[r]:
+                out[r] = np.inf
+
+
+def diagonal_means_(ring: np.ndarray, newest: int, exists: np.ndarray, out: np.ndarray) -> None:
+    """The causal window means [N] of a ring of the last L distance rows [L, N] into ``out`` (+inf where no window
+    ends: ``exists`` False)."""
+    _diagonal_means(ring, newest, ring.shape[0], exists, out)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _enter_ranked(v, r, best, where):
+    """Insert value ``v`` of row ``r`` into the sorted running top-K (called only when ``v`` beats the K-th): after
+    any equal value, so rows met in order keep the lower row on a tie."""
+    p = best.shape[0] - 1
+    while p > 0 and best[p - 1] > v:
+        best[p] = best[p - 1]
+        where[p] = where[p - 1]
+        p -= 1
+    best[p] = v
+    where[p] = r
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where):
+    buffer = np.empty(DIAGONAL_BLOCK)
+    threshold = best[best.shape[0] - 1]
+    for b in range(max(lo, length - 1), hi, DIAGONAL_BLOCK):
+        e = min(b + DIAGONAL_BLOCK, hi)
+        _diagonal_block(ring, newest, length, b, e, buffer)
+        for i in range(e - b):
+            v = buffer[i]
+            if v < threshold and exists[b + i]:
+                _enter_ranked(v, b + i, best, where)
+                threshold = best[best.shape[0] - 1]
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _diagonal_topk_parts(ring, newest, length, exists, parts_best, parts_where, best, where):
+    parts, n = parts_best.shape[0], exists.shape[0]
+    for c in prange(parts):
+        _diagonal_scan(ring, newest, length, exists, n * c // parts, n * (c + 1) // parts, parts_best[c],
+                       parts_where[c])
+    threshold = best[best.shape[0] - 1]
+    for c in range(parts):  # parts in row order, each ranked: ties still keep the lower row
+        for i in range(parts_best.shape[1]):
+            v = parts_best[c, i]
+            if v < threshold:
+                _enter_ranked(v, parts_where[c, i], best, where)
+                threshold = best[best.shape[0] - 1]
+
+
+PART_ROWS = 65_536  # rows a thread scans at least: below this a parallel launch costs more than it saves
+
+
+def diagonal_topk(ring: np.ndarray, newest: int, exists: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` best causal windows (rows, means ascending; -1/+inf pad) of a ring of the last L distance rows
+    [L, N], without writing the N means: one pass, split over the thread pool in runs of rows whose top-Ks merge
+    in row order (the same rows and ties as one scan, ``best_k``'s)."""
+    best, where = np.full(k, np.inf), np.full(k, -1, np.int64)
+    parts = max(1, min(numba.get_num_threads(), exists.shape[0] // PART_ROWS))
+    if parts == 1:
+        _diagonal_scan(ring, newest, ring.shape[0], exists, 0, exists.shape[0], best, where)
+        return where, best
+    parts_best, parts_where = np.full((parts, k), np.inf), np.full((parts, k), -1, np.int64)
+    _diagonal_topk_parts(ring, newest, ring.shape[0], exists, parts_best, parts_where, best, where)
+    return where, best

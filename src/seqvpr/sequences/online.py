@@ -1,9 +1,11 @@
-"""Sequence matching one query frame at a time: running sums along the diagonals of the last L frames.
+"""Sequence matching one query frame at a time: window means along the diagonals of the last L frames.
 
 With causal windows the sequence distance of the window ending at reference frame r after query frame t is
-``(1/L) sum_k d[t - k, r - k]``. Each new row of frame distances extends every diagonal by one term, so keeping the
-partial sums of the last 1..L terms makes a step O(L x N), never a recomputation of whole windows. The results
-equal ``sequence_topk`` with ``SequenceSpec(L, "causal")`` (``drop`` boundaries) frame for frame.
+``(1/L) sum_k d[t - k, r - k]``. The last L rows of frame distances are kept in a ring (float32, as measured; the
+newest written in place by the distance pass), and each step sums every window's L terms along its diagonal in
+float64, oldest first, fused with the running top-K: one pass over L x N values and nothing of the map's size
+written. The results equal ``sequence_topk`` with ``SequenceSpec(L, "causal")`` (``drop`` boundaries) frame for
+frame, bit for bit the running partial sums the localiser kept before.
 """
 
 from __future__ import annotations
@@ -15,10 +17,11 @@ from seqvpr.sequences.windows import window_starts
 
 
 class DiagonalSums:
-    """Causal window distances [N] after each query frame, from the frame distances [N] of that frame alone.
+    """Causal window distances after each query frame, from the frame distances [N] of that frame alone.
 
     ``reference_segments`` decide which reference windows exist (a window never spans a segment break); a query
-    segment break or a restart is ``reset()``: the next L - 1 frames then have no window (warming up).
+    segment break or a restart is ``reset()``: the next L - 1 frames then have no window (warming up). A step is
+    ``next_row()`` (the ring's row to measure the new frame's distances into), then ``push`` or ``push_topk``.
     """
 
     def __init__(self, reference_segments: np.ndarray, length: int) -> None:
@@ -27,38 +30,57 @@ class DiagonalSums:
         segments = np.asarray(reference_segments)
         self.length = length
         self.window_exists = window_starts(segments, length, length - 1, "drop") >= 0
-        self.partial = np.full((length, len(segments)), np.inf)  # row j: sum of the last j + 1 terms
-        self.missing = np.flatnonzero(~self.window_exists)  # the few frames that end no window
-        self.means = np.empty(len(segments))  # each step's result, reused: no allocation of the map's size a frame
+        self.ring = np.zeros((length, len(segments)), dtype=np.float32)  # slot count % L: the frame count's row
+        self.means = np.empty(len(segments))  # push's result, reused: no allocation of the map's size a frame
         self.count = 0
 
     def reset(self) -> None:
         """Forget the frames so far (a new query segment, a kidnapping, a new drive)."""
         self.count = 0
 
+    def next_row(self) -> np.ndarray:
+        """The ring's row [N] that the next frame's distances go into (the oldest frame's, no longer needed)."""
+        return self.ring[self.count % self.length]
+
+    def _enter(self, distances: np.ndarray) -> int | None:
+        """Take one frame's distances (copied into the ring unless measured into ``next_row``); the slot of the
+        newest row once L frames have come, else None."""
+        row = self.next_row()
+        if distances.shape != row.shape:
+            raise SeqvprError(f"expected distances to the {row.shape[0]} reference frames, got shape {distances.shape}")
+        if not np.shares_memory(distances, row):
+            row[:] = distances
+        self.count += 1
+        return None if self.count < self.length else (self.count - 1) % self.length
+
     def push(self, distances: np.ndarray) -> np.ndarray | None:
         """Add one query frame's distances to every reference frame; the window means [N] (+inf where a window
         does not exist; a buffer the next push overwrites), or None while fewer than L frames have come since the
         start or the last reset."""
-        p = self.partial
-        if distances.shape != (p.shape[1],):
-            raise SeqvprError(f"expected distances to the {p.shape[1]} reference frames, got shape {distances.shape}")
-        for j in range(min(self.count, self.length - 1), 0, -1):  # longest first: row j - 1 is still last frame's
-            np.add(p[j - 1, :-1], distances[1:], out=p[j, 1:])
-            p[j, 0] = np.inf
-        p[0] = distances
-        self.count += 1
-        if self.count < self.length:
+        from seqvpr.sequences._fused import diagonal_means_
+
+        newest = self._enter(distances)
+        if newest is None:
             return None
-        np.divide(p[self.length - 1], self.length, out=self.means)
-        self.means[self.missing] = np.inf
+        diagonal_means_(self.ring, newest, self.window_exists, self.means)
         return self.means
 
+    def push_topk(self, distances: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``push``, answering only the ``k`` best windows (rows, means ascending; ``best_k``'s rows and ties) in one
+        pass that writes nothing of the map's size; None while warming up."""
+        from seqvpr.sequences._fused import diagonal_topk
+
+        newest = self._enter(distances)
+        return None if newest is None else diagonal_topk(self.ring, newest, self.window_exists, min(k, len(self.means)))
+
     def state(self) -> dict[str, np.ndarray]:
-        return {"partial": self.partial.copy(), "count": np.array(self.count)}
+        """The ring and the frame count since the last reset (what ``load_state`` goes on from)."""
+        return {"ring": self.ring.copy(), "count": np.array(self.count)}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
-        if state["partial"].shape != self.partial.shape:
-            raise SeqvprError(f"saved sums have shape {state['partial'].shape}, this map and L need {self.partial.shape}")
-        self.partial[:] = state["partial"]
+        if "ring" not in state:
+            raise SeqvprError("saved sums hold no ring of distance rows (a state of an older seqvpr): start afresh")
+        if state["ring"].shape != self.ring.shape:
+            raise SeqvprError(f"saved sums have shape {state['ring'].shape}, this map and L need {self.ring.shape}")
+        self.ring[:] = state["ring"]
         self.count = int(state["count"])
