@@ -23,6 +23,27 @@ def digest_bytes(data: bytes) -> str:
     return f"{ALGORITHM}:{hashlib.sha256(data).hexdigest()}"
 
 
+class DigestWriter:
+    """A binary handle that keeps only the digest of what is written to it (``np.save`` and plain writes take
+    it): the digest a file of those bytes would have, without the file."""
+
+    def __init__(self) -> None:
+        self.hash = hashlib.new(ALGORITHM)
+
+    def write(self, data) -> int:
+        self.hash.update(data)
+        return len(data)
+
+    def digest(self) -> str:
+        return f"{ALGORITHM}:{self.hash.hexdigest()}"
+
+    def __enter__(self) -> DigestWriter:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        return None
+
+
 def digest_file(path: str | Path) -> str:
     """The digest of a file's bytes, read in one streamed pass: ``sha256:HEX``."""
     with open(path, "rb") as handle:

@@ -21,7 +21,7 @@ NAME = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters=
 @given(st.lists(NAME, min_size=1, max_size=40), st.integers(-45, 45), st.integers(-45, 45))
 def test_names_read_back_whole_and_in_slices(tmp_path_factory, names, start, stop):
     folder = tmp_path_factory.mktemp("names")
-    write_names(folder, names)
+    write_names(names, lambda name: open(folder / name, "wb"))
     opened = open_names(folder, len(names))
     assert list(opened) == names and len(opened) == len(names)
     assert list(opened[start:stop]) == names[start:stop]
@@ -37,7 +37,7 @@ def test_a_map_without_the_offsets_file_finds_its_lines(tmp_path):
 
 
 def test_names_that_do_not_fit_are_one_line(tmp_path):
-    write_names(tmp_path, ["a", "b"])
+    write_names(["a", "b"], lambda name: open(tmp_path / name, "wb"))
     raises_one_line("2 names for 3 frames", open_names, tmp_path, 3)
     np.save(tmp_path / OFFSETS_FILE, np.array([0, 1, 9], np.int64))
     raises_one_line("does not fit", open_names, tmp_path, 2)

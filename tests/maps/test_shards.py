@@ -279,24 +279,36 @@ def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_even_past
     assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")
 
 
+@pytest.mark.parametrize("storage", ["float32", "sq8", "pq:4"])
 def test_map_build_shards_writes_what_map_shard_of_the_built_map_writes_and_no_whole_map(whole, tmp_path, monkeypatch,
-                                                                                        capsys):
+                                                                                        capsys, storage):
+    """Shards written straight from the sources (no map of all the rows is ever written, checked at the one writer
+    of map folders) are the shards of the built map, bit for bit: their identities and the whole map's, composed
+    from the digests its files would have."""
+    from seqvpr.maps import files, shards
+
     sources = (whole / "ref.npz", whole / "a" / "ref.npz")
+    written = []
+    monkeypatch.setattr(shards, "write_map", lambda folder, frames, *a: written.append(len(frames))
+                        or files.write_map(folder, frames, *a))
     code, out, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--index", "flat", "--shards", "3",
-                             "--overlap", "9", "--out", tmp_path / "built")
+                             "--overlap", "9", "--dtype", storage, "--out", tmp_path / "built")
     assert code == 0, err
-    assert out.splitlines()[-1] == "sharded map: " + str(tmp_path / "built") + " (330 frames in 3 shards, overlap 9)"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["built"]  # the whole map was temporary
-    expected = shard_map(whole / "map", tmp_path / "split", 3, 9)
+    assert written == [119, 128, 119]  # 110 frames owned, 9 past each inner edge
+    assert out.splitlines()[-4] == "sharded map: " + str(tmp_path / "built") + " (330 frames in 3 shards, overlap 9)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["built"]  # nothing else was written beside it
+    build_map(list(map(str, sources)), tmp_path / "whole", dtype=storage)
+    expected = shard_map(tmp_path / "whole", tmp_path / "split", 3, 9)
     built = open_sharded_map(tmp_path / "built")
     assert built.shards == expected.shards and built.count == expected.count
+    assert built.info["identity"] == expected.info["identity"] and built.info["files"] == expected.info["files"]
     for number in range(3):
         a, b = built.open_shard(number), expected.open_shard(number)
         np.testing.assert_array_equal(np.asarray(a.descriptors), np.asarray(b.descriptors))
         assert a.info.index["spec"] == "flat" and a.info.index["ntotal"] == a.info.count
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--shards", "400", "--out", tmp_path / "x")
     assert code == 2 and "--shards must be between 1 and the map's 330 frames" in err and err.count("\n") == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["built", "split"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["built", "split", "whole"]
 
 
 def test_a_sharded_match_through_a_model_is_the_whole_maps(whole, tmp_path):

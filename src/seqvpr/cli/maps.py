@@ -86,17 +86,13 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     description, extraction = _description(o, device)
     models = _models(model_dirs, device)
 
-    def build_into(folder) -> None:
-        _build_map(sources, folder, description, models, extraction, dtype=dtype, normalize=not no_normalize,
-                   device=device, frames=frames, index=(spec, seed, windows, window_method, index_model))
-
+    index = (spec, seed, windows, window_method, index_model)
     if not shards:
-        build_into(out_dir)
+        _build_map(sources, out_dir, description, models, extraction, dtype=dtype, normalize=not no_normalize,
+                   device=device, frames=frames, index=index)
         return
-    from seqvpr.maps.shards import build_sharded
-
-    sharded = build_sharded(build_into, out_dir, shards, overlap)
-    click.echo(f"sharded map: {out_dir} ({sharded.count} frames in {len(sharded.shards)} shards, overlap {overlap})")
+    _build_sharded(sources, out_dir, (shards, overlap), description, models, extraction, dtype=dtype,
+                   normalize=not no_normalize, device=device, frames=frames, index=index)
 
 
 def _build_map(sources, out_dir, description, models, extraction, *, dtype, normalize, device, frames, index) -> None:
@@ -110,11 +106,36 @@ def _build_map(sources, out_dir, description, models, extraction, *, dtype, norm
         add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)))
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
                       progress=tqdm_progress, frames=frames, loaded=_echo_bag, indexed=indexed, **extraction)
-    info = saved.info
-    click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
-               f"{info.description['descriptor']} descriptors, {info.dtype}")
+    _echo_built(out_dir, saved.info)
     for record in records:
         _echo_index(record)
+
+
+def _build_sharded(sources, out_dir, sharding, description, models, extraction, *, dtype, normalize, device, frames,
+                   index) -> None:
+    """Build the map straight as shards (each with its index, if one is asked for; committed as one) and print
+    what they hold."""
+    from seqvpr.maps import build_sharded_map
+    from seqvpr.maps.shards import index_shards
+
+    spec, seed, windows, window_method, index_model = index
+    records = []
+    indexed = None if spec is None else (lambda sharded: records.extend(
+        index_shards(sharded, spec, seed, tqdm_progress, windows, window_method, index_model)))
+    sharded = build_sharded_map(sources, out_dir, *sharding, description, models, dtype=dtype, normalize=normalize,
+                                device=device, progress=tqdm_progress, frames=frames, loaded=_echo_bag,
+                                indexed=indexed, **extraction)
+    _echo_built(out_dir, sharded.as_map().info)
+    click.echo(f"sharded map: {out_dir} ({sharded.count} frames in {len(sharded.shards)} shards, overlap "
+               f"{sharded.overlap})")
+    for shard, record in zip(sharded.shards, records):
+        click.echo(f"{shard.folder}: ", nl=False)
+        _echo_index(record)
+
+
+def _echo_built(out_dir: str, info) -> None:
+    click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
+               f"{info.description['descriptor']} descriptors, {info.dtype}")
 
 
 def _echo_bag(source: str, traversal) -> None:

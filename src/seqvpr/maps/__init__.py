@@ -12,7 +12,7 @@ from typing import Any
 
 #: public name -> the module defining it; imported when first used, so ``seqvpr.maps.files`` (what a localiser
 #: needs) does not pull in the builder's loaders and descriptors
-EXPORTS = {"FrameDescription": "build", "build_map": "build", "describe_frames": "build", "MapInfo": "files",
+EXPORTS = {"FrameDescription": "build", "build_map": "build", "build_sharded_map": "build", "describe_frames": "build", "MapInfo": "files",
            "SavedMap": "files", "open_map": "files", "read_map_info": "files", "match_map": "match"}
 
 __all__ = list(EXPORTS)

@@ -27,9 +27,11 @@ from seqvpr.maps.files import (
     INFO_FILE,
     MapInfo,
     SavedMap,
+    ShardedMap,
     open_map,
     write_map,
 )
+from seqvpr.maps.shards import DEFAULT_OVERLAP, write_sharded_map
 from seqvpr.maps.index import model_record
 from seqvpr.matchers.frames import transformed_by
 from seqvpr.methods import image_model
@@ -136,12 +138,49 @@ def build_map(
     indexed: Callable[[SavedMap], object] | None = None,
     **extraction: Any,
 ) -> SavedMap:
-    """Describe every source (cut to source frames ``START:STOP`` when ``frames`` is given), pass the frames
-    through a SeqMatchNet model if given, L2-normalise them (as matching does) unless told not to, and save them
-    as one map (each source its own segments; the positions' ``crs`` recorded). ``loaded`` is told each source and
-    its traversal as soon as it is read (before describing), for a command to report what was read (a bag's
-    topics: ``Traversal.bag``). ``indexed`` (e.g. ``add_index``) runs on the new map before it replaces anything at
-    ``out``, so a failed index leaves the previous map as it was."""
+    """Describe every source (``described_map``) and save the frames as one map. ``indexed`` (e.g. ``add_index``)
+    runs on the new map before it replaces anything at ``out``, so a failed index leaves the previous map as it
+    was."""
+    whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
+                                device=device, progress=progress, frames=frames, loaded=loaded, **extraction)
+    write_indexed_map(Path(out), whole, info, indexed)
+    return open_map(out)
+
+
+def build_sharded_map(
+    sources: Sequence[str],
+    out: str | Path,
+    shards: int,
+    overlap: int = DEFAULT_OVERLAP,
+    description: FrameDescription = FrameDescription(),
+    models: Mapping[str, TrainedModel] | None = None,
+    *,
+    dtype: str = "float32",
+    normalize: bool = True,
+    device: str = "cpu",
+    progress: ProgressFactory | None = None,
+    frames: str | None = None,
+    loaded: Callable[[str, Traversal], None] | None = None,
+    indexed: Callable[[ShardedMap], object] | None = None,
+    **extraction: Any,
+) -> ShardedMap:
+    """``build_map``, written straight as ``shards`` shard maps overlapping by ``overlap`` frames
+    (``shards.write_sharded_map``: never the whole map first); ``indexed`` (e.g. ``index_shards``) runs on them
+    before they replace anything at ``out``."""
+    whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
+                                device=device, progress=progress, frames=frames, loaded=loaded, **extraction)
+    return write_sharded_map(out, whole, info, shards, overlap, indexed)
+
+
+def described_map(sources: Sequence[str], name: str, description: FrameDescription = FrameDescription(),
+                  models: Mapping[str, TrainedModel] | None = None, *, dtype: str = "float32", normalize: bool = True,
+                  device: str = "cpu", progress: ProgressFactory | None = None, frames: str | None = None,
+                  loaded: Callable[[str, Traversal], None] | None = None, **extraction: Any) -> tuple[Traversal, MapInfo]:
+    """Every source described (cut to source frames ``START:STOP`` when ``frames`` is given), passed through a
+    SeqMatchNet model if given, laid end to end (each source its own segments) and L2-normalised (as matching does)
+    unless told not to: the frames, their rows read a chunk at a time, and the map's ``map.json`` record. ``loaded``
+    is told each source and its traversal as soon as it is read (before describing), for a command to report what
+    was read (a bag's topics: ``Traversal.bag``)."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
@@ -156,7 +195,7 @@ def build_map(
             loaded(source, traversal)
         traversal = describe_frames(traversal, description, models, device, progress, **extraction)
         described.append(transformed_by(traversal, models, device))
-    whole = concatenate_traversals(described, Path(out).name)
+    whole = concatenate_traversals(described, name)
     assert whole.descriptors is not None
     # read a chunk at a time (a memory-mapped source's pages handed back after each), normalised as it is written
     # by the torch operation matching applies to a reference
@@ -165,8 +204,7 @@ def build_map(
     info = MapInfo(len(whole), int(rows.shape[1]), dtype, normalize,
                    {**description.to_json(), "descriptor": recorded if whole.image_paths is not None else "file"},
                    map_sources(described, list(sources)), model_records(models))
-    write_indexed_map(Path(out), whole.with_descriptors(rows), info, indexed)
-    return open_map(out)
+    return whole.with_descriptors(rows), info
 
 
 class RowChain:

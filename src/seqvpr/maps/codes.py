@@ -94,15 +94,22 @@ def sampled_rows(rows, picked: np.ndarray, chunk: int | None = None) -> np.ndarr
     return np.concatenate(parts)
 
 
-def write_encoded(path, rows, storage: str, seed: int = 0) -> np.ndarray | None:
+def fit_encoder(rows, storage: str, seed: int = 0):
+    """The encoder of ``storage`` fitted to ``rows`` (read a chunk at a time): a function from a float32 block to
+    its stored block, and the side array it was fitted with (None for the plain storages). sq8's range is the
+    rows' exact minimum and maximum; pq's codebooks are trained on a seeded sample."""
+    kind, m = parse_storage(storage, rows.shape[1])
+    return _coder(rows, kind, m, seed)
+
+
+def write_encoded(path, rows, storage: str, seed: int = 0, fitted=None) -> np.ndarray | None:
     """``rows`` [N, D] (read a chunk at a time) stored as ``storage`` into the ``.npy`` at ``path``, written a chunk
-    at a time; the side array returned (None for the plain storages). The same bytes as encoding them whole: sq8's
-    range is the exact minimum and maximum, pq's codebooks are trained on a seeded sample."""
+    at a time, by ``fitted`` (``fit_encoder``'s, e.g. fitted to a whole map whose shard these rows are) or an encoder
+    fitted to them; the side array returned (None for the plain storages). The same bytes as encoding them whole."""
     from numpy.lib import format as npy
 
-    kind, m = parse_storage(storage, rows.shape[1])
     shape, dtype = stored_shape(storage, len(rows), rows.shape[1])
-    coder, side = _coder(rows, kind, m, seed)
+    coder, side = fitted or fit_encoder(rows, storage, seed)
     # plain writes, not a memory map: a full device is an OSError here, where a mapped write would be a SIGBUS
     with open(path, "wb") as handle:
         npy.write_array_header_1_0(handle, {"descr": npy.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,

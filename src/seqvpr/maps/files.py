@@ -27,7 +27,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -88,38 +88,52 @@ class MapInfo:
         return values
 
 
-def write_map(folder: str | Path, frames: Traversal, info: MapInfo) -> Path:
+def write_map(folder: str | Path, frames: Traversal, info: MapInfo, fitted=None) -> Path:
     """Write a map folder atomically: the rows checked (finite; unit length in a normalised map) before anything is
     written, the descriptors in ``info.dtype`` (read, encoded and written a chunk at a time: ``frames.descriptors``
-    may be a memory map or lazy rows, never held whole), the per-frame table (names as ``Traversal.image_names``), each
-    file's digest and the map's identity in ``map.json``, written last (its ``crs`` the frames'); the folder is
-    opened as a reader would before it replaces an old map, so a map that cannot be opened never takes the name."""
-    from seqvpr import __version__
-
+    may be a memory map or lazy rows, never held whole; by ``fitted``, ``codes.fit_encoder``'s, when given), the
+    per-frame table (``write_frame_table``), each file's digest and the map's identity in ``map.json``, written last;
+    the folder is opened as a reader would before it replaces an old map, so a map that cannot be opened never takes
+    the name."""
     assert frames.descriptors is not None
     parse_storage(info.dtype, frames.descriptors.shape[1])  # an unknown storage fails before anything is written
     check_rows(frames.descriptors, info.normalized, f"{folder}: the map's rows")
     names = frames.image_names()
     check_names(names, folder)
-    columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
-    stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    info = MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns,
-                      "crs": frames.crs, "version": MAP_VERSION})
+    info = completed_info(frames, info)
     with atomic_folder(folder, INFO_FILE) as tmp:
-        side = write_encoded(tmp / DESCRIPTORS_FILE, frames.descriptors, info.dtype)  # a chunk at a time
+        side = write_encoded(tmp / DESCRIPTORS_FILE, frames.descriptors, info.dtype, fitted=fitted)  # by chunks
         if side is not None:
             np.save(tmp / SIDE_FILES[parse_storage(info.dtype)[0]], side)
-        np.save(tmp / "segments.npy", frames.segment_ids.astype(np.int64))
-        np.save(tmp / "frame_index.npy", frames.frame_index.astype(np.int64))
-        np.save(tmp / "sources.npy", np.repeat(np.arange(len(info.sources), dtype=np.int32),
-                                               [s.frames for s in info.sources]))
-        for column in columns:
-            np.save(tmp / f"{column}.npy", np.asarray(getattr(frames, column), dtype=np.float64))
-        if names is not None:
-            write_names(tmp, names)
+        write_frame_table(frames, info, names, lambda name: open(tmp / name, "wb"))
         write_sealed_info(tmp, info)
         open_map(tmp)  # what a reader will do, before the map replaces anything
     return Path(folder)
+
+
+def completed_info(frames: Traversal, info: MapInfo) -> MapInfo:
+    """``info`` as ``map.json`` records it for ``frames``: this seqvpr's version, the time, the optional columns
+    the frames have and their positions' ``crs`` (digests and identity come when the files are sealed)."""
+    from seqvpr import __version__
+
+    columns = tuple(c for c in OPTIONAL_COLUMNS if getattr(frames, c) is not None)
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    return MapInfo(**{**info.__dict__, "library_version": __version__, "created": stamp, "columns": columns,
+                      "crs": frames.crs, "version": MAP_VERSION})
+
+
+def write_frame_table(frames: Traversal, info: MapInfo, names: Sequence[str] | None,
+                      open_file: Callable[[str], Any]) -> None:
+    """The per-frame files of a map (segments, source frame numbers, sources, ``info.columns``, names) each
+    written to ``open_file(name)`` (a binary handle: a file, or a digest of the bytes a file would hold)."""
+    arrays = {"segments.npy": frames.segment_ids.astype(np.int64), "frame_index.npy": frames.frame_index.astype(np.int64),
+              "sources.npy": np.repeat(np.arange(len(info.sources), dtype=np.int32), [s.frames for s in info.sources])}
+    arrays.update({f"{c}.npy": np.asarray(getattr(frames, c), dtype=np.float64) for c in info.columns})
+    for name, values in arrays.items():
+        with open_file(name) as handle:
+            np.save(handle, values)
+    if names is not None:
+        write_names(names, open_file)
 
 
 def write_sealed_info(folder: Path, info: MapInfo) -> MapInfo:
@@ -181,7 +195,7 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     for name, values in rows.items():
         np.save(folder / name, values)
     if saved.frames.names is not None:
-        write_names(folder, saved.frames.names[lo:hi])
+        write_names(saved.frames.names[lo:hi], lambda name: open(folder / name, "wb"))
     sources = tuple(MapSource(saved.info.sources[int(k)].source, saved.info.sources[int(k)].name,
                               int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
                     for i, k in enumerate(kept))

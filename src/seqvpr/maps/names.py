@@ -5,8 +5,9 @@ file existed has its lines found by one scan of the file."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,10 +22,14 @@ def name_offsets(names: Sequence[str]) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
 
 
-def write_names(folder: Path, names: Sequence[str]) -> None:
-    """``names.txt`` and its ``names_offsets.npy`` (names are checked to hold no line separator first)."""
-    (folder / NAMES_FILE).write_bytes("".join(f"{n}\n" for n in names).encode())
-    np.save(folder / OFFSETS_FILE, name_offsets(names))
+def write_names(names: Sequence[str], open_file: Callable[[str], Any]) -> None:
+    """``names.txt`` and its ``names_offsets.npy``, each to ``open_file(name)`` (a binary handle), the names encoded
+    65,536 at a time (names are checked to hold no line separator first)."""
+    with open_file(NAMES_FILE) as handle:
+        for start in range(0, len(names), 65_536):
+            handle.write("".join(f"{n}\n" for n in names[start : start + 65_536]).encode())
+    with open_file(OFFSETS_FILE) as handle:
+        np.save(handle, name_offsets(names))
 
 
 class FrameNames(Sequence[str]):
