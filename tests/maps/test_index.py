@@ -3,6 +3,7 @@ shortlist as wide as the map equal to exhaustive matching."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,9 @@ from hypothesis import strategies as st
 
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, open_map, match_map
-from seqvpr.maps.index import IndexSpec, add_index, open_frame_index, parse_index_spec, search_frames
+from seqvpr.maps.index import (
+    IndexSpec, add_index, auto_index_spec, open_frame_index, parse_index_spec, search_frames,
+)
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.matchers.settings import MatchSettings
@@ -34,8 +37,65 @@ def test_index_specs_parse_and_bad_ones_are_one_line():
     assert parse_index_spec("hnsw:32") == IndexSpec("hnsw", m=32)
     assert parse_index_spec("IVF:1024,pq:32") == IndexSpec("ivf", nlist=1024, pq=32)
     assert str(parse_index_spec("ivf:64,pq:8")) == "ivf:64,pq:8"
+    assert parse_index_spec("Auto") == IndexSpec("auto") and str(IndexSpec("auto")) == "auto"
     for bad in ("ivf", "hnsw:0", "ivf:16,pq", "pq:8", "lsh"):
-        raises_one_line("expected flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 2", parse_index_spec, bad)
+        raises_one_line("expected auto, flat, hnsw:M or ivf:NLIST" if bad != "hnsw:0" else "at least 2",
+                        parse_index_spec, bad)
+
+
+@pytest.mark.parametrize("n, dim, expected", [
+    (9_999, 256, "flat"), (10_000, 256, "ivf:128,pq:32"), (100_000, 256, "ivf:256,pq:32"),
+    (1_000_000, 256, "ivf:1024,pq:32"), (10_000_000, 256, "ivf:1024,pq:32"), (1_000_000, 2048, "ivf:1024,pq:256"),
+    (50_000, 100, "ivf:256,pq:10"), (50_000, 7, "ivf:256,pq:1"),
+])
+def test_auto_is_flat_for_small_maps_and_ivf_pq_without_the_vectors_for_large_ones(n, dim, expected):
+    """About sqrt(N) lists (a power of two, at most 1,024: k-means stays minutes on two cores) and a PQ byte for
+    every 8 dimensions, a divisor of the dimension."""
+    spec = auto_index_spec(n, dim)
+    assert str(spec) == expected
+    assert spec.kind == "flat" or dim % spec.pq == 0
+
+
+def test_an_interrupted_index_build_goes_on_from_its_last_save_and_gives_the_same_index(tmp_path, monkeypatch):
+    """``map index`` saves its partial index beside the map (once trained, then every CHECKPOINT_ROWS rows); a run
+    stopped part way (here: a failing add) and run again resumes there, and the index equals one built at once."""
+    import faiss
+
+    from seqvpr.maps import index as module
+
+    rng = np.random.default_rng(0)
+    rows = rng.standard_normal((3000, 16)).astype(np.float32)
+    np.save(tmp_path / "rows.npy", rows)
+    build_map([str(tmp_path / "rows.npy")], tmp_path / "map")
+    build_map([str(tmp_path / "rows.npy")], tmp_path / "fresh")
+    monkeypatch.setattr(module, "ADD_BLOCK", 256)
+    monkeypatch.setattr(module, "CHECKPOINT_ROWS", 1024)
+    spec = parse_index_spec("ivf:16,pq:4")
+    whole = add_index(open_map(tmp_path / "fresh"), spec, seed=3)
+    added, real_add = [], faiss.IndexIVFPQ.add
+
+    def failing_add(index, block):
+        added.append(len(block))
+        if sum(added) > 2300:
+            raise KeyboardInterrupt
+        return real_add(index, block)
+
+    monkeypatch.setattr(faiss.IndexIVFPQ, "add", failing_add)
+    saved = open_map(tmp_path / "map")
+    with pytest.raises(KeyboardInterrupt):
+        add_index(saved, spec, seed=3)
+    partial = module.partial_folder(saved)
+    assert json.loads((partial / "progress.json").read_text())["rows"] == 2048  # the last save before the stop
+    assert open_map(tmp_path / "map").info.index is None  # nothing committed
+    monkeypatch.setattr(faiss.IndexIVFPQ, "add", real_add)
+    ticks = []
+    record = add_index(saved, spec, seed=3, progress=lambda total, what: (ticks.append(what), ticks.append)[1])
+    assert "index ivf:16,pq:4 (resumed at row 2048)" in ticks and not partial.exists()
+    resumed = faiss.serialize_index(open_frame_index(open_map(tmp_path / "map")))
+    assert np.array_equal(resumed, faiss.serialize_index(open_frame_index(open_map(tmp_path / "fresh"))))
+    assert record["spec"] == whole["spec"] == "ivf:16,pq:4"
+    add_index(saved, spec, seed=4)  # another seed: a fresh build, no partial from before is used or left
+    assert not partial.exists()
 
 
 @settings(max_examples=examples(80), deadline=None)

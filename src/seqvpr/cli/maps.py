@@ -27,8 +27,10 @@ Examples:
 """
 
 
-INDEX_HELP = ("faiss index over the frames, for --shortlist: flat (exact), hnsw:M (graph, e.g. hnsw:32) or "
-              "ivf:NLIST[,pq:M] (k-means lists, raw or M-byte PQ codes, e.g. ivf:1024,pq:32).")
+INDEX_HELP = ("faiss index over the frames, for --shortlist: auto (flat below 10,000 frames, else IVF-PQ with about "
+              "sqrt(N) lists, at most 1,024, and a byte per 8 dimensions), flat (exact), hnsw:M (graph, e.g. hnsw:32) "
+              "or ivf:NLIST[,pq:M] (k-means lists, raw or M-byte PQ codes, e.g. ivf:1024,pq:32). An interrupted "
+              "build resumes from its last save when run again.")
 
 
 WINDOWS_HELP = ("Index the sequence descriptors (--window-method) of the centred windows of this many frames "

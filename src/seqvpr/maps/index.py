@@ -19,7 +19,7 @@ from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError
 from seqvpr.identity import check_digest, remember_digest, seal_files
 from seqvpr.io import commit_folder, output_lock, temporary_folder
-from seqvpr.maps.files import INFO_FILE, SavedMap, open_map
+from seqvpr.maps.files import INFO_FILE, SavedMap, is_plain_name, open_map
 
 INDEX_FILE = "index.faiss"
 ADD_BLOCK = 65_536  # map rows added to an index at a time (a memory-mapped map is never read whole)
@@ -32,8 +32,8 @@ PQ_CENTROIDS = 256  # codes of one PQ byte: its k-means needs at least this many
 
 @dataclass(frozen=True)
 class IndexSpec:
-    """What ``--index`` names: ``flat`` (exact), ``hnsw:M`` (graph, M links a node) or ``ivf:NLIST[,pq:M]``
-    (NLIST k-means lists, raw vectors or M-byte PQ codes)."""
+    """What ``--index`` names: ``flat`` (exact), ``hnsw:M`` (graph, M links a node), ``ivf:NLIST[,pq:M]``
+    (NLIST k-means lists, raw vectors or M-byte PQ codes) or ``auto`` (chosen for the map's size)."""
 
     kind: str
     m: int = 0
@@ -41,6 +41,8 @@ class IndexSpec:
     pq: int = 0
 
     def __str__(self) -> str:
+        if self.kind == "auto":
+            return "auto"
         if self.kind == "hnsw":
             return f"hnsw:{self.m}"
         if self.kind == "ivf":
@@ -49,17 +51,18 @@ class IndexSpec:
 
 
 def parse_index_spec(text: str) -> IndexSpec:
-    """``flat``, ``hnsw:32``, ``ivf:1024`` or ``ivf:1024,pq:32``; anything else is a one-line error."""
+    """``flat``, ``hnsw:32``, ``ivf:1024``, ``ivf:1024,pq:32`` or ``auto`` (``auto_index_spec``); anything else is
+    a one-line error."""
     spec = text.strip().lower()
-    if spec == "flat":
-        return IndexSpec("flat")
+    if spec in ("flat", "auto"):
+        return IndexSpec(spec)
     if match := re.fullmatch(r"hnsw:(\d+)", spec):
         if not 2 <= int(match.group(1)) <= MAX_HNSW_M:
             raise SeqvprError(f"--index {text!r}: hnsw:M needs M at least 2 and at most {MAX_HNSW_M} (links a node)")
         return IndexSpec("hnsw", m=int(match.group(1)))
     if match := re.fullmatch(r"ivf:(\d+)(?:,pq:(\d+))?", spec):
         return IndexSpec("ivf", nlist=_positive(match.group(1), text), pq=_positive(match.group(2) or "0", text, 0))
-    raise SeqvprError(f"--index {text!r}: expected flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
+    raise SeqvprError(f"--index {text!r}: expected auto, flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
 
 
 def _positive(value: str, text: str, least: int = 1) -> int:
@@ -108,24 +111,113 @@ def index_model(saved: SavedMap):
     return load_trained_model(record["folder"]).module
 
 
-def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None):
+AUTO_FLAT_BELOW = 10_000  # frames: below this ``auto`` is exact (a copy of a small map costs little)
+AUTO_MAX_LISTS = 1024  # IVF lists ``auto`` uses at most: k-means and list assignment stay minutes on two cores
+CHECKPOINT_ROWS = 1 << 20  # rows added between two saved partial indexes (``map index`` resumes from the last)
+
+
+def auto_index_spec(n: int, dim: int) -> IndexSpec:
+    """The index ``auto`` builds over ``n`` vectors of ``dim``: ``flat`` for small maps, else IVF-PQ that never
+    stores the vectors again (the map's rows serve re-ranking): about sqrt(n) lists (a power of two, 16 to
+    ``AUTO_MAX_LISTS``) and PQ codes of one byte for every 8 dimensions (M the largest divisor of ``dim`` up to
+    ``dim / 8``)."""
+    if n < AUTO_FLAT_BELOW:
+        return IndexSpec("flat")
+    lists = int(np.clip(2 ** round(np.log2(np.sqrt(n))), 16, AUTO_MAX_LISTS))
+    m = max(d for d in range(1, max(1, dim // 8) + 1) if dim % d == 0)
+    return IndexSpec("ivf", nlist=lists, pq=m)
+
+
+def resolved_spec(spec: IndexSpec, n: int, dim: int) -> IndexSpec:
+    """``spec`` itself, or what ``auto`` means for ``n`` vectors of ``dim``."""
+    return auto_index_spec(n, dim) if spec.kind == "auto" else spec
+
+
+def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, progress=None,
+                      partial: Path | None = None, key: dict[str, Any] | None = None):
     """A faiss index over the rows of ``descriptors`` (read a block at a time); IVF lists are trained on a seeded
-    sample of ``TRAIN_PER_LIST`` rows a list."""
+    sample of ``TRAIN_PER_LIST`` rows a list. With a ``partial`` folder, the index is saved there once trained and
+    every ``CHECKPOINT_ROWS`` rows, under ``key`` (what it is built over and how), and a build interrupted with the
+    same key goes on from its last save: the same index as one uninterrupted build (rows are added in order)."""
     import faiss
 
     n, dim = descriptors.shape
+    spec = resolved_spec(spec, n, dim)
     check_index_spec(spec, n, dim)
-    index = _empty_index(faiss, spec, dim)
-    if spec.kind == "ivf":
-        index.cp.seed = seed
-        rows = np.sort(np.random.default_rng(seed).choice(n, size=min(n, TRAIN_PER_LIST * spec.nlist), replace=False))
-        index.train(np.ascontiguousarray(descriptors[rows], dtype=np.float32))
-    tick = progress(n, f"index {spec}") if progress else None
-    for begin in range(0, n, ADD_BLOCK):
+    key = {**(key or {}), "spec": str(spec), "seed": seed, "count": int(n), "dim": int(dim)}
+    index, done = resumed_index(partial, key) if partial is not None else (None, 0)
+    if index is None:
+        index = _empty_index(faiss, spec, dim)
+        if spec.kind == "ivf":
+            train = progress(1, f"train {spec} on {min(n, TRAIN_PER_LIST * spec.nlist)} rows") if progress else None
+            index.cp.seed = seed
+            rows = np.sort(np.random.default_rng(seed).choice(n, size=min(n, TRAIN_PER_LIST * spec.nlist),
+                                                              replace=False))
+            index.train(np.ascontiguousarray(descriptors[rows], dtype=np.float32))
+            if train:
+                train(1)
+            save_partial(partial, index, 0, key)
+    tick = progress(n, f"index {spec}" + (f" (resumed at row {done})" if done else "")) if progress else None
+    if tick and done:
+        tick(done)
+    for begin in range(done, n, ADD_BLOCK):
         index.add(np.ascontiguousarray(descriptors[begin : begin + ADD_BLOCK], dtype=np.float32))
         if tick:
             tick(min(ADD_BLOCK, n - begin))
+        added = min(begin + ADD_BLOCK, n)
+        if added < n and added % CHECKPOINT_ROWS < ADD_BLOCK:
+            save_partial(partial, index, added, key)
     return index
+
+
+PROGRESS_FILE = "progress.json"
+
+
+def save_partial(folder: Path | None, index, rows: int, key: dict[str, Any]) -> None:
+    """Save a partial index (``rows`` added) to ``folder``: the index under a new name, then ``progress.json``
+    naming it (atomically), then the older one removed, so the folder always names a whole file."""
+    import faiss
+
+    from seqvpr.io import atomic_write
+
+    if folder is None:
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    name = f"index-{rows}.faiss"
+    faiss.write_index(index, str(folder / f"{name}.part"))
+    os.replace(folder / f"{name}.part", folder / name)
+    with atomic_write(folder / PROGRESS_FILE) as handle:
+        handle.write(json.dumps({"key": key, "rows": rows, "file": name}))
+    for old in folder.glob("index-*.faiss"):
+        if old.name != name:
+            old.unlink(missing_ok=True)
+
+
+def resumed_index(folder: Path, key: dict[str, Any]):
+    """The partial index saved in ``folder`` for ``key`` and the rows it holds, or (None, 0): none saved, saved for
+    another map, spec or seed (then cleared), or unreadable."""
+    import faiss
+
+    try:
+        progress = json.loads((folder / PROGRESS_FILE).read_text())
+        if progress["key"] != key or not is_plain_name(progress["file"]):
+            raise ValueError("another build")
+        index = faiss.read_index(str(folder / progress["file"]))
+        if index.ntotal != int(progress["rows"]):
+            raise ValueError("rows")
+        return index, int(progress["rows"])
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError):
+        shutil.rmtree(folder, ignore_errors=True)
+        return None, 0
+
+
+def partial_folder(saved: SavedMap) -> Path | None:
+    """Where an index of ``saved`` is kept while it is built: beside the map folder, named by the map's identity
+    (so a map rebuilt to the same rows, even under a temporary name, finds it), removed once the index is committed;
+    None for a map without an identity (its index is not resumable)."""
+    if not saved.info.identity:
+        return None
+    return Path(saved.folder).parent / f".seqvpr-index-{saved.info.identity.split(':')[-1][:16]}"
 
 
 def check_index_spec(spec: IndexSpec, n: int, dim: int) -> None:
@@ -183,8 +275,11 @@ def _index_new_version(saved: SavedMap, spec: IndexSpec, seed: int, progress, wi
     model = _seqnet(model_folder) if windows and model_folder is not None else None
     described = window_vectors(saved.descriptors, saved.frames.segment_ids, windows, method, model) if windows else None
     vectors = described.vectors if described else saved.descriptors
-    index = build_frame_index(vectors, spec, seed, progress)
-    record = {"spec": str(spec), "over": f"{method}:{windows}" if windows else "frames", "file": INDEX_FILE,
+    over = f"{method}:{windows}" if windows else "frames"
+    partial = partial_folder(saved)
+    index = build_frame_index(vectors, spec, seed, progress, partial, {"map": saved.info.identity, "over": over})
+    spec = resolved_spec(spec, *vectors.shape)
+    record = {"spec": str(spec), "over": over, "file": INDEX_FILE,
               "ntotal": int(index.ntotal), "dim": int(vectors.shape[1]), "seed": seed,
               "build_seconds": round(time.perf_counter() - started, 2), "map": saved.info.identity}
     if model is not None:
@@ -203,6 +298,8 @@ def _index_new_version(saved: SavedMap, spec: IndexSpec, seed: int, progress, wi
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if partial is not None:
+        shutil.rmtree(partial, ignore_errors=True)  # committed: nothing left to resume
     for name, digest in linked.items():  # removing the old links changed the files' change time, not their bytes
         remember_digest(folder / name, digest)
     return record
