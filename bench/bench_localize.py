@@ -10,6 +10,10 @@ Run from the repository root (CPU; about 15 minutes and 3 GB of disk in ``--work
   ``bench_maps.py``) and 300 query frames (map rows plus noise). In the same run, per frame: the floor is
   ``torch.mv`` of the memory-mapped map (a torch view of the same pages) with the query; the exact update is
   ``Localizer.update`` with L = 5. Medians over the frames; the ratio is update / floor. ms per stage.
+* loaded: the exact update against the floor at 10k and 1M frames (256-D, L = 5), each in a fresh process
+  (so seqvpr's default thread count is chosen at its start, as a command's is) beside ``--loads`` processes each
+  spinning one core, at the default thread setting and at ``--settings``; the floor runs at the same thread count
+  in the same process, interleaved with the updates.
 * shortlist: the 1M-frame Nordland-with-distractors map of ``bench_shortlist.py`` (256-D; its data is described
   there), 1,000 winter query frames replayed through the exact localiser and through a shortlisted one
   (``ivf:4096``, S = 5 a frame, the 20 frames before the window carried forward, nprobe 8): ms per frame and R@1
@@ -93,6 +97,79 @@ def latency(work: Path) -> str:
             f"{stage[0]:.2f} / {stage[1]:.2f} / {stage[2]:.2f} ms |")
 
 
+LOADED_SIZES, LOADED_DIM, LOADED_QUERIES = (10_000, 1_000_000), 256, 400
+
+
+def loaded_worker(folder: Path) -> dict:
+    """In a fresh process (its thread policy chosen at start, as a command's is): per frame, the floor (``torch.mv``
+    of the map's memory map with the frame, at the same thread count) and ``Localizer.update``, interleaved; medians
+    over the frames after the first 20."""
+    import json
+
+    from seqvpr import threads
+
+    saved = open_map(folder)
+    localizer = Localizer.open(saved, seq_len=5)  # applies the default policy, as every entry point does
+    n = saved.info.count
+    rng = np.random.default_rng(1)
+    rows = np.asarray(saved.descriptors[n // 5 : n // 5 + LOADED_QUERIES])
+    queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
+    matrix = torch.from_numpy(saved.descriptors)
+    floors, updates, stages = [], [], []
+    for q in queries:
+        vector = torch.from_numpy(q / np.linalg.norm(q))
+        started = time.perf_counter()
+        torch.mv(matrix, vector)
+        floors.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        estimate = localizer.update(q)
+        updates.append(time.perf_counter() - started)
+        stages.append([estimate.latency[s] for s in ("describe", "distance", "sequence")])
+    policy = threads.current_policy()
+    return {"floor": float(np.median(floors[20:]) * 1e3), "update": float(np.median(updates[20:]) * 1e3),
+            "stages": np.median(np.array(stages[20:]), axis=0).tolist(), "threads": policy.threads,
+            "policy": policy.describe()}
+
+
+def loaded(work: Path, loads: list[int], settings: list[str]) -> list[str]:
+    """Exact update against the floor at 10k and 1M frames (256-D, L = 5) in fresh processes beside ``loads``
+    spinning processes, at the default thread setting and at fixed ones."""
+    import json
+    import os
+    import subprocess
+
+    from bench_threads import spin_load
+
+    lines = []
+    for n in LOADED_SIZES:
+        folder = work / f"loaded_map_{n}"
+        if not (folder / "map.json").exists():
+            write_plain_map(folder, slow_path(n, LOADED_DIM, 0))
+        for load in loads:
+            for setting in settings:
+                env = {k: v for k, v in os.environ.items() if k not in ("SEQVPR_THREADS", "OMP_NUM_THREADS")}
+                if setting != "default":
+                    env["SEQVPR_THREADS"] = setting
+                spinners = spin_load(load)
+                try:
+                    time.sleep(1.0 if load else 0.0)
+                    done = subprocess.run([sys.executable, __file__, "--worker", str(folder)], env=env,
+                                          capture_output=True, text=True, timeout=1800)
+                finally:
+                    for process in spinners:
+                        process.kill()
+                        process.wait()
+                if done.returncode:
+                    raise SystemExit(done.stderr[-2000:])
+                r = json.loads(done.stdout.strip().splitlines()[-1])
+                stage = r["stages"]
+                lines.append(f"| {n:,} x {LOADED_DIM} | {load} | {setting} ({r['threads']}) | {r['floor']:.3f} ms | "
+                             f"{r['update']:.3f} ms | **{r['update'] / r['floor']:.2f}x** | "
+                             f"{stage[0]:.3f} / {stage[1]:.3f} / {stage[2]:.3f} ms |")
+                print(lines[-1], flush=True)
+    return lines
+
+
 def shortlist(work: Path, data: Path) -> list[str]:
     """Exact against shortlisted localisation on the 1M-frame distractor map (bench_shortlist's data)."""
     from bench_shortlist import QUERY_FRAMES, _truth, nordland_256, write_distractor_map
@@ -161,11 +238,21 @@ def filters(work: Path, data: Path) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--work", type=Path)
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--shortlist-work", type=Path, help="Where bench_shortlist.py left its maps (reused).")
-    parser.add_argument("--parts", default="latency,shortlist,filter")
+    parser.add_argument("--parts", default="latency,shortlist,filter", help="latency, loaded, shortlist, filter")
+    parser.add_argument("--loads", default="0,2", help="loaded: spinning processes beside the localiser.")
+    parser.add_argument("--settings", default="default,1,2", help="loaded: thread settings (default: seqvpr's).")
+    parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.worker:
+        import json
+
+        print(json.dumps(loaded_worker(args.worker)))
+        return
+    if args.work is None:
+        parser.error("--work is required")
     args.work.mkdir(parents=True, exist_ok=True)
     parts = args.parts.split(",")
     text = [f"{cpu_model()}, {torch.get_num_threads()} threads"]
@@ -173,6 +260,10 @@ def main() -> None:
         text += ["", "| map | matrix-vector floor | exact update | ratio | describe / distance / sequence |",
                  "|---|---:|---:|---:|---|", latency(args.work)]
         print("\n".join(text), flush=True)
+    if "loaded" in parts:
+        text += ["", "| map | busy processes | threads (count) | matrix-vector floor | exact update | ratio | "
+                 "describe / distance / sequence |", "|---|---:|---|---:|---:|---:|---|",
+                 *loaded(args.work, [int(x) for x in args.loads.split(",")], args.settings.split(","))]
     if "shortlist" in parts:
         text += ["", "| 1M frames, L = 5 | per frame | distance / sequence (median) | R@1 | R@20 |",
                  "|---|---:|---|---:|---:|", *shortlist(args.shortlist_work or args.work, args.data)]

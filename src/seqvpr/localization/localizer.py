@@ -205,10 +205,11 @@ class Localizer:
 
     def _describe(self, frame: Any) -> torch.Tensor:
         """The frame as a map frame: described (images), transformed (SeqMatchNet at match time), normalised."""
-        array = frame if isinstance(frame, (np.ndarray, torch.Tensor)) else None
-        is_descriptor = array is not None and np.asarray(array).ndim == 1 and np.asarray(array).dtype != np.uint8
+        array = np.asarray(frame) if isinstance(frame, (np.ndarray, torch.Tensor)) else None
+        is_descriptor = array is not None and array.ndim == 1 and array.dtype != np.uint8
         if is_descriptor:
-            vector = torch.as_tensor(np.asarray(frame, dtype=np.float32))
+            array = array.astype(np.float32, copy=False)
+            vector = torch.from_numpy(array)
         elif self.encoder is None:
             raise SeqvprError(f"{self.saved.folder} holds descriptor-file frames: update() takes a descriptor [D]")
         else:
@@ -218,7 +219,7 @@ class Localizer:
             held = f"{self.saved.info.dim}-D frames" if self.transform is None else \
                 f"frames of {wanted}-D descriptors through its SeqMatchNet model"
             raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {held}")
-        if not torch.isfinite(vector).all():
+        if not (np.isfinite(array).all() if is_descriptor else torch.isfinite(vector).all()):
             raise SeqvprError("the frame's descriptor holds NaN or infinite values")
         if self.transform is not None:  # the map holds transformed frames: the one place the transform is applied
             vector = frame_row(vector, self.transform.module, normalize=False)

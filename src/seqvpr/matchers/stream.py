@@ -58,20 +58,17 @@ class FullPass:
     """One distance pass a frame over every reference row, the rows' squared norms computed once."""
 
     def __init__(self, rows) -> None:
-        from seqvpr.sequences.matching import reference_squared_norms
+        from seqvpr.sequences.matching import ReferenceBlocks
 
-        self.rows = rows
-        self.norms = reference_squared_norms(rows)
+        self.rows, self.blocks = rows, ReferenceBlocks(rows)
+        self.norms = self.blocks.norms
         self.distances = np.empty(len(rows), dtype=np.float32)  # reused: no allocation of the map's size
 
     def measure(self, frame: torch.Tensor, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The frame's distances to every reference row [N] (into ``out``, else a buffer the next frame
         overwrites), and the milliseconds they took."""
-        from seqvpr.sequences.matching import distances_to_reference
-
         started = time.perf_counter()
-        into = (self.distances if out is None else out)[None]
-        return distances_to_reference(frame[None], self.rows, self.norms, out=into)[0], elapsed_ms(started)
+        return self.blocks.distances_into(frame, self.distances if out is None else out), elapsed_ms(started)
 
 
 class DiagonalStepper(FullPass):

@@ -143,35 +143,60 @@ def _rows_or_pad(d: np.ndarray, start: int, length: int) -> np.ndarray:
     return block
 
 
+@njit(cache=True, nogil=True, boundscheck=False)
+def _distances_row(row, qi, reference_sq, floor):
+    for j in range(row.shape[0]):
+        v = qi + reference_sq[j] - 2.0 * row[j]
+        row[j] = np.sqrt(v if v > floor else floor)
+
+
 @njit(cache=True, parallel=True, boundscheck=False)
 def _distances_from_dots(g, query_sq, reference_sq, floor):
     for i in prange(g.shape[0]):
-        row = g[i]
-        qi = query_sq[i]
-        for j in range(row.shape[0]):
-            v = qi + reference_sq[j] - 2.0 * row[j]
-            row[j] = np.sqrt(v if v > floor else floor)
+        _distances_row(g[i], query_sq[i], reference_sq, floor)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _distances_from_dots_serial(g, query_sq, reference_sq, floor):
+    for i in range(g.shape[0]):
+        _distances_row(g[i], query_sq[i], reference_sq, floor)
 
 
 def distances_from_dots_(g: np.ndarray, query_sq: np.ndarray, reference_sq: np.ndarray, floor: float = 1e-12) -> None:
     """Overwrite the dot products ``g`` [n, m] with Euclidean distances ``sqrt(max(|q|^2 + |r|^2 - 2 g, floor))``
-    in one parallel pass (no n x m temporary of squared norms)."""
-    _distances_from_dots(g, query_sq.astype(g.dtype), reference_sq.astype(g.dtype), g.dtype.type(floor))
+    in one pass (no n x m temporary of squared norms): parallel over rows; one row (a localiser's frame) in this
+    thread, so its pool never wakes beside torch's."""
+    kernel = _distances_from_dots if g.shape[0] > 1 else _distances_from_dots_serial
+    kernel(g, np.asarray(query_sq, g.dtype), np.asarray(reference_sq, g.dtype), g.dtype.type(floor))
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _squared_norm(row):
+    total = 0.0
+    for j in range(row.shape[0]):
+        total += row[j] * row[j]
+    return total
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
 def _squared_norms(x, out):
     for i in prange(x.shape[0]):
-        total = 0.0
-        for j in range(x.shape[1]):
-            total += x[i, j] * x[i, j]
-        out[i] = total
+        out[i] = _squared_norm(x[i])
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _squared_norms_serial(x, out):
+    for i in range(x.shape[0]):
+        out[i] = _squared_norm(x[i])
+
+
+SERIAL_ROWS = 64  # rows below which a pass runs in the calling thread (a parallel launch costs more)
 
 
 def squared_norms(x: np.ndarray) -> np.ndarray:
     """Row sums of squares [n] of a C-contiguous [n, d] matrix, summed in float64 without a temporary matrix."""
     out = np.empty(len(x), dtype=np.float64)
-    _squared_norms(np.ascontiguousarray(x), out)
+    (_squared_norms if len(x) >= SERIAL_ROWS else _squared_norms_serial)(np.ascontiguousarray(x), out)
     return out
 
 

@@ -404,15 +404,48 @@ def sequence_distance_rows(
 
 
 def reference_squared_norms(reference: ReferenceRows, columns: int = 65536) -> np.ndarray:
-    """Squared norms [N] (float64) of every reference row, read chunk by chunk: computed once by a caller that
-    measures many single frames against the same rows (``distances_to_reference``)."""
+    """Squared norms [N] of every reference row, read chunk by chunk, summed in float64 and rounded once to the
+    float32 the distance pass uses: computed once by a caller that measures many single frames against the same
+    rows (``distances_to_reference``)."""
     from seqvpr.sequences._fused import squared_norms
 
     parts = []
     for lo in range(0, len(reference), columns):
         rows = reference[lo : lo + columns]
         parts.append(squared_norms(np.asarray(rows.cpu() if isinstance(rows, torch.Tensor) else rows, np.float32)))
-    return np.concatenate(parts) if parts else np.zeros(0)
+    return np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)
+
+
+class ReferenceBlocks:
+    """A reference prepared for one-frame distance passes (a localiser's): its rows' squared norms (float32, as the
+    pass uses them) and, where the rows are float32 on the CPU (in memory, or a map's memory map), torch views of
+    its blocks of ``columns`` rows made once; coded rows are read and decoded a block at a time each pass."""
+
+    def __init__(self, reference: ReferenceRows, columns: int = 65536) -> None:
+        self.reference, self.columns = reference, columns
+        self.norms = reference_squared_norms(reference, columns)
+        bounds = [(lo, min(lo + columns, len(reference))) for lo in range(0, len(reference), columns)]
+        like = torch.empty(0)
+        plain = isinstance(reference, np.ndarray) and reference.dtype == np.float32 and reference.flags.writeable
+        self.blocks = [(lo, hi, reference_rows(reference, slice(lo, hi), like) if plain else None, self.norms[lo:hi])
+                       for lo, hi in bounds]
+
+    def __len__(self) -> int:
+        return len(self.reference)
+
+    def distances_into(self, frame: torch.Tensor, out: np.ndarray) -> np.ndarray:
+        """One frame's distances [N] (float32, CPU) to every row, written into ``out``: the values
+        ``distances_to_reference`` gives, block by block, in the calling thread's pools alone."""
+        from seqvpr.sequences._fused import distances_from_dots_, squared_norms
+
+        query = frame.float().cpu()[None]
+        query_sq = squared_norms(query.numpy())
+        for lo, hi, rows, norms in self.blocks:
+            values = out[None, lo:hi]
+            block = rows if rows is not None else reference_rows(self.reference, slice(lo, hi), query)
+            torch.mm(query, block.T, out=torch.from_numpy(values))
+            distances_from_dots_(values, query_sq, norms)
+        return out
 
 
 def distances_to_reference(
@@ -433,5 +466,6 @@ def distances_to_reference(
         torch.mm(query, reference_rows(reference, slice(lo, hi), query).T, out=dots)
         values = dots.numpy()
         distances_from_dots_(values, query_sq, norms[lo:hi])
-        out[:, lo:hi] = values
+        if len(query) > 1:  # one frame's distances were measured in place
+            out[:, lo:hi] = values
     return out

@@ -7,6 +7,8 @@ match split into any chunks, shards or streams is the match done whole. ``other_
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -109,10 +111,11 @@ def uniqueness(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> fl
     """How much one ranked list's best match stands out: 1 - best / (the best of another place, ``other_place``), in
     [0, 1]; 0 with no match, 1 when no other place is in the list (SeqSLAM's ratio test as a score). A list of the
     best 2 x ``exclusion`` + 2 rows holds the best other place of the whole map when one exists."""
-    if not len(indices) or indices[0] < 0 or not np.isfinite(distances[0]):
+    rows, values = np.asarray(indices).tolist(), np.asarray(distances, dtype=np.float64).tolist()  # one short list
+    if not rows or rows[0] < 0 or not math.isfinite(values[0]):
         return 0.0
-    column = int(other_place(indices[None], distances[None], exclusion)[0])
-    second = distances[column] if column >= 0 else np.inf
-    if not np.isfinite(second) or second <= 0:
-        return 1.0 if not np.isfinite(second) else 0.0
-    return float(np.clip(1.0 - distances[0] / second, 0.0, 1.0))
+    second = next((v for r, v in zip(rows[1:], values[1:])  # other_place's rival, as plain numbers
+                   if r >= 0 and math.isfinite(v) and abs(r - rows[0]) > exclusion), math.inf)
+    if not math.isfinite(second) or second <= 0:
+        return 1.0 if not math.isfinite(second) else 0.0
+    return min(max(1.0 - values[0] / second, 0.0), 1.0)
