@@ -77,8 +77,9 @@ def write_npy_source(work: Path, n: int, seed: int = 0) -> Path:
     return path
 
 
-def measure_builds(work: Path, n: int, dtypes: list[str]) -> list[dict]:
-    """``seqvpr map build`` of an N-frame ``.npy`` into each storage: wall seconds, peak RSS, map bytes a frame."""
+def measure_builds(work: Path, n: int, dtypes: list[str], shards: int = 0) -> list[dict]:
+    """``seqvpr map build`` of an N-frame ``.npy`` into each storage (``--shards``, when given): wall seconds, peak
+    RSS, map bytes a frame."""
     import shutil
 
     source = write_npy_source(work, n)
@@ -86,9 +87,11 @@ def measure_builds(work: Path, n: int, dtypes: list[str]) -> list[dict]:
     for dtype in dtypes:
         folder = work / f"map_{n}_{dtype.replace(':', '')}"
         shutil.rmtree(folder, ignore_errors=True)
-        seconds, peak = timed_cli(seqvpr_command("map", "build", source, "--dtype", dtype, "--out", folder))
-        stored = (folder / "descriptors.npy").stat().st_size
-        rows.append({"n": n, "dtype": dtype, "build_s": seconds, "build_gb": peak, "bytes": stored / n})
+        sharding = ("--shards", str(shards)) if shards else ()
+        seconds, peak = timed_cli(seqvpr_command("map", "build", source, "--dtype", dtype, *sharding, "--out", folder))
+        stored = sum(p.stat().st_size for p in folder.rglob("descriptors.npy"))
+        rows.append({"n": n, "dtype": dtype + (f", {shards} shards" if shards else ""), "build_s": seconds,
+                     "build_gb": peak, "bytes": stored / n})
         shutil.rmtree(folder)
         print(rows[-1], flush=True)
     return rows
@@ -181,6 +184,129 @@ def measure(work: Path, n: int) -> dict:
             "cli_s": cli_s, "cli_gb": cli_gb}
 
 
+class DistractorRows:
+    """The real-derived map of ``bench_shortlist.py`` at any size, made on access (never held): the Nordland summer
+    frames (256-D), then copies of them each turned part-way towards its own seeded random rotation
+    (``cos t x + sin t R x``, t in 0.7-1.4 rad, renormalised). Row blocks are computed a copy at a time."""
+
+    ndim = 2
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, summer: np.ndarray, n: int, seed: int = 0) -> None:
+        self.summer, self.seed, self.shape = summer, seed, (n, summer.shape[1])
+        self.cached: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def copy(self, number: int) -> np.ndarray:
+        from bench_shortlist import TURNS
+
+        if number == 0:
+            return self.summer
+        if number not in self.cached:
+            rng = np.random.default_rng([self.seed, number])
+            rotation, _ = np.linalg.qr(rng.standard_normal((DIM, DIM)))
+            turn = rng.uniform(*TURNS)
+            made = np.cos(turn) * self.summer + np.sin(turn) * (self.summer @ rotation.T.astype(np.float32))
+            self.cached = {number: (made / np.linalg.norm(made, axis=1, keepdims=True)).astype(np.float32)}
+        return self.cached[number]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        start, stop, _ = key.indices(len(self))
+        size = len(self.summer)
+        parts = [self.copy(c)[max(start - c * size, 0) : min(stop - c * size, size)]
+                 for c in range(start // size, (stop - 1) // size + 1)] if stop > start else []
+        return np.concatenate(parts) if parts else np.zeros((0, DIM), np.float32)
+
+
+def peak_gb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def measure_scale(work: Path, data: Path, n: int, localise: int) -> dict:
+    """The real-derived map of N frames: written, indexed (``--index auto``), matched exactly and shortlisted (1,000
+    winter queries), and localised exactly and shortlisted (the first ``localise`` of them): seconds, peak RSS so
+    far, R@1 (the summer frame within one frame) and agreement with exact."""
+    from bench_shortlist import QUERY_FRAMES, _truth, nordland_256
+
+    from seqvpr.localization import Localizer
+    from seqvpr.localization.replay import replay, score_replay
+    from seqvpr.maps.files import MapInfo, MapSource, write_map
+    from seqvpr.maps.index import add_index, parse_index_spec
+
+    summer, winter = nordland_256(data)
+    folder = work / f"real_{n}"
+    record: dict = {"n": n}
+    started = time.perf_counter()
+    if not (folder / "map.json").exists():
+        rows = DistractorRows(summer, n)
+        copy_of = (np.arange(n) // len(summer)).astype(np.int64)
+        frames = Traversal("nordland-distractors", np.arange(n, dtype=np.int64), copy_of, rows)
+        info = MapInfo(n, DIM, "float32", True, {"descriptor": "file"}, (MapSource("generated", "summer", 0, n),))
+        write_map(folder, frames, info)
+    record.update(write_s=time.perf_counter() - started, write_gb=peak_gb())
+    saved = open_map(folder)
+    if (saved.info.index or {}).get("over") != "frames":
+        add_index(saved, parse_index_spec("auto"), seed=0)
+        saved = open_map(folder)
+    index = saved.info.index
+    record.update(spec=index["spec"], index_s=index["build_seconds"], index_gb=peak_gb(),
+                  index_bytes=(folder / index["file"]).stat().st_size / n)
+    first, last = QUERY_FRAMES
+    query = Traversal.from_descriptors(winter[first:last], "winter")
+    gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, last)], n)
+    settings = MatchSettings(SequenceSpec(LENGTH), k=K)
+    match_map(saved, query.select(np.arange(20)), "matching", settings)  # compile once
+    results = {}
+    for label, options in (("exact", {}), ("shortlist", {"shortlist": 20, "nprobe": 16}),
+                           ("shortlist+history", {"shortlist": 5, "history": 20, "nprobe": 8})):
+        started = time.perf_counter()
+        top = match_map(saved, query, "matching", settings, **options).topk
+        right = np.array([top.indices[i, 0] in gt.positives_of(i) for i in range(len(query))])
+        results[label] = top.indices[:, 0]
+        record.update({f"{label}_s": time.perf_counter() - started, f"{label}_gb": peak_gb(),
+                       f"{label}_r1": float(right[top.has_window].mean()),
+                       f"{label}_agree": float(np.mean(top.indices[top.has_window, 0] ==
+                                                       results["exact"][top.has_window]))})
+    part = query.select(np.arange(localise))
+    part_gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, first + localise)], n)
+    exact_top = None
+    for label, options in (("localise", {}), ("localise-shortlist", {"shortlist": 5, "history": 20, "nprobe": 8})):
+        localizer = Localizer.open(saved, seq_len=LENGTH, **options)
+        started = time.perf_counter()
+        run = replay(localizer, part)
+        seconds = time.perf_counter() - started
+        scores = score_replay(run, part_gt)
+        top = run.indices[:, 0]
+        exact_top = top if exact_top is None else exact_top
+        record.update({f"{label}_ms": seconds / localise * 1e3, f"{label}_gb": peak_gb(),
+                       f"{label}_r1": scores.evaluation.recall[1],
+                       f"{label}_agree": float(np.mean(top[run.scored] == exact_top[run.scored]))})
+    print(record, flush=True)
+    return record
+
+
+def scale_table(rows: list[dict]) -> str:
+    lines = ["| map frames | stage | time | peak RSS so far | R@1 | top-1 = exact |", "|---:|---|---:|---:|---:|---:|"]
+    for r in rows:
+        n = f"{r['n']:,}"
+        lines.append(f"| {n} | write the map (float32) | {r['write_s']:.0f} s | {r['write_gb']:.2f} GiB | | |")
+        lines.append(f"| {n} | index `auto` = `{r['spec']}`, {r['index_bytes']:.1f} B a frame | {r['index_s']:.0f} s | "
+                     f"{r['index_gb']:.2f} GiB | | |")
+        for label, what in (("exact", "exact match, 1,000 queries"),
+                            ("shortlist", "shortlisted match, S = 20, nprobe 16"),
+                            ("shortlist+history", "shortlisted match, S = 5, H = 20, nprobe 8")):
+            lines.append(f"| {n} | {what} | {r[label + '_s']:.2f} s | {r[label + '_gb']:.2f} GiB | "
+                         f"{r[label + '_r1']:.3f} | {r[label + '_agree']:.3f} |")
+        for label, what in (("localise", "exact localiser"), ("localise-shortlist", "shortlisted localiser, S = 5, H = 20")):
+            lines.append(f"| {n} | {what} | {r[label + '_ms']:.2f} ms a frame | {r[label + '_gb']:.2f} GiB | "
+                         f"{r[label + '_r1']:.3f} | {r[label + '_agree']:.3f} |")
+    return "\n".join(lines)
+
+
 def exponent(rows: list[dict], key: str) -> float:
     """Slope of log(time) against log(N): 1 is linear growth."""
     if len(rows) < 2:
@@ -200,6 +326,11 @@ def table(rows: list[dict]) -> str:
                      f"{r['cli_s']:.1f} s | {r['cli_gb']:.2f} GiB |")
     lines.append(f"\ngrowth exponent over the sizes: build {exponent(rows, 'build_s'):.2f}, "
                  f"exact match {exponent(rows, 'match_s'):.2f}, blocked GEMM {exponent(rows, 'gemm_blocked_s'):.2f}")
+    large = [r for r in rows if r["n"] >= 1_000_000]
+    if len(large) >= 2:
+        lines.append(f"from 1M frames: exact match {exponent(large, 'match_s'):.2f} (2 GB budget), "
+                     f"{exponent(large, 'match_256m_s'):.2f} (256 MB), blocked GEMM "
+                     f"{exponent(large, 'gemm_blocked_s'):.2f}")
     return "\n".join(lines)
 
 
@@ -209,10 +340,28 @@ def main() -> None:
     parser.add_argument("--sizes", default="10000,100000,1000000", help="Map sizes, comma-separated.")
     parser.add_argument("--builds", help="Only build: these storages (e.g. float32,float16,sq8) from a .npy of each "
                                          "size, with their peak memory")
+    parser.add_argument("--shards", type=int, default=0, help="--builds: build straight into this many shards.")
+    parser.add_argument("--scale", action="store_true",
+                        help="Instead: the real-derived map (Nordland summer and turned copies of it, as "
+                             "bench_shortlist.py) at each size: write, index auto, exact and shortlisted match and "
+                             "localiser, with R@1 and agreement with exact")
+    parser.add_argument("--localise", default="1000", help="--scale: query frames localised at each size "
+                                                           "(comma-separated, one per size).")
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.scale:
+        sizes = [int(n) for n in args.sizes.split(",")]
+        counts = [int(c) for c in args.localise.split(",")] * (len(sizes) if "," not in args.localise else 1)
+        rows = [measure_scale(args.work, args.data, n, c) for n, c in zip(sizes, counts)]
+        text = (f"{cpu_model()}, {torch.get_num_threads()} threads; real-derived maps, D = {DIM}, L = {LENGTH}, "
+                f"top-{K}\n\n{scale_table(rows)}\n")
+        (args.work / "scale.md").write_text(text)
+        print(text)
+        return
     if args.builds:
-        built = [r for n in args.sizes.split(",") for r in measure_builds(args.work, int(n), args.builds.split(","))]
+        built = [r for n in args.sizes.split(",")
+                 for r in measure_builds(args.work, int(n), args.builds.split(","), args.shards)]
         text = f"{cpu_model()}, map build from a memory-mapped .npy, D = {DIM}\n\n{build_table(built)}\n"
         (args.work / "builds.md").write_text(text)
         print(text)

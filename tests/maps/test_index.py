@@ -246,3 +246,29 @@ def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(ro
             .topk.indices).all()  # another SeqNet pools the map itself
     (tmp_path / "seqnet" / "model.safetensors").write_bytes(b"changed")
     raises_one_line("which is gone or has changed", match_map, saved, query, "matching", SETTINGS, shortlist=5)
+
+
+def test_a_pq_index_re_ranks_its_candidates_on_the_maps_rows(tmp_path):
+    """A PQ index's codes only approximate distances: its frames are searched REFINE times wider and re-ranked on
+    the map's own rows, so with every list probed and every row a candidate the shortlist is the exact nearest
+    frames (a brute-force loop), distances included; without the re-ranking PQ alone misses some."""
+    from seqvpr.maps.index import REFINE, IndexNeighbours
+
+    rng = np.random.default_rng(2)
+    rows = rng.standard_normal((300, 16)).astype(np.float32)
+    np.save(tmp_path / "rows.npy", rows)
+    saved = build_map([str(tmp_path / "rows.npy")], tmp_path / "map")
+    add_index(saved, parse_index_spec("ivf:4,pq:2"), seed=0)
+    neighbours = IndexNeighbours(open_map(tmp_path / "map"), nprobe=4)
+    assert neighbours.refine == REFINE
+    stored = np.asarray(open_map(tmp_path / "map").descriptors)
+    queries = stored[:40] + 0.3 * rng.standard_normal((40, 16)).astype(np.float32)
+    width = 300 // REFINE
+    found = neighbours.search(queries, np.zeros(40, np.int64), width)
+    for i, query in enumerate(queries):
+        exact = np.linalg.norm(stored - query, axis=1)
+        expected = np.lexsort((np.arange(len(stored)), exact))[:width]
+        np.testing.assert_array_equal(found.indices[i], expected)
+        np.testing.assert_allclose(found.distances[i], exact[expected], rtol=1e-6)
+    coded, _ = search_frames(neighbours.index, queries, width)
+    assert (coded != found.indices).any()

@@ -8,7 +8,8 @@ from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import (
-    BLOCK_BYTES, block_shape, frame_distances, reference_rows, sequence_distance_matrix, sequence_topk,
+    BLOCK_BYTES, block_shape, frame_distances, reference_rows, sequence_distance_matrix, sequence_topk, unit_rows,
+    unit_vector,
 )
 from seqvpr.sequences.windows import SequenceSpec
 from tests import oracles
@@ -177,3 +178,14 @@ def test_reference_rows_index_a_device_tensor_where_it_lies():
     reference, like = torch.empty((10, 4), device="meta"), torch.empty(0, device="meta")
     assert reference_rows(reference, np.array([1, 3, 8]), like).shape == (3, 4)
     assert reference_rows(reference, slice(2, 5), like).device.type == "meta"
+
+
+@settings(max_examples=examples(300), deadline=None)
+@given(st.integers(1, 600), st.floats(-30, 30), st.integers(0, 2**32 - 1), st.sampled_from(["normal", "zero", "one"]))
+def test_unit_vector_is_unit_rows_bit_for_bit(dim, exponent, seed, kind):
+    """The localiser's four-operation normalisation of one frame equals ``unit_rows`` exactly, at any scale."""
+    rng = np.random.default_rng(seed)
+    values = {"normal": rng.standard_normal(dim) * 10.0**exponent, "zero": np.zeros(dim),
+              "one": np.eye(1, dim, int(rng.integers(dim)))[0] * 10.0**exponent}[kind]
+    vector = torch.from_numpy(values.astype(np.float32))
+    assert torch.equal(unit_vector(vector), unit_rows(vector, dim=0))

@@ -409,19 +409,48 @@ def search_frames(index, frames: np.ndarray, k: int) -> tuple[np.ndarray, np.nda
 
 
 
+REFINE = 10  # a PQ index over frames is searched this many times wider, then re-ranked on the map's own rows
+REFINE_QUERIES = 64  # query frames re-ranked at a time ([64, S x REFINE, D] gathered rows at most)
+
+
+def refined(descriptors, frames: np.ndarray, found: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``width`` nearest of each query frame's candidate map rows ``found`` [n, W] (-1: none) by exact Euclidean
+    distance to the map's own rows (what a PQ index's codes only approximate): rows [n, width], distances."""
+    from seqvpr.sequences.topk import best_of
+
+    rows = np.full((len(found), width), -1, np.int64)
+    distances = np.full((len(found), width), np.inf)
+    for lo in range(0, len(found), REFINE_QUERIES):
+        part = found[lo : lo + REFINE_QUERIES]
+        wanted = np.unique(part[part >= 0])
+        if not len(wanted):
+            continue
+        gathered = np.asarray(descriptors[wanted], dtype=np.float32)
+        at = np.searchsorted(wanted, np.maximum(part, 0))
+        exact = np.linalg.norm(gathered[at] - np.asarray(frames[lo : lo + REFINE_QUERIES], np.float32)[:, None], axis=2)
+        exact = np.where(part >= 0, exact.astype(np.float64), np.inf)
+        rows[lo : lo + len(part)], distances[lo : lo + len(part)] = best_of(part, exact, width)
+    return rows, distances
+
+
 class IndexNeighbours:
     """A saved map's faiss index as a shortlist's ``seqvpr.matchers.shortlisted.Neighbours``: the nearest map
-    frames of query frames (an index over frames), or of query windows by the index's own sequence descriptor."""
+    frames of query frames (an index over frames), or of query windows by the index's own sequence descriptor. A PQ
+    index over frames is searched ``REFINE`` times wider and its candidates re-ranked on the map's rows."""
 
     def __init__(self, saved: SavedMap, nprobe: int = DEFAULT_NPROBE) -> None:
         self.saved, self.index = saved, open_frame_index(saved, nprobe)
         self.over, self.vectors = saved.info.index["over"], int(self.index.ntotal)
+        self.refine = REFINE if parse_index_spec(saved.info.index["spec"]).pq and self.over == "frames" else 1
 
     def search(self, rows, segments: np.ndarray, width: int):
         from seqvpr.sequences.topk import TopK
 
         if self.over == "frames":
-            found, distances = search_frames(self.index, np.asarray(rows), width)
+            frames = np.asarray(rows)
+            found, distances = search_frames(self.index, frames, min(width * self.refine, self.vectors))
+            if self.refine > 1:
+                found, distances = refined(self.saved.descriptors, frames, found, width)
         else:  # each query window's sequence descriptor finds its candidate frames directly
             found, distances = window_search(self.saved, self.index, rows, segments, width)
         return TopK(found, distances, found[:, 0] >= 0)

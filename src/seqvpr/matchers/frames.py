@@ -13,7 +13,7 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import unit_rows
+from seqvpr.sequences.matching import unit_rows, unit_vector
 
 from seqvpr.matchers.settings import MatchSettings
 
@@ -114,7 +114,10 @@ def frame_row(frame, transform=None, normalize: bool = True) -> torch.Tensor:
         device = next(iter(transform.parameters()), vector).device
         with torch.no_grad():
             vector = transform(vector[None].to(device))[0].float().cpu()
-    return unit_rows(vector, dim=0) if normalize else vector
+    if not normalize:
+        return vector
+    return unit_vector(vector) if vector.dtype == torch.float32 and vector.device.type == "cpu" else \
+        unit_rows(vector, dim=0)
 
 
 def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings | None = None) -> np.ndarray:

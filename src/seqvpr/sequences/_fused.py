@@ -171,6 +171,17 @@ def distances_from_dots_(g: np.ndarray, query_sq: np.ndarray, reference_sq: np.n
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
+def _frame_distances(dots, query, reference_sq, floor):
+    _distances_row(dots, np.float32(_squared_norm(query)), reference_sq, floor)
+
+
+def frame_distances_(dots: np.ndarray, query: np.ndarray, reference_sq: np.ndarray, floor: float = 1e-12) -> None:
+    """``distances_from_dots_`` of one frame's dot products ``dots`` [m] (float32) with its own squared norm
+    computed on the way (as ``squared_norms`` sums it, rounded to float32): one call in this thread."""
+    _frame_distances(dots, query, reference_sq, np.float32(floor))
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
 def _squared_norm(row):
     total = 0.0
     for j in range(row.shape[0]):
