@@ -12,7 +12,7 @@ import pytest
 import seqvpr
 from seqvpr.data.sources import save_traversal_npz
 from seqvpr.errors import SeqvprError
-from seqvpr.maps.shards import shard_map
+from seqvpr.maps.sharding import shard_map
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec

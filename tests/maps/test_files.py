@@ -184,7 +184,7 @@ def test_shards_carry_the_coordinate_system_and_the_frame_names(tmp_path):
 
     from seqvpr.maps.build import map_sources
     from seqvpr.maps.files import MapInfo, write_map
-    from seqvpr.maps.shards import shard_map
+    from seqvpr.maps.sharding import shard_map
 
     names = tuple(f"run.bag:/camera/image_raw@{100 + i}.000000000" for i in range(10))
     frames = Traversal("run", np.arange(10), np.zeros(10, np.int64), np.eye(10, 4, dtype=np.float32) + 0.1,

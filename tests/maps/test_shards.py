@@ -16,7 +16,8 @@ from hypothesis import given, settings, strategies as st
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, match_map
 from seqvpr.maps.files import open_sharded_map
-from seqvpr.maps.shards import match_sharded_map, shard_map, shard_ranges
+from seqvpr.maps.shards import match_sharded_map
+from seqvpr.maps.sharding import shard_map, shard_ranges
 from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import examples, raises_one_line, run_cli, write_route_files
@@ -285,11 +286,11 @@ def test_map_build_shards_writes_what_map_shard_of_the_built_map_writes_and_no_w
     """Shards written straight from the sources (no map of all the rows is ever written, checked at the one writer
     of map folders) are the shards of the built map, bit for bit: their identities and the whole map's, composed
     from the digests its files would have."""
-    from seqvpr.maps import files, shards
+    from seqvpr.maps import files, sharding
 
     sources = (whole / "ref.npz", whole / "a" / "ref.npz")
     written = []
-    monkeypatch.setattr(shards, "write_map", lambda folder, frames, *a: written.append(len(frames))
+    monkeypatch.setattr(sharding, "write_map", lambda folder, frames, *a: written.append(len(frames))
                         or files.write_map(folder, frames, *a))
     code, out, err = run_cli(monkeypatch, capsys, "map", "build", *sources, "--index", "flat", "--shards", "3",
                              "--overlap", "9", "--dtype", storage, "--out", tmp_path / "built")

@@ -211,7 +211,7 @@ Examples:
 @locks_output("out_dir")
 def shard(map_dir: str, shards: int, overlap: int, out_dir: str) -> None:
     """Split MAP into --shards maps for matching under torchrun, one rank per shard (match --map SHARDED)."""
-    from seqvpr.maps.shards import shard_map
+    from seqvpr.maps.sharding import shard_map
 
     sharded = shard_map(map_dir, out_dir, shards, overlap)
     for record in sharded.shards:

@@ -31,7 +31,7 @@ from seqvpr.maps.files import (
     open_map,
     write_map,
 )
-from seqvpr.maps.shards import DEFAULT_OVERLAP, write_sharded_map
+from seqvpr.maps.sharding import DEFAULT_OVERLAP, write_sharded_map
 from seqvpr.maps.index import model_record
 from seqvpr.matchers.frames import transformed_by
 from seqvpr.methods import image_model
