@@ -4,6 +4,13 @@ Run from the repository root (CPU; about 5 minutes and 4 GB of disk in ``--work`
 
     .venv/bin/python bench/bench_maps.py --work runs/bench-maps [--sizes 10000,100000,1000000]
     .venv/bin/python bench/bench_maps.py --work runs/bench-maps --sizes 1000000,10000000 --builds float32,float16,sq8
+    .venv/bin/python bench/bench_maps.py --work runs/bench-maps --sizes 10000000 --builds float16 --shards 4
+    .venv/bin/python bench/bench_maps.py --work runs/bench-maps --scale --sizes 1000000,10000000 --localise 1000,200
+
+``--scale`` (about 45 minutes and 11 GB at 10M; needs ../shared/data): issue 14's real-derived map at each size
+(Nordland summer, PCA to 256-D, then copies turned towards seeded random rotations, made on access), written,
+indexed with ``--index auto``, matched exactly and shortlisted (1,000 winter queries) and localised exactly and
+shortlisted: time, peak RSS so far, R@1 and top-1 agreement with exact.
 
 For each map size N (D = 256, float32 unit vectors: random directions, each ``--run`` consecutive frames a slowly
 turning path so that sequences exist) the script writes the reference as a ``.npy`` (100,000 rows at a time, so

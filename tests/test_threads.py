@@ -127,7 +127,7 @@ import numpy as np, torch
 torch.get_num_threads()  # torch asked for its count first: then numba's launch resets it
 torch.set_num_threads(1)
 from seqvpr.sequences._fused import squared_norms
-squared_norms(np.ones((4, 2), np.float32))
+squared_norms(np.ones((128, 2), np.float32))  # enough rows for the parallel kernel
 print(torch.get_num_threads())
 """
     if os.cpu_count() == 1:

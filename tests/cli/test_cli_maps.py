@@ -93,7 +93,7 @@ def test_bad_shortlists_are_one_line(route, tmp_path, monkeypatch, capsys, args,
 def test_a_bad_index_spec_fails_before_the_build(route, tmp_path, monkeypatch, capsys):
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m",
                            "--index", "ivf:abc")
-    assert code == 2 and "expected flat, hnsw:M or ivf:NLIST" in err and not (tmp_path / "m").exists()
+    assert code == 2 and "expected auto, flat, hnsw:M or ivf:NLIST" in err and not (tmp_path / "m").exists()
 
 
 def test_an_image_map_describes_the_query_with_the_maps_backbone(tmp_path, monkeypatch, capsys):
