@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import cpu_model
+from _common import cpu_model, run_beside_load
 
 try:
     import seqvpr  # noqa: F401
@@ -104,7 +104,6 @@ def loaded_worker(folder: Path) -> dict:
     """In a fresh process (its thread policy chosen at start, as a command's is): per frame, the floor (``torch.mv``
     of the map's memory map with the frame, at the same thread count) and ``Localizer.update``, interleaved; medians
     over the frames after the first 20."""
-    import json
 
     from seqvpr import threads
 
@@ -134,12 +133,6 @@ def loaded_worker(folder: Path) -> dict:
 def loaded(work: Path, loads: list[int], settings: list[str]) -> list[str]:
     """Exact update against the floor at 10k and 1M frames (256-D, L = 5) in fresh processes beside ``loads``
     spinning processes, at the default thread setting and at fixed ones."""
-    import json
-    import os
-    import subprocess
-
-    from bench_threads import spin_load
-
     lines = []
     for n in LOADED_SIZES:
         folder = work / f"loaded_map_{n}"
@@ -147,21 +140,7 @@ def loaded(work: Path, loads: list[int], settings: list[str]) -> list[str]:
             write_plain_map(folder, slow_path(n, LOADED_DIM, 0))
         for load in loads:
             for setting in settings:
-                env = {k: v for k, v in os.environ.items() if k not in ("SEQVPR_THREADS", "OMP_NUM_THREADS")}
-                if setting != "default":
-                    env["SEQVPR_THREADS"] = setting
-                spinners = spin_load(load)
-                try:
-                    time.sleep(1.0 if load else 0.0)
-                    done = subprocess.run([sys.executable, __file__, "--worker", str(folder)], env=env,
-                                          capture_output=True, text=True, timeout=1800)
-                finally:
-                    for process in spinners:
-                        process.kill()
-                        process.wait()
-                if done.returncode:
-                    raise SystemExit(done.stderr[-2000:])
-                r = json.loads(done.stdout.strip().splitlines()[-1])
+                r = run_beside_load([__file__, "--worker", str(folder)], setting, load)
                 stage = r["stages"]
                 lines.append(f"| {n:,} x {LOADED_DIM} | {load} | {setting} ({r['threads']}) | {r['floor']:.3f} ms | "
                              f"{r['update']:.3f} ms | **{r['update'] / r['floor']:.2f}x** | "

@@ -23,13 +23,11 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import cpu_model
+from _common import cpu_model, run_beside_load
 
 SETTINGS = ("default", "1", "2")
 WORKLOADS = ("describe", "match", "localise", "localise-images")
@@ -110,28 +108,9 @@ def prepare(work: Path) -> None:
                   FrameDescription("efficientnet-lite0", extractor=ExtractorConfig(width=320, height=240)))
 
 
-def spin_load(n: int) -> list[subprocess.Popen]:
-    """``n`` processes each keeping one core busy."""
-    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
-
-
 def measure(kind: str, setting: str, load: int, work: Path) -> dict:
     """One fresh process running ``kind`` at ``setting`` beside ``load`` spinning processes."""
-    env = {k: v for k, v in os.environ.items() if k not in ("SEQVPR_THREADS", "OMP_NUM_THREADS")}
-    if setting != "default":
-        env["SEQVPR_THREADS"] = setting
-    spinners = spin_load(load)
-    try:
-        time.sleep(1.0 if load else 0.0)
-        done = subprocess.run([sys.executable, __file__, "--worker", kind, "--work", str(work)], env=env,
-                              capture_output=True, text=True, timeout=1800)
-    finally:
-        for process in spinners:
-            process.kill()
-            process.wait()
-    if done.returncode:
-        raise SystemExit(f"{kind} at {setting} failed:\n{done.stderr}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return run_beside_load([__file__, "--worker", kind, "--work", str(work)], setting, load)
 
 
 def run(work: Path, loads: list[int], repeats: int, workloads: list[str]) -> str:

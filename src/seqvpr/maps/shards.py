@@ -17,6 +17,7 @@ the localiser and every other map command take one in a single process. Writing 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
