@@ -62,13 +62,17 @@ class FullPass:
 
         self.rows, self.blocks = rows, ReferenceBlocks(rows)
         self.norms = self.blocks.norms
-        self.distances = np.empty(len(rows), dtype=np.float32)  # reused: no allocation of the map's size
+        self.distances: np.ndarray | None = None  # made on the first measure without ``out``, then reused
 
     def measure(self, frame: torch.Tensor, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The frame's distances to every reference row [N] (into ``out``, else a buffer the next frame
         overwrites), and the milliseconds they took."""
         started = time.perf_counter()
-        return self.blocks.distances_into(frame, self.distances if out is None else out), elapsed_ms(started)
+        if out is None:
+            if self.distances is None:
+                self.distances = np.empty(len(self.rows), dtype=np.float32)
+            out = self.distances
+        return self.blocks.distances_into(frame, out), elapsed_ms(started)
 
 
 class DiagonalStepper(FullPass):

@@ -31,7 +31,7 @@ class DiagonalSums:
         self.length = length
         self.window_exists = window_starts(segments, length, length - 1, "drop") >= 0
         self.ring = np.zeros((length, len(segments)), dtype=np.float32)  # slot count % L: the frame count's row
-        self.means = np.empty(len(segments))  # push's result, reused: no allocation of the map's size a frame
+        self.means: np.ndarray | None = None  # push's result, made on its first call and reused
         self.count = 0
 
     def reset(self) -> None:
@@ -62,6 +62,8 @@ class DiagonalSums:
         newest = self._enter(distances)
         if newest is None:
             return None
+        if self.means is None:
+            self.means = np.empty(self.ring.shape[1])
         diagonal_means_(self.ring, newest, self.window_exists, self.means)
         return self.means
 
@@ -71,7 +73,7 @@ class DiagonalSums:
         from seqvpr.sequences._fused import diagonal_topk
 
         newest = self._enter(distances)
-        return None if newest is None else diagonal_topk(self.ring, newest, self.window_exists, min(k, len(self.means)))
+        return None if newest is None else diagonal_topk(self.ring, newest, self.window_exists, min(k, self.ring.shape[1]))
 
     def state(self) -> dict[str, np.ndarray]:
         """The ring and the frame count since the last reset (what ``load_state`` goes on from)."""
