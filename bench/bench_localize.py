@@ -70,49 +70,10 @@ def write_plain_map(folder: Path, rows: np.ndarray) -> None:
     write_map(folder, frames, info)
 
 
-def latency(work: Path) -> str:
-    """Exact update against the matrix-vector floor, 100k x 512, L = 5."""
-    folder = work / "latency_map"
-    if not (folder / "map.json").exists():
-        write_plain_map(folder, slow_path(LATENCY_MAP, LATENCY_DIM, 0))
-    saved = open_map(folder)
-    rng = np.random.default_rng(1)
-    rows = np.asarray(saved.descriptors[20_000 : 20_000 + LATENCY_QUERIES])
-    queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
-    matrix = torch.from_numpy(saved.descriptors)
-    localizer = Localizer.open(saved, seq_len=5)
-    floors, updates, stages = [], [], []
-    for q in queries:  # interleaved, so both see the same machine state
-        vector = torch.from_numpy(q / np.linalg.norm(q))
-        started = time.perf_counter()
-        torch.mv(matrix, vector)
-        floors.append(time.perf_counter() - started)
-        started = time.perf_counter()
-        estimate = localizer.update(q)
-        updates.append(time.perf_counter() - started)
-        stages.append([estimate.latency[s] for s in ("describe", "distance", "sequence")])
-    floor, update = np.median(floors[5:]) * 1e3, np.median(updates[5:]) * 1e3
-    stage = np.median(np.array(stages[5:]), axis=0)
-    return (f"| {LATENCY_MAP:,} x {LATENCY_DIM} | {floor:.2f} ms | {update:.2f} ms | **{update / floor:.2f}x** | "
-            f"{stage[0]:.2f} / {stage[1]:.2f} / {stage[2]:.2f} ms |")
-
-
-LOADED_SIZES, LOADED_DIM, LOADED_QUERIES = (10_000, 1_000_000), 256, 400
-
-
-def loaded_worker(folder: Path) -> dict:
-    """In a fresh process (its thread policy chosen at start, as a command's is): per frame, the floor (``torch.mv``
-    of the map's memory map with the frame, at the same thread count) and ``Localizer.update``, interleaved; medians
-    over the frames after the first 20."""
-
-    from seqvpr import threads
-
-    saved = open_map(folder)
-    localizer = Localizer.open(saved, seq_len=5)  # applies the default policy, as every entry point does
-    n = saved.info.count
-    rng = np.random.default_rng(1)
-    rows = np.asarray(saved.descriptors[n // 5 : n // 5 + LOADED_QUERIES])
-    queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
+def floor_and_update(saved, localizer: Localizer, queries: np.ndarray, skip: int) -> tuple[float, float, np.ndarray]:
+    """Per query frame, the floor (``torch.mv`` of the map's memory map with the frame) and ``localizer.update``,
+    interleaved so both see the same machine state: their medians (ms) after the first ``skip`` frames, and the
+    median ms of the update's describe, distance and sequence stages."""
     matrix = torch.from_numpy(saved.descriptors)
     floors, updates, stages = [], [], []
     for q in queries:
@@ -124,9 +85,42 @@ def loaded_worker(folder: Path) -> dict:
         estimate = localizer.update(q)
         updates.append(time.perf_counter() - started)
         stages.append([estimate.latency[s] for s in ("describe", "distance", "sequence")])
+    return (float(np.median(floors[skip:]) * 1e3), float(np.median(updates[skip:]) * 1e3),
+            np.median(np.array(stages[skip:]), axis=0))
+
+
+def latency(work: Path) -> str:
+    """Exact update against the matrix-vector floor, 100k x 512, L = 5."""
+    folder = work / "latency_map"
+    if not (folder / "map.json").exists():
+        write_plain_map(folder, slow_path(LATENCY_MAP, LATENCY_DIM, 0))
+    saved = open_map(folder)
+    rng = np.random.default_rng(1)
+    rows = np.asarray(saved.descriptors[20_000 : 20_000 + LATENCY_QUERIES])
+    queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
+    floor, update, stage = floor_and_update(saved, Localizer.open(saved, seq_len=5), queries, skip=5)
+    return (f"| {LATENCY_MAP:,} x {LATENCY_DIM} | {floor:.2f} ms | {update:.2f} ms | **{update / floor:.2f}x** | "
+            f"{stage[0]:.2f} / {stage[1]:.2f} / {stage[2]:.2f} ms |")
+
+
+LOADED_SIZES, LOADED_DIM, LOADED_QUERIES = (10_000, 1_000_000), 256, 400
+
+
+def loaded_worker(folder: Path) -> dict:
+    """In a fresh process (its thread policy chosen at start, as a command's is): per frame, the floor (``torch.mv``
+    of the map's memory map with the frame, at the same thread count) and ``Localizer.update``, interleaved; medians
+    over the frames after the first 20."""
+    from seqvpr import threads
+
+    saved = open_map(folder)
+    localizer = Localizer.open(saved, seq_len=5)  # applies the default policy, as every entry point does
+    n = saved.info.count
+    rng = np.random.default_rng(1)
+    rows = np.asarray(saved.descriptors[n // 5 : n // 5 + LOADED_QUERIES])
+    queries = rows + 0.05 * rng.standard_normal(rows.shape).astype(np.float32)
+    floor, update, stage = floor_and_update(saved, localizer, queries, skip=20)
     policy = threads.current_policy()
-    return {"floor": float(np.median(floors[20:]) * 1e3), "update": float(np.median(updates[20:]) * 1e3),
-            "stages": np.median(np.array(stages[20:]), axis=0).tolist(), "threads": policy.threads,
+    return {"floor": floor, "update": update, "stages": stage.tolist(), "threads": policy.threads,
             "policy": policy.describe()}
 
 
