@@ -134,3 +134,15 @@ def hardest_negatives(query, reference, q_seg, r_seg, length, offset, boundary, 
         hardest = sorted(negatives, key=lambda j: (row[j], j))[:count]
         result[i] = (best, float(row[best]), hardest, [float(row[j]) for j in hardest])
     return result
+
+
+def uniqueness(rows, values, exclusion):
+    """1 - best / (the first finite value of another place: a row more than ``exclusion`` from the best's), in
+    [0, 1]; 0 with no match, 1 with no other place: the plain loop over one ranked list."""
+    rows, values = list(rows), [float(v) for v in values]
+    if not rows or rows[0] < 0 or not math.isfinite(values[0]):
+        return 0.0
+    for r, v in zip(rows[1:], values[1:]):
+        if r >= 0 and math.isfinite(v) and abs(r - rows[0]) > exclusion:
+            return 0.0 if v <= 0 else min(max(1.0 - values[0] / v, 0.0), 1.0)
+    return 1.0

@@ -145,6 +145,25 @@ def test_keyframe_gating_skips_a_stopped_robot(route):
     assert estimates[12].index == estimates[8].index and estimates[12].frame == 12
 
 
+def test_an_estimate_keeps_its_values_while_later_frames_reuse_the_buffers(route):
+    """Each frame goes into a reused row and ring: what an earlier estimate holds never changes, and the row
+    keyframe gating compares against is the last kept frame's."""
+    query = load_traversal(route / "qry.npz", "query").descriptors
+    localizer = Localizer.open(open_map(route / "map"), keyframe_distance=0.05)
+    estimates, copies = [], []
+    for row in [*query[:10], query[9], query[9], *query[10:20]]:
+        estimates.append(localizer.update(row))
+        copies.append((estimates[-1].indices.copy(), estimates[-1].distances.copy()))
+    for estimate, (indices, distances) in zip(estimates, copies):
+        np.testing.assert_array_equal(estimate.indices, indices)
+        np.testing.assert_array_equal(estimate.distances, distances)
+    assert [e.kept for e in estimates[9:13]] == [True, False, False, True]
+    np.testing.assert_array_equal(localizer.last_kept.numbers, localizer.matcher.prepare_frame(query[19]).numbers)
+    fresh = Localizer.open(open_map(route / "map"))
+    ungated = [fresh.update(row) for row in query[:20]]
+    np.testing.assert_array_equal(ungated[-1].indices, estimates[-1].indices)
+
+
 def test_camera_frames_are_described_as_the_map_was(tmp_path):
     rng = np.random.default_rng(3)
     for side in ("ref", "qry"):

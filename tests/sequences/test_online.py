@@ -116,3 +116,54 @@ def test_a_window_longer_than_any_reference_segment_never_matches():
         DiagonalSums(np.zeros(3), 0)
     except SeqvprError as error:
         assert "positive" in str(error)
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(st.integers(1, 6), st.integers(1, 9000), st.integers(1, 40), st.integers(1, 40), st.integers(0, 2**31 - 1))
+def test_pushed_dot_products_become_the_distances_and_rank_as_the_distances_would(length, n, k, dim, seed):
+    """A frame's dot products measured into the ring and pushed with its row and the rows' norms leave the ring
+    holding what ``frame_distances_`` makes of them, and rank as those distances pushed do, bit for bit."""
+    import torch
+
+    from seqvpr.sequences._fused import frame_distances_
+    from seqvpr.sequences.frame_pass import FrameRow, ReferenceBlocks
+
+    rng = np.random.default_rng(seed)
+    reference = rng.standard_normal((n, dim)).astype(np.float32)
+    blocks = ReferenceBlocks(reference, columns=max(1, n // 3))  # several blocks where n allows
+    segments = np.cumsum(rng.random(n) < 0.01)
+    dots, measured = DiagonalSums(segments, length), DiagonalSums(segments, length)
+    for _ in range(length + 2):
+        frame = FrameRow.of(rng.standard_normal(dim))
+        blocks.dots_into(frame.row, torch.from_numpy(dots.next_row())[None])
+        distances = dots.next_row().copy()
+        frame_distances_(distances, frame.numbers, blocks.norms)
+        got, expected = dots.push_dots_topk(frame.numbers, blocks.norms, k), measured.push_topk(distances, k)
+        np.testing.assert_array_equal(dots.ring, measured.ring)
+        if expected is None:
+            assert got is None
+            continue
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
+
+
+def test_pushed_dot_products_split_over_threads_as_one_scan(monkeypatch):
+    """Dot products turned into distances part by part, over threads, rank as one scan of the distances does."""
+    from seqvpr.sequences import _fused
+
+    rng = np.random.default_rng(4)
+    n, dim = 4 * _fused.PART_ROWS + 17, 3
+    query, norms = rng.standard_normal(dim).astype(np.float32), rng.random(n).astype(np.float32) + 1
+    rows = [rng.integers(-2, 2, n).astype(np.float32) for _ in range(3)]
+    split, whole = DiagonalSums(np.zeros(n), 3), DiagonalSums(np.zeros(n), 3)
+    monkeypatch.setattr(_fused.numba, "get_num_threads", lambda: 3)
+    for row in rows:
+        split.next_row()[:] = row
+        top = split.push_dots_topk(query, norms, 50)
+    for row in rows:
+        distances = row.copy()
+        _fused.frame_distances_(distances, query, norms)
+        one = whole.push_topk(distances, 50)
+    np.testing.assert_array_equal(split.ring, whole.ring)
+    np.testing.assert_array_equal(top[0], one[0])
+    np.testing.assert_array_equal(top[1], one[1])

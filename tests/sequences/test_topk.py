@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.sequences.topk import TopK, TopKMerge, best_k, merge_topks, other_place, uniqueness
+from tests import oracles
 from tests.helpers import examples
 
 
@@ -82,6 +83,17 @@ def test_uniqueness_is_one_minus_best_over_the_best_elsewhere(values, exclusion)
     expected = 1.0 if not elsewhere else max(0.0, 1.0 - values[best] / min(elsewhere))
     rows, ranked = best_k(values, 2 * exclusion + 2)  # enough to hold the best other place
     assert abs(uniqueness(rows, ranked, exclusion) - expected) < 1e-12
+
+
+@settings(max_examples=examples(200), deadline=None)
+@given(st.lists(st.tuples(st.integers(-1, 30), st.sampled_from([0.0, 0.25, 0.5, 1.0, 3.0, np.inf, np.nan])),
+                max_size=12), st.integers(0, 5))
+def test_uniqueness_is_the_plain_loop_on_any_ranked_list(entries, exclusion):
+    """The compiled score equals the plain loop on any list: empty rows, infinite, NaN and zero distances."""
+    rows = np.array([r for r, _ in entries], dtype=np.int64)
+    values = np.array([v for _, v in entries], dtype=np.float64)
+    assert uniqueness(rows, values, exclusion) == oracles.uniqueness(rows, values, exclusion)
+    assert uniqueness(list(rows), list(values), exclusion) == oracles.uniqueness(rows, values, exclusion)
 
 
 def test_other_place_skips_the_best_ones_neighbours_and_empty_entries():

@@ -32,6 +32,7 @@ from seqvpr.localization.saved import (
 )
 from seqvpr.maps.files import SavedMap, open_map
 from seqvpr.matchers.frames import frame_row
+from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.progress import LOGGER
 from seqvpr.methods import METHODS, get_method
 from seqvpr.sequences.filter import FilterSettings
@@ -144,7 +145,8 @@ class Localizer:
         self.matcher = map_matcher(saved, settings)
         self.stepper = _stepper(saved, self.matcher, settings)
         self.frame, self.misses, self.since_reset = 0, 0, 0
-        self.last_kept: np.ndarray | None = None
+        self.rows = (FrameRow.empty(saved.info.dim), FrameRow.empty(saved.info.dim))  # each frame's, reused
+        self.last_kept: FrameRow | None = None
         self.last: Estimate | None = None
 
     @classmethod
@@ -188,42 +190,43 @@ class Localizer:
         """The estimate after one more frame: a camera image (path, PIL image, H x W x 3 uint8 array) or a
         descriptor [D]. A bad frame is a one-line error and leaves the localiser as it was."""
         started = time.perf_counter()
-        vector = self._describe(frame)
+        row = self._describe(frame, self.rows[0] if self.last_kept is not self.rows[0] else self.rows[1])
         described = time.perf_counter()
         gate = self.settings.keyframe_distance
         if gate and self.last is not None and self.last_kept is not None \
-                and float(torch.linalg.vector_norm(vector - self.last_kept)) < gate:
+                and float(torch.linalg.vector_norm(row.vector - self.last_kept.vector)) < gate:
             self.frame += 1
             latency = {**self.last.latency, "describe": (described - started) * 1e3}
             return replace(self.last, frame=self.frame - 1, timestamp=timestamp, latency=latency, kept=False)
-        scored = self.stepper.push(vector)
-        self.last_kept, self.since_reset = vector, self.since_reset + 1
+        scored = self.stepper.push(row)
+        self.last_kept, self.since_reset = row, self.since_reset + 1  # the next frame goes into the other row
         estimate = self._estimate(scored, timestamp, (described - started) * 1e3, started)
         self.frame += 1
         self.last = estimate
         return estimate
 
-    def _describe(self, frame: Any) -> torch.Tensor:
-        """The frame as a map frame: described (images), transformed (SeqMatchNet at match time), normalised."""
+    def _describe(self, frame: Any, out: FrameRow) -> FrameRow:
+        """The frame as a map frame, in ``out``: described (images), transformed (SeqMatchNet at match time),
+        normalised."""
         array = np.asarray(frame) if isinstance(frame, (np.ndarray, torch.Tensor)) else None
         is_descriptor = array is not None and array.ndim == 1 and array.dtype != np.uint8
         if is_descriptor:
-            array = array.astype(np.float32, copy=False)
-            vector = torch.from_numpy(array)
+            vector = array.astype(np.float32, copy=False)
         elif self.encoder is None:
             raise SeqvprError(f"{self.saved.folder} holds descriptor-file frames: update() takes a descriptor [D]")
         else:
             vector = self.encoder.encode(frame)
         wanted = self.saved.info.dim if self.transform is None else self.transform.module.config.in_dim
-        if vector.shape != (wanted,):
+        if tuple(vector.shape) != (wanted,):
             held = f"{self.saved.info.dim}-D frames" if self.transform is None else \
                 f"frames of {wanted}-D descriptors through its SeqMatchNet model"
             raise SeqvprError(f"a frame of shape {tuple(vector.shape)}: {self.saved.folder} holds {held}")
-        if not (np.isfinite(array).all() if is_descriptor else torch.isfinite(vector).all()):
-            raise SeqvprError("the frame's descriptor holds NaN or infinite values")
         if self.transform is not None:  # the map holds transformed frames: the one place the transform is applied
-            vector = frame_row(vector, self.transform.module, normalize=False)
-        return self.matcher.prepare_frame(vector)
+            vector = frame_row(vector, self.transform.module, normalize=False).numbers
+        row = self.matcher.prepare_frame(vector, out)  # the row a frame never held (``out`` is not ``last_kept``)
+        if not row.finite():  # non-finite values stay so through the transform and normalising
+            raise SeqvprError("the frame's descriptor holds NaN or infinite values")
+        return row
 
     def _estimate(self, scored: Scored | None, timestamp: float | None, describe_ms: float, started: float) -> Estimate:
         status, self.misses = next_status(None if scored is None else scored.score, self.threshold, self.misses,
@@ -261,7 +264,7 @@ class Localizer:
                   "since_reset": self.since_reset, "extra": dict(extra or {})}
         arrays = {f"matcher_{k}": v for k, v in self.stepper.state().items()}
         if self.last_kept is not None:
-            arrays["last_kept"] = self.last_kept.numpy()
+            arrays["last_kept"] = self.last_kept.numbers
         with atomic_write(path, "wb") as handle:
             np.savez(handle, header=np.array(json.dumps(header)), **arrays)
 
@@ -282,7 +285,7 @@ class Localizer:
             self.stepper.load_state({k.removeprefix("matcher_"): v for k, v in arrays.items()
                                      if k.startswith("matcher_")})
             self.frame, self.misses, self.since_reset = (int(header[k]) for k in ("frame", "misses", "since_reset"))
-            self.last_kept = torch.from_numpy(arrays["last_kept"]) if "last_kept" in arrays else None
+            self.last_kept = FrameRow.of(arrays["last_kept"]) if "last_kept" in arrays else None
         extra = header.get("extra", {})
         return extra if isinstance(extra, dict) else {}
 

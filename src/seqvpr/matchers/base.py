@@ -15,16 +15,17 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
+from seqvpr.matchers.frames import frame_row
 from seqvpr.progress import ProgressFactory
 from seqvpr.matchers.settings import MatchSettings
 from seqvpr.sequences.topk import TopK
 
 if TYPE_CHECKING:
     from seqvpr.matchers.stream import Stepper
+    from seqvpr.sequences.frame_pass import FrameRow
 
 
 @dataclass(frozen=True)
@@ -76,12 +77,11 @@ class Matcher(ABC):
         """The family's own settings, for a run's record (none by default)."""
         return {}
 
-    def prepare_frame(self, frame) -> torch.Tensor:
+    def prepare_frame(self, frame, out: FrameRow | None = None) -> FrameRow:
         """One query frame's descriptor [D] as ``topk`` prepares a query's rows (float32, through the matcher's
-        transform, normalised if asked): what a stepper's ``push`` takes."""
-        from seqvpr.matchers.frames import frame_row
-
-        return frame_row(frame, getattr(self, "transform", None), self.settings.normalize)
+        transform, normalised if asked), in ``out`` (reused frame after frame) or a fresh row: what a stepper's
+        ``push`` takes."""
+        return frame_row(frame, getattr(self, "transform", None), self.settings.normalize, out)
 
     def with_settings(self, settings: MatchSettings) -> Matcher:
         """The same matcher under other common settings (K, sequences)."""

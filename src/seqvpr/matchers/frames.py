@@ -13,7 +13,8 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.matching import unit_rows, unit_vector
+from seqvpr.sequences.frame_pass import FrameRow
+from seqvpr.sequences.matching import unit_rows
 
 from seqvpr.matchers.settings import MatchSettings
 
@@ -106,18 +107,26 @@ def matcher_rows(matcher: Any, reference: Reference):
     return kernel_rows(transformed_reference(matcher, reference), matcher.settings)
 
 
-def frame_row(frame, transform=None, normalize: bool = True) -> torch.Tensor:
-    """One query frame's descriptor [D] as ``topk`` prepares a query's rows: float32, transformed, normalised."""
-    vector = frame if torch.is_tensor(frame) and frame.dtype == torch.float32 else \
-        torch.as_tensor(np.asarray(frame, dtype=np.float32))
+def frame_row(frame, transform=None, normalize: bool = True, out: FrameRow | None = None) -> FrameRow:
+    """One query frame's descriptor [D] as ``topk`` prepares a query's rows (float32, transformed, normalised), in
+    ``out`` (a row reused frame after frame) or a fresh one."""
     if transform is not None:  # on the transform's device, back to the CPU
+        vector = frame if torch.is_tensor(frame) and frame.dtype == torch.float32 else \
+            torch.as_tensor(np.asarray(frame, dtype=np.float32))
         device = next(iter(transform.parameters()), vector).device
         with torch.no_grad():
-            vector = transform(vector[None].to(device))[0].float().cpu()
-    if not normalize:
-        return vector
-    return unit_vector(vector) if vector.dtype == torch.float32 and vector.device.type == "cpu" else \
-        unit_rows(vector, dim=0)
+            frame = transform(vector[None].to(device))[0].float().cpu()
+    numbers = frame if isinstance(frame, np.ndarray) and frame.dtype == np.float32 else \
+        np.asarray(frame.detach().cpu() if torch.is_tensor(frame) else frame, dtype=np.float32)
+    if numbers.ndim != 1:
+        raise SeqvprError(f"a frame is one descriptor [D], got shape {numbers.shape}")
+    out = FrameRow.empty(len(numbers)) if out is None else out
+    if len(numbers) != len(out.numbers):
+        raise SeqvprError(f"a frame of {len(numbers)} values for a row of {len(out.numbers)}")
+    if normalize:
+        return out.set_unit(numbers)
+    out.numbers[:] = numbers
+    return out
 
 
 def distance_matrix(reference: Traversal, query: Traversal, settings: MatchSettings | None = None) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Matching one query frame at a time: a ``Stepper`` takes each new frame's row (``Matcher.prepare_frame``: the
-descriptor as ``topk`` prepares a query's rows, transformed and normalised) and answers the K best reference rows
-of the window that ends at it, with a score, or None while the first L frames come in.
+descriptor as ``topk`` prepares a query's rows, transformed and normalised, in a ``FrameRow``) and answers the K
+best reference rows of the window that ends at it, with a score, or None while the first L frames come in.
 
 - ``DiagonalStepper``: exact causal sequence matching by running diagonal sums (one distance pass a frame).
 - ``FilterStepper``: the topological filter, one distance pass a frame.
@@ -22,6 +22,7 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.matchers.frames import matcher_rows, query_rows, transformed_reference
+from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.sequences.topk import best_k, best_of, uniqueness
 
 
@@ -41,7 +42,7 @@ class Scored:
 class Stepper(Protocol):
     """A matcher over one reference, a frame at a time; its state saves and restores (a restarted robot)."""
 
-    def push(self, frame: torch.Tensor) -> Scored | None: ...
+    def push(self, frame: FrameRow) -> Scored | None: ...
 
     def reset(self) -> None: ...
 
@@ -58,45 +59,48 @@ class FullPass:
     """One distance pass a frame over every reference row, the rows' squared norms computed once."""
 
     def __init__(self, rows) -> None:
-        from seqvpr.sequences.matching import ReferenceBlocks
+        from seqvpr.sequences.frame_pass import ReferenceBlocks
 
         self.rows, self.blocks = rows, ReferenceBlocks(rows)
         self.norms = self.blocks.norms
-        self.distances: np.ndarray | None = None  # made on the first measure without ``out``, then reused
+        self.distances: np.ndarray | None = None  # made on the first measure, then reused
 
-    def measure(self, frame: torch.Tensor, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-        """The frame's distances to every reference row [N] (into ``out``, else a buffer the next frame
-        overwrites), and the milliseconds they took."""
+    def measure(self, frame: FrameRow) -> tuple[np.ndarray, float]:
+        """The frame's distances to every reference row [N] (a buffer the next frame overwrites), and the
+        milliseconds they took."""
         started = time.perf_counter()
-        if out is None:
-            if self.distances is None:
-                self.distances = np.empty(len(self.rows), dtype=np.float32)
-            out = self.distances
-        return self.blocks.distances_into(frame, out), elapsed_ms(started)
+        if self.distances is None:
+            self.distances = np.empty(len(self.rows), dtype=np.float32)
+        return self.blocks.distances_into(frame, self.distances), elapsed_ms(started)
 
 
 class DiagonalStepper(FullPass):
-    """Exact causal sequence matching of the last L frames against every reference row, incrementally."""
+    """Exact causal sequence matching of the last L frames against every reference row, incrementally: per frame
+    one matrix product straight into the ring of distance rows, then one compiled pass that turns it into
+    distances and ranks the windows."""
 
     def __init__(self, matcher: Any, reference: Reference, exclusion: int = 10) -> None:
         from seqvpr.sequences.online import DiagonalSums
 
         super().__init__(matcher_rows(matcher, reference))
         self.k, self.exclusion = matcher.settings.k, exclusion
+        self.rank = max(self.k, 2 * exclusion + 2)  # enough for the score
         self.sums = DiagonalSums(reference.segment_ids, matcher.settings.sequence.length)
+        self.targets = [torch.from_numpy(row)[None] for row in self.sums.ring]  # [1, N] views, made once
 
     def reset(self) -> None:
         self.sums.reset()
 
-    def push(self, frame: torch.Tensor) -> Scored | None:
-        distances, distance_ms = self.measure(frame, out=self.sums.next_row())  # straight into the ring
+    def push(self, frame: FrameRow) -> Scored | None:
+        started = time.perf_counter()
+        self.blocks.dots_into(frame.row, self.targets[self.sums.next_slot()])  # the ring's next row
         measured = time.perf_counter()
-        found = self.sums.push_topk(distances, max(self.k, 2 * self.exclusion + 2))  # enough for the score
+        found = self.sums.push_dots_topk(frame.numbers, self.norms, self.rank)
         if found is None:
             return None
         indices, values = found
         score = uniqueness(indices, values, self.exclusion)
-        return Scored(indices[: self.k], values[: self.k], score, distance_ms, elapsed_ms(measured))
+        return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
         return self.sums.state()
@@ -119,7 +123,7 @@ class FilterStepper(FullPass):
     def reset(self) -> None:
         self.filter.reset()
 
-    def push(self, frame: torch.Tensor) -> Scored | None:
+    def push(self, frame: FrameRow) -> Scored | None:
         distances, distance_ms = self.measure(frame)
         measured = time.perf_counter()
         self.filter.step(distances.astype(np.float64))
@@ -155,9 +159,9 @@ class WindowStepper:
     def reset(self) -> None:
         self.frames.clear()
 
-    def push(self, frame: torch.Tensor) -> Scored | None:
+    def push(self, frame: FrameRow) -> Scored | None:
         started = time.perf_counter()
-        self.frames.append(np.asarray(frame.cpu(), dtype=np.float32))
+        self.frames.append(frame.numbers.copy())  # the frame's buffer is reused
         if len(self.frames) < self.frames.maxlen:
             return None
         window = Traversal.from_descriptors(np.stack(list(self.frames)), "window")
@@ -200,10 +204,10 @@ class ShortlistStepper:
         self.frames.clear()
         self.found.clear()
 
-    def push(self, frame: torch.Tensor) -> Scored | None:
+    def push(self, frame: FrameRow) -> Scored | None:
         started = time.perf_counter()
-        self.found.appendleft(self.neighbours.search(frame[None], np.zeros(1, np.int64), self.shortlist).indices[0])
-        self.frames.append(frame)
+        self.found.appendleft(self.neighbours.search(frame.row, np.zeros(1, np.int64), self.shortlist).indices[0])
+        self.frames.append(frame.vector.clone())  # the frame's buffer is reused
         measured = time.perf_counter()
         if len(self.frames) < self.length:
             return None

@@ -182,6 +182,57 @@ def frame_distances_(dots: np.ndarray, query: np.ndarray, reference_sq: np.ndarr
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
+def scale_by_peak_(x, out, tiny):
+    """``out = x / max(max |x|, tiny)``, each a float32 division (``unit_rows``' first step: a NaN anywhere makes
+    the peak NaN, as torch's ``amax`` and ``clamp_min`` do)."""
+    peak = np.float32(0)
+    for i in range(x.shape[0]):
+        a = abs(x[i])
+        if np.isnan(a):
+            peak = a
+            break
+        if a > peak:
+            peak = a
+    if peak < tiny:
+        peak = tiny
+    for i in range(x.shape[0]):
+        out[i] = x[i] / peak
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def divide_(x, by):
+    """``x /= by`` in place, a float32 division each."""
+    for i in range(x.shape[0]):
+        x[i] = x[i] / by
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def all_finite(x):
+    """Whether no value of ``x`` [D] is NaN or infinite (one pass, no temporary)."""
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def uniqueness_score(rows, values, exclusion):
+    """``seqvpr.sequences.topk.uniqueness`` on a ranked list (rows int64, values float64)."""
+    if rows.shape[0] == 0 or rows[0] < 0 or not np.isfinite(values[0]):
+        return 0.0
+    second = np.inf
+    for i in range(1, rows.shape[0]):
+        if rows[i] >= 0 and np.isfinite(values[i]) and abs(rows[i] - rows[0]) > exclusion:
+            second = values[i]
+            break
+    if not np.isfinite(second):
+        return 1.0
+    if second <= 0:
+        return 0.0
+    return min(max(1.0 - values[0] / second, 0.0), 1.0)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
 def _squared_norm(row):
     total = 0.0
     for j in range(row.shape[0]):
@@ -282,18 +333,16 @@ def _diagonal_block(ring, newest, length, lo, hi, out):
     oldest = newest - (length - 1)
     if oldest < 0:
         oldest += length
-    first = ring[oldest]
-    shift = lo - (length - 1)
+    first = ring[oldest, lo - (length - 1) : hi - (length - 1)]  # slices, so each loop indexes from 0 and vectorises
     for i in range(width):
-        out[i] = np.float64(first[shift + i])
+        out[i] = np.float64(first[i])
     for j in range(length - 2, -1, -1):
         slot = newest - j
         if slot < 0:
             slot += length
-        row = ring[slot]
-        shift = lo - j
+        row = ring[slot, lo - j : hi - j]
         for i in range(width):
-            out[i] += np.float64(row[shift + i])
+            out[i] += np.float64(row[i])
     for i in range(width):
         out[i] /= length
 
@@ -334,11 +383,19 @@ def _enter_ranked(v, r, best, where):
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
-def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where):
+def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where, convert, query, norms, floor):
+    """Rank the windows ending at rows ``lo .. hi - 1`` into ``best``/``where``; with ``convert``, the newest row
+    holds dot products, turned into distances (``_distances_row``) a block at a time just before it is summed."""
     buffer = np.empty(DIAGONAL_BLOCK)
     threshold = best[best.shape[0] - 1]
-    for b in range(max(lo, length - 1), hi, DIAGONAL_BLOCK):
+    query_sq = np.float32(_squared_norm(query))  # as _frame_distances rounds it
+    start = max(lo, length - 1)
+    if convert and start > lo:
+        _distances_row(ring[newest, lo:start], query_sq, norms[lo:start], floor)
+    for b in range(start, hi, DIAGONAL_BLOCK):
         e = min(b + DIAGONAL_BLOCK, hi)
+        if convert:
+            _distances_row(ring[newest, b:e], query_sq, norms[b:e], floor)
         _diagonal_block(ring, newest, length, b, e, buffer)
         for i in range(e - b):
             v = buffer[i]
@@ -348,11 +405,12 @@ def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where):
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
-def _diagonal_topk_parts(ring, newest, length, exists, parts_best, parts_where, best, where):
+def _diagonal_topk_parts(ring, newest, length, exists, parts_best, parts_where, best, where, convert, query, norms,
+                         floor):
     parts, n = parts_best.shape[0], exists.shape[0]
     for c in prange(parts):
         _diagonal_scan(ring, newest, length, exists, n * c // parts, n * (c + 1) // parts, parts_best[c],
-                       parts_where[c])
+                       parts_where[c], convert, query, norms, floor)
     threshold = best[best.shape[0] - 1]
     for c in range(parts):  # parts in row order, each ranked: ties still keep the lower row
         for i in range(parts_best.shape[1]):
@@ -362,18 +420,34 @@ def _diagonal_topk_parts(ring, newest, length, exists, parts_best, parts_where, 
                 threshold = best[best.shape[0] - 1]
 
 
+@njit(cache=True, nogil=True, boundscheck=False)
+def _diagonal_topk_serial(ring, newest, length, exists, k, convert, query, norms, floor):
+    best, where = np.full(k, np.inf), np.full(k, -1, np.int64)  # made here: a Python-side array costs more
+    _diagonal_scan(ring, newest, length, exists, 0, exists.shape[0], best, where, convert, query, norms, floor)
+    return where, best
+
+
 PART_ROWS = 65_536  # rows a thread scans at least: below this a parallel launch costs more than it saves
+FLOOR32 = np.float32(1e-12)
+NOTHING = np.zeros(0, np.float32)  # the query and norms of a ring that holds distances already
 
 
-def diagonal_topk(ring: np.ndarray, newest: int, exists: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def diagonal_topk(ring: np.ndarray, newest: int, exists: np.ndarray, k: int, query: np.ndarray | None = None,
+                  norms: np.ndarray | None = None, floor: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
     """The ``k`` best causal windows (rows, means ascending; -1/+inf pad) of a ring of the last L distance rows
     [L, N], without writing the N means: one pass, split over the thread pool in runs of rows whose top-Ks merge
-    in row order (the same rows and ties as one scan, ``best_k``'s)."""
-    best, where = np.full(k, np.inf), np.full(k, -1, np.int64)
-    parts = max(1, min(numba.get_num_threads(), exists.shape[0] // PART_ROWS))
+    in row order (the same rows and ties as one scan, ``best_k``'s). Given the frame's ``query`` row [D] and the
+    reference rows' squared ``norms`` [N] (float32), the newest row holds its dot products, which become its
+    distances (``frame_distances_``'s values) in the same pass, each block while it is in cache."""
+    convert = query is not None
+    query, norms = (query, norms) if convert else (NOTHING, NOTHING)
+    floor = FLOOR32 if floor == 1e-12 else np.float32(floor)
+    n = exists.shape[0]
+    parts = 1 if n < 2 * PART_ROWS else max(1, min(numba.get_num_threads(), n // PART_ROWS))
     if parts == 1:
-        _diagonal_scan(ring, newest, ring.shape[0], exists, 0, exists.shape[0], best, where)
-        return where, best
+        return _diagonal_topk_serial(ring, newest, ring.shape[0], exists, k, convert, query, norms, floor)
+    best, where = np.full(k, np.inf), np.full(k, -1, np.int64)
     parts_best, parts_where = np.full((parts, k), np.inf), np.full((parts, k), -1, np.int64)
-    _diagonal_topk_parts(ring, newest, ring.shape[0], exists, parts_best, parts_where, best, where)
+    _diagonal_topk_parts(ring, newest, ring.shape[0], exists, parts_best, parts_where, best, where, convert, query,
+                         norms, floor)
     return where, best

@@ -31,14 +31,6 @@ def unit_rows(rows: torch.Tensor, dim: int = 1, out: torch.Tensor | None = None)
     return torch.nn.functional.normalize(scaled, dim=dim, out=scaled if out is not None else None)
 
 
-def unit_vector(vector: torch.Tensor) -> torch.Tensor:
-    """``unit_rows`` of one float32 vector [D] on the CPU, bit for bit, in four torch operations instead of eight (a
-    localiser's frame, where each operation runs with a cache the map's distance pass has just flushed): the largest
-    magnitude and the norm are exact scalars, each division the same float32 division."""
-    scaled = vector / max(float(torch.linalg.vector_norm(vector, float("inf"))), TINY32)
-    return scaled.div_(max(float(torch.linalg.vector_norm(scaled)), EPS32))
-
-
 TINY32 = float(np.finfo(np.float32).tiny)  # unit_rows' clamp of the largest magnitude
 EPS32 = float(np.float32(1e-12))  # torch's normalize clamps the norm at its eps, as a float32
 
@@ -426,38 +418,6 @@ def reference_squared_norms(reference: ReferenceRows, columns: int = 65536) -> n
         rows = reference[lo : lo + columns]
         parts.append(squared_norms(np.asarray(rows.cpu() if isinstance(rows, torch.Tensor) else rows, np.float32)))
     return np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)
-
-
-class ReferenceBlocks:
-    """A reference prepared for one-frame distance passes (a localiser's): its rows' squared norms (float32, as the
-    pass uses them) and, where the rows are float32 on the CPU (in memory, or a map's memory map), torch views of
-    its blocks of ``columns`` rows made once; coded rows are read and decoded a block at a time each pass."""
-
-    def __init__(self, reference: ReferenceRows, columns: int = 65536) -> None:
-        self.reference, self.columns = reference, columns
-        self.norms = reference_squared_norms(reference, columns)
-        bounds = [(lo, min(lo + columns, len(reference))) for lo in range(0, len(reference), columns)]
-        like = torch.empty(0)
-        plain = isinstance(reference, np.ndarray) and reference.dtype == np.float32 and reference.flags.writeable
-        self.blocks = [(lo, hi, reference_rows(reference, slice(lo, hi), like).T if plain else None,
-                        self.norms[lo:hi]) for lo, hi in bounds]  # each block's rows transposed: what mm takes
-
-    def __len__(self) -> int:
-        return len(self.reference)
-
-    def distances_into(self, frame: torch.Tensor, out: np.ndarray) -> np.ndarray:
-        """One frame's distances [N] (float32, CPU) to every row, written into ``out``: the values
-        ``distances_to_reference`` gives, block by block, in the calling thread's pools alone."""
-        from seqvpr.sequences._fused import frame_distances_
-
-        vector = frame if frame.dtype == torch.float32 and frame.device.type == "cpu" else frame.float().cpu()
-        query, numbers = vector[None], vector.numpy()
-        for lo, hi, columns, norms in self.blocks:
-            values = out[lo:hi]
-            columns = columns if columns is not None else reference_rows(self.reference, slice(lo, hi), query).T
-            torch.mm(query, columns, out=torch.from_numpy(values)[None])
-            frame_distances_(values, numbers, norms)
-        return out
 
 
 def distances_to_reference(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from seqvpr import sequences
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.windows import window_starts
 
@@ -21,7 +22,8 @@ class DiagonalSums:
 
     ``reference_segments`` decide which reference windows exist (a window never spans a segment break); a query
     segment break or a restart is ``reset()``: the next L - 1 frames then have no window (warming up). A step is
-    ``next_row()`` (the ring's row to measure the new frame's distances into), then ``push`` or ``push_topk``.
+    ``next_row()`` (the ring's row to measure the new frame's distances into), then ``push`` or ``push_topk``; or the
+    frame's dot products measured into ``next_row()``, then ``push_dots_topk``.
     """
 
     def __init__(self, reference_segments: np.ndarray, length: int) -> None:
@@ -38,8 +40,12 @@ class DiagonalSums:
         """Forget the frames so far (a new query segment, a kidnapping, a new drive)."""
         self.count = 0
 
+    def next_slot(self) -> int:
+        """The ring's row that the next frame's distances go into (the oldest frame's, no longer needed)."""
+        return self.count % self.length
+
     def next_row(self) -> np.ndarray:
-        """The ring's row [N] that the next frame's distances go into (the oldest frame's, no longer needed)."""
+        """``ring[next_slot()]`` [N]."""
         return self.ring[self.count % self.length]
 
     def _enter(self, distances: np.ndarray) -> int | None:
@@ -74,6 +80,18 @@ class DiagonalSums:
 
         newest = self._enter(distances)
         return None if newest is None else diagonal_topk(self.ring, newest, self.window_exists, min(k, self.ring.shape[1]))
+
+    def push_dots_topk(self, query: np.ndarray, norms: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``push_topk`` of a frame whose dot products with every reference row were measured into ``next_row()``
+        (``query`` the frame's row [D], ``norms`` the reference rows' squared norms [N], float32): they become its
+        distances (``frame_distances_``'s values) in the pass that ranks the windows, one call a frame."""
+        kernels = sequences._fused
+        newest = self.count % self.length
+        self.count += 1
+        if self.count < self.length:
+            kernels.frame_distances_(self.ring[newest], query, norms)
+            return None
+        return kernels.diagonal_topk(self.ring, newest, self.window_exists, min(k, self.ring.shape[1]), query, norms)
 
     def state(self) -> dict[str, np.ndarray]:
         """The ring and the frame count since the last reset (what ``load_state`` goes on from)."""

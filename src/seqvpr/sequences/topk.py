@@ -7,13 +7,13 @@ match split into any chunks, shards or streams is the match done whole. ``other_
 
 from __future__ import annotations
 
-import math
-
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from seqvpr import sequences
 
 NO_ROW = -1  # an empty entry's row (its distance is +inf)
 _LAST = np.iinfo(np.int64).max  # where the tie rule puts an empty entry's row
@@ -111,11 +111,5 @@ def uniqueness(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> fl
     """How much one ranked list's best match stands out: 1 - best / (the best of another place, ``other_place``), in
     [0, 1]; 0 with no match, 1 when no other place is in the list (SeqSLAM's ratio test as a score). A list of the
     best 2 x ``exclusion`` + 2 rows holds the best other place of the whole map when one exists."""
-    rows, values = np.asarray(indices).tolist(), np.asarray(distances, dtype=np.float64).tolist()  # one short list
-    if not rows or rows[0] < 0 or not math.isfinite(values[0]):
-        return 0.0
-    second = next((v for r, v in zip(rows[1:], values[1:])  # other_place's rival, as plain numbers
-                   if r >= 0 and math.isfinite(v) and abs(r - rows[0]) > exclusion), math.inf)
-    if not math.isfinite(second) or second <= 0:
-        return 1.0 if not math.isfinite(second) else 0.0
-    return min(max(1.0 - values[0] / second, 0.0), 1.0)
+    return sequences._fused.uniqueness_score(np.asarray(indices, dtype=np.int64),  # compiled: scored every frame
+                                             np.asarray(distances, dtype=np.float64), exclusion)
