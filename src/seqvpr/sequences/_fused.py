@@ -325,26 +325,63 @@ DIAGONAL_BLOCK = 4096  # rows summed at a time: a float64 block that stays in ca
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
+def _diagonal_term(ring, newest, length, j, lo, hi):
+    """The ring row ``j`` frames before the newest, over the columns its diagonals from rows ``lo .. hi - 1`` cross
+    (a slice, so each loop indexes from 0 and vectorises)."""
+    slot = newest - j
+    if slot < 0:
+        slot += length
+    return ring[slot, lo - j : hi - j]
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _add_terms(out, a, b, c, d, count, first):
+    """``out`` = ((out + a) + b) + c) + d over the first ``count`` of a .. d (from a alone when ``first``), in
+    float64: up to four terms a pass, so the block is read and written once for four rows of the ring."""
+    if first:
+        if count == 1:
+            for i in range(out.shape[0]):
+                out[i] = np.float64(a[i])
+        elif count == 2:
+            for i in range(out.shape[0]):
+                out[i] = np.float64(a[i]) + np.float64(b[i])
+        elif count == 3:
+            for i in range(out.shape[0]):
+                out[i] = (np.float64(a[i]) + np.float64(b[i])) + np.float64(c[i])
+        else:
+            for i in range(out.shape[0]):
+                out[i] = ((np.float64(a[i]) + np.float64(b[i])) + np.float64(c[i])) + np.float64(d[i])
+    elif count == 1:
+        for i in range(out.shape[0]):
+            out[i] = out[i] + np.float64(a[i])
+    elif count == 2:
+        for i in range(out.shape[0]):
+            out[i] = (out[i] + np.float64(a[i])) + np.float64(b[i])
+    elif count == 3:
+        for i in range(out.shape[0]):
+            out[i] = ((out[i] + np.float64(a[i])) + np.float64(b[i])) + np.float64(c[i])
+    else:
+        for i in range(out.shape[0]):
+            out[i] = (((out[i] + np.float64(a[i])) + np.float64(b[i])) + np.float64(c[i])) + np.float64(d[i])
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
 def _diagonal_block(ring, newest, length, lo, hi, out):
     """``out[:hi - lo]`` = the means of the causal windows ending at reference rows ``lo .. hi - 1`` (``lo`` at
     least L - 1): the last ``length`` distance rows of the ring (``newest`` its latest slot) along each diagonal,
-    summed oldest first in float64 (exact for float32 terms), term by term over the block (vectorised)."""
-    width = hi - lo
-    oldest = newest - (length - 1)
-    if oldest < 0:
-        oldest += length
-    first = ring[oldest, lo - (length - 1) : hi - (length - 1)]  # slices, so each loop indexes from 0 and vectorises
-    for i in range(width):
-        out[i] = np.float64(first[i])
-    for j in range(length - 2, -1, -1):
-        slot = newest - j
-        if slot < 0:
-            slot += length
-        row = ring[slot, lo - j : hi - j]
-        for i in range(width):
-            out[i] += np.float64(row[i])
-    for i in range(width):
-        out[i] /= length
+    summed oldest first in float64 (exact for float32 terms), over the block in vectorised passes."""
+    view = out[: hi - lo]
+    j = length - 1  # the oldest term's lag
+    while j >= 0:
+        count = min(4, j + 1)
+        _add_terms(view, _diagonal_term(ring, newest, length, j, lo, hi),
+                   _diagonal_term(ring, newest, length, max(j - 1, 0), lo, hi),
+                   _diagonal_term(ring, newest, length, max(j - 2, 0), lo, hi),
+                   _diagonal_term(ring, newest, length, max(j - 3, 0), lo, hi), count, j == length - 1)
+        j -= count
+    divisor = np.float64(length)
+    for i in range(view.shape[0]):
+        view[i] /= divisor
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
