@@ -88,8 +88,6 @@ class ReferenceBlocks:
     def distances_into(self, frame: FrameRow, out: np.ndarray) -> np.ndarray:
         """One frame's distances [N] (float32, CPU) to every row, written into ``out``: the values
         ``distances_to_reference`` gives."""
-        from seqvpr.sequences._fused import frame_distances_
-
         self.dots_into(frame.row, torch.from_numpy(out)[None])
-        frame_distances_(out, frame.numbers, self.norms)
+        sequences._fused.frame_distances_(out, frame.numbers, self.norms)
         return out
