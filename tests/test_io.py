@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 
-from seqvpr.io import output_lock
+from seqvpr.io import atomic_folder, atomic_write, output_lock, raise_for_signal
 from tests.helpers import raises_one_line, run_cli, write_route_files
 
 
@@ -232,3 +232,34 @@ def test_a_lock_held_by_this_process_is_taken_again_inside_and_released_by_its_h
             pass
         assert lock_path(tmp_path / "m").exists()
     assert not lock_path(tmp_path / "m").exists()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the drop this test makes
+def test_a_signal_dropped_on_its_way_still_stops_the_next_commit(tmp_path):
+    """A signal whose exception CPython drops (raised inside a callback whose exceptions it ignores, as the lock
+    clean-up after an import is) still stops the next commit, of a file or a folder: the old output stays, no
+    temporary is left, and only that one commit is stopped."""
+    import weakref
+
+    class Finalised:
+        pass
+
+    target, folder = tmp_path / "out.txt", tmp_path / "out"
+    target.write_text("old")
+    for commit in ("file", "folder"):
+        thing = Finalised()
+        keep = weakref.ref(thing, lambda _: raise_for_signal(KeyboardInterrupt()))
+        del thing  # the callback runs here and its KeyboardInterrupt is dropped ("Exception ignored in ...")
+        assert keep() is None
+        with pytest.raises(KeyboardInterrupt):
+            if commit == "file":
+                with atomic_write(target) as handle:
+                    handle.write("new")
+            else:
+                with atomic_folder(folder) as tmp:
+                    (tmp / "f").write_text("new")
+        assert target.read_text() == "old" and not folder.exists()
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+    with atomic_write(target) as handle:
+        handle.write("new")
+    assert target.read_text() == "new"

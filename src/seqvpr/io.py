@@ -17,7 +17,7 @@ import shutil
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import IO
+from typing import IO, NoReturn
 
 from seqvpr.errors import SeqvprError
 
@@ -27,6 +27,23 @@ TEMP_TAG = ".seqvpr-"
 _LEFTOVER = re.compile(r"^\..*\.seqvpr-(\d+)-\w+\.(part|old)$")  # a temporary: its process id, its kind
 _HELD: set[Path] = set()  # the output locks this process holds
 _TEMP_TAIL = TEMP_TAG + "0000000-XXXXXXXX.part"  # the longest tail a temporary name adds (a 7-digit process id)
+#: the exception a signal raised, kept until it stops a commit: one that lands while CPython runs a callback whose
+#: exceptions it ignores (the lock clean-up after an import, a finaliser) is dropped there, and the command would
+#: otherwise go on to replace the output that Ctrl-C was meant to keep
+_SIGNALLED: list[BaseException] = []
+
+
+def raise_for_signal(error: BaseException) -> NoReturn:
+    """A signal handler's body (the CLI's, for SIGINT and SIGTERM): raise ``error``, remembered in case it is
+    dropped before it reaches the command, so the next commit raises it instead (``check_not_signalled``)."""
+    _SIGNALLED[:] = [error]
+    raise error
+
+
+def check_not_signalled() -> None:
+    """Before an output is committed: raise a signal's exception that was dropped on its way (once)."""
+    if _SIGNALLED:
+        raise _SIGNALLED.pop()
 
 
 def current_umask() -> int:
@@ -46,6 +63,7 @@ def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[I
     try:
         with os.fdopen(fd, mode, **open_kwargs) as handle:
             yield handle
+        check_not_signalled()
         rename(tmp, path)
     except BaseException as error:
         name_target(error, Path(tmp), path)
@@ -65,6 +83,7 @@ def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]
     tmp = temporary_folder(path)
     try:
         yield tmp
+        check_not_signalled()
         _replace_folder(tmp, path)
     except BaseException as error:
         name_target(error, tmp, path)  # before the temporary goes: a full device is still full
@@ -207,6 +226,7 @@ def check_replaceable(path: Path, marker: str | None, keep: Sequence[str | Path 
 def commit_folder(new: Path, target: Path, marker: str | None = None) -> None:
     """Put a finished temporary folder (``temporary_folder``) in place of ``target`` as ``atomic_folder`` does."""
     check_replaceable(target, marker)
+    check_not_signalled()
     _replace_folder(new, target)
 
 

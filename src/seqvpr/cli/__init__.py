@@ -16,6 +16,7 @@ import click
 
 from seqvpr.cli.help import tag
 from seqvpr.errors import SeqvprError, SeqvprWarning, os_refusal
+from seqvpr.io import raise_for_signal
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
 COMMANDS = {
@@ -95,7 +96,11 @@ class Terminated(BaseException):
 
 
 def _terminated(signum, frame) -> None:
-    raise Terminated()
+    raise_for_signal(Terminated())
+
+
+def _interrupted(signum, frame) -> None:
+    raise_for_signal(KeyboardInterrupt())
 
 
 INTERRUPTED = "nothing half-written is left under an output's name"
@@ -123,6 +128,8 @@ def main() -> None:
     warnings.showwarning = _show_warning
     show_library_log()
     signal.signal(signal.SIGTERM, _terminated)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where a shell made a job ignore it
+        signal.signal(signal.SIGINT, _interrupted)
     if hasattr(signal, "SIGXFSZ"):  # past ``ulimit -f`` a write fails with EFBIG (one line) rather than a kill
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
