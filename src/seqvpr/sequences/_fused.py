@@ -336,7 +336,7 @@ def _diagonal_term(ring, newest, length, j, lo, hi):
 
 @njit(cache=True, nogil=True, boundscheck=False)
 def _add_terms(out, a, b, c, d, count, first):
-    """``out`` = ((out + a) + b) + c) + d over the first ``count`` of a .. d (from a alone when ``first``), in
+    """``out`` = (((out + a) + b) + c) + d over the first ``count`` of a .. d (from a alone when ``first``), in
     float64: up to four terms a pass, so the block is read and written once for four rows of the ring."""
     if first:
         if count == 1:
