@@ -83,7 +83,6 @@ def atomic_folder(path: str | Path, marker: str | None = None) -> Iterator[Path]
     tmp = temporary_folder(path)
     try:
         yield tmp
-        check_not_signalled()
         _replace_folder(tmp, path)
     except BaseException as error:
         name_target(error, tmp, path)  # before the temporary goes: a full device is still full
@@ -226,7 +225,6 @@ def check_replaceable(path: Path, marker: str | None, keep: Sequence[str | Path 
 def commit_folder(new: Path, target: Path, marker: str | None = None) -> None:
     """Put a finished temporary folder (``temporary_folder``) in place of ``target`` as ``atomic_folder`` does."""
     check_replaceable(target, marker)
-    check_not_signalled()
     _replace_folder(new, target)
 
 
@@ -234,6 +232,7 @@ def _replace_folder(new: Path, target: Path) -> None:
     """Put the finished folder ``new`` in place of ``target`` by one atomic exchange of the two names (the old
     folder then sits under ``new``'s temporary name and is removed). Where the file system cannot exchange, the old
     folder is moved aside first, and restored if the second rename fails or, after a kill, by ``sweep_leftovers``."""
+    check_not_signalled()
     if not target.exists():
         rename(new, target)
         return

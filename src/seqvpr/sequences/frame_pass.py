@@ -55,11 +55,6 @@ class FrameRow:
         return sequences._fused.all_finite(self.numbers)
 
 
-def unit_vector(vector: torch.Tensor) -> torch.Tensor:
-    """``unit_rows`` of one float32 vector [D] on the CPU, bit for bit (``FrameRow.set_unit``, in a fresh row)."""
-    return FrameRow.empty(len(vector)).set_unit(vector.numpy()).vector
-
-
 class ReferenceBlocks:
     """A reference prepared for one-frame distance passes (a localiser's): its rows' squared norms (float32, as the
     pass uses them) and, where the rows are float32 on the CPU (in memory, or a map's memory map), torch views of

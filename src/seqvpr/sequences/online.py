@@ -46,7 +46,7 @@ class DiagonalSums:
 
     def next_row(self) -> np.ndarray:
         """``ring[next_slot()]`` [N]."""
-        return self.ring[self.count % self.length]
+        return self.ring[self.next_slot()]
 
     def _enter(self, distances: np.ndarray) -> int | None:
         """Take one frame's distances (copied into the ring unless measured into ``next_row``); the slot of the
@@ -86,7 +86,7 @@ class DiagonalSums:
         (``query`` the frame's row [D], ``norms`` the reference rows' squared norms [N], float32): they become its
         distances (``frame_distances_``'s values) in the pass that ranks the windows, one call a frame."""
         kernels = sequences._fused
-        newest = self.count % self.length
+        newest = self.next_slot()
         self.count += 1
         if self.count < self.length:
             kernels.frame_distances_(self.ring[newest], query, norms)
