@@ -31,7 +31,8 @@ def main() -> None:
     parser.add_argument("--seq-len", type=int, default=5)
     args = parser.parse_args()
     from seqvpr.evaluation.predictions import save_correspondences
-    from seqvpr.matchers.base import MatchResult, MatchSettings
+    from seqvpr.results import MatchResult
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.matchers.frames import query_rows
     from seqvpr.matchers.sequence import top1_pairs
     from seqvpr.evaluation.ground_truth import resolve_ground_truth

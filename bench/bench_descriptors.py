@@ -38,7 +38,7 @@ from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe, netvlad_extractor, whiten_pair
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 

@@ -29,7 +29,7 @@ from seqvpr.data.sources import load_pair
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
 from seqvpr.features.extraction import ExtractorConfig
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 SIZES = ("64x32", "128x64", "192x96", "256x128")

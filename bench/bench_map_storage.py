@@ -29,7 +29,7 @@ from seqvpr.maps import build_map, match_map
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 GARDENS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"

@@ -48,7 +48,7 @@ from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.features.describe import describe
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 DIM, LENGTH, K = 256, 5, 20

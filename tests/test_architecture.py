@@ -18,7 +18,7 @@ PACKAGE = SRC / "seqvpr"
 LAYERS = {
     "seqvpr": 0, "seqvpr.errors": 0, "seqvpr.io": 0, "seqvpr.threads": 0, "seqvpr.progress": 0, "seqvpr.cache": 0,
     "seqvpr.identity": 0, "seqvpr.arrays": 0,
-    "seqvpr.data": 1, "seqvpr.sequences": 1,
+    "seqvpr.data": 1, "seqvpr.sequences": 1, "seqvpr.results": 1,
     "seqvpr.features": 2, "seqvpr.evaluation": 2, "seqvpr.synthetic": 2,
     "seqvpr.models": 3,
     "seqvpr.matchers": 4,
@@ -44,14 +44,11 @@ def layer(module: str) -> int:
 
 
 def imports_of(path: Path) -> set[str]:
-    """The seqvpr modules a file imports, at module level or inside functions (not under ``TYPE_CHECKING``)."""
+    """The seqvpr modules a file imports, at module level, inside functions or for type checking only (a type-only
+    import is a tie between two modules as real as any other)."""
     tree = ast.parse(path.read_text())
-    skipped = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
-               for child in node.body for n in ast.walk(child)}
     found = set()
     for node in ast.walk(tree):
-        if id(node) in skipped:
-            continue
         if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("seqvpr"):
             found.add(node.module)
             found.update(f"{node.module}.{a.name}" for a in node.names)

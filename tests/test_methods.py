@@ -23,7 +23,7 @@ from seqvpr.methods import (
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
 from seqvpr.models.seqmatchnet import FrameTransform
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route

@@ -20,7 +20,8 @@ from seqvpr.errors import SeqvprError
 if TYPE_CHECKING:
     from seqvpr.data.traversal import Traversal
     from seqvpr.evaluation.metrics import Evaluation
-    from seqvpr.matchers.base import MatchResult, MatchSettings
+    from seqvpr.results import MatchResult
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 
@@ -67,7 +68,7 @@ def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int
                    normalize: bool = True, dtype: str = "float32", device: str = "cpu",
                    memory_budget: int | None = DEFAULT_BUDGET) -> MatchSettings:
     """The settings of a match: windows of ``seq_len`` frames (the method's or its model's length when None)."""
-    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.methods import get_method, run_length
     from seqvpr.sequences.windows import SequenceSpec
 

@@ -28,7 +28,8 @@ from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
-    from seqvpr.matchers.base import MatchSettings, Matcher
+    from seqvpr.matchers.base import Matcher
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 

@@ -20,7 +20,7 @@ from seqvpr.synthetic.world import write_demo_world
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
 from seqvpr.cli.train import jist_values

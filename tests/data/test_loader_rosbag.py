@@ -219,9 +219,10 @@ def test_a_bag_map_names_its_frames_by_stamp_reports_its_topics_and_outlives_the
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", bag, "--stamp-tolerance", "0.2", "--out",
                            tmp_path / "m")
     assert code == 0, err
-    assert err.splitlines()[:3] == [f"{bag}?tolerance=0.2: camera topic /camera/image_raw",
-                                f"{bag}?tolerance=0.2: position topic /gps/fix",
-                                f"{bag}?tolerance=0.2: 2 frames without a position fix within 0.2 s (left out)"]
+    assert err.splitlines()[:3] == [f"seqvpr: {bag}?tolerance=0.2: camera topic /camera/image_raw",
+                                f"seqvpr: {bag}?tolerance=0.2: position topic /gps/fix",
+                                f"seqvpr: {bag}?tolerance=0.2: 2 frames without a position fix within 0.2 s "
+                                "(left out)"]
     names = [f"{bag}:/camera/image_raw@{100 + 0.5 * i:.9f}" for i in range(10)]
     assert (tmp_path / "m" / "names.txt").read_text().splitlines() == names
     import shutil

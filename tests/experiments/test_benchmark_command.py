@@ -73,7 +73,7 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
     from seqvpr.experiments.benchmark import load_splits
     from tests.helpers import match_method
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     config = route / "bench_matchers.toml"
@@ -100,7 +100,7 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
 def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
     from seqvpr.matchers.retrieval import RetrievalMatcher
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.models.seqnet import load_seqnet
 
@@ -149,7 +149,7 @@ def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, caps
     from seqvpr.models.jist import describe_with_jist, load_jist
     from seqvpr.matchers.retrieval import RetrievalMatcher
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.synthetic.world import write_demo_world
     from seqvpr.training.jist import jist_setup

@@ -17,7 +17,7 @@ import torch
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps.files import ShardRecord
-from seqvpr.matchers.base import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.sharded import Sharded
 from seqvpr.matchers.shortlisted import ExactNeighbours, Shortlisted
 from seqvpr.matchers.windows import WindowMatcher

@@ -11,7 +11,7 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.ground_truth import ground_truth
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.descriptors import (
     FIXED_POOLINGS,
     SeqGeM,

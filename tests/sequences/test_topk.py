@@ -6,7 +6,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.sequences.topk import TopK, TopKMerge, best_k, merge_topks, other_place, uniqueness
+from seqvpr.sequences.topk import TopKMerge, best_k, merge_topks, other_place, uniqueness
+from seqvpr.results import TopK
 from tests import oracles
 from tests.helpers import examples
 

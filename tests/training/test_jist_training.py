@@ -19,7 +19,7 @@ from seqvpr.models.files import MODEL_FILE, read_json, read_tensors
 from seqvpr.models.jist import ImageStore, JistConfig, build_jist, describe_with_jist, load_jist
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import window_frames
 from seqvpr.synthetic.world import write_demo_world
 from seqvpr.training.cosplace import CellGrouping, assign_classes, group_members

@@ -107,7 +107,7 @@ def _build_map(sources, out_dir, description, models, extraction, *, dtype, norm
     indexed = None if spec is None else (lambda saved: records.append(
         add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)))
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
-                      progress=tqdm_progress, frames=frames, loaded=_echo_bag, indexed=indexed, **extraction)
+                      progress=tqdm_progress, frames=frames, indexed=indexed, **extraction)
     _echo_built(out_dir, saved.info)
     for record in records:
         _echo_index(record)
@@ -125,7 +125,7 @@ def _build_sharded(sources, out_dir, sharding, description, models, extraction, 
     indexed = None if spec is None else (lambda sharded: records.extend(
         index_shards(sharded, spec, seed, tqdm_progress, windows, window_method, index_model)))
     sharded = build_sharded_map(sources, out_dir, *sharding, description, models, dtype=dtype, normalize=normalize,
-                                device=device, progress=tqdm_progress, frames=frames, loaded=_echo_bag,
+                                device=device, progress=tqdm_progress, frames=frames,
                                 indexed=indexed, **extraction)
     _echo_built(out_dir, sharded.as_map().info)
     click.echo(f"sharded map: {out_dir} ({sharded.count} frames in {len(sharded.shards)} shards, overlap "
@@ -138,17 +138,6 @@ def _build_sharded(sources, out_dir, sharding, description, models, extraction, 
 def _echo_built(out_dir: str, info) -> None:
     click.echo(f"{out_dir}: {info.count} frames from {len(info.sources)} source(s), {info.dim}-D "
                f"{info.description['descriptor']} descriptors, {info.dtype}")
-
-
-def _echo_bag(source: str, traversal) -> None:
-    """What a bag source gave (stderr, one line each): its camera topic, its position topic, frames left out."""
-    reading = traversal.bag
-    if reading is None:
-        return
-    click.echo(f"{source}: camera topic {reading.camera_topic}", err=True)
-    click.echo(f"{source}: position topic {reading.position_topic or 'none'}", err=True)
-    click.echo(f"{source}: {reading.without_fix} frames without a position fix within {reading.tolerance:g} s "
-               "(left out)", err=True)
 
 
 @map_group.command(name="index")

@@ -123,7 +123,7 @@ def match(**o: Any) -> None:
     models, method = _models_and_method(o)
     from seqvpr import distributed
     from seqvpr.api import match as match_reference
-    from seqvpr.matchers.settings import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.methods import run_length
     from seqvpr.evaluation.scoring import evaluate_match
     from seqvpr.sequences.windows import SequenceSpec, parse_steps

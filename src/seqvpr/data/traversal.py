@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -12,8 +11,8 @@ from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.arrays import file_mapped
 from seqvpr.errors import SeqvprError
 
-if TYPE_CHECKING:
-    from seqvpr.data.loaders.rosbag import BagReading
+GAP_FACTOR = 10.0  # a time step this many times the median one starts a segment (time_gap_segments)
+
 
 
 @dataclass(frozen=True)
@@ -25,8 +24,7 @@ class Traversal:
     ``positions`` are metres (easting, northing), absent for frame-aligned sets; ``crs`` says in what
     (``seqvpr.data.geo``: ``utm:32N``, ``local`` when not given, None without positions). ``segment_ids`` mark
     trajectory breaks: a sequence window never spans two runs of different ids. ``names`` name the frames where
-    their image files do not (a bag's frames, read from cached files, are ``BAG:/topic@STAMP``); ``bag`` is what a
-    ROS bag's loading found (topics, frames left out).
+    their image files do not (a bag's frames, read from cached files, are ``BAG:/topic@STAMP``).
     """
 
     name: str
@@ -40,7 +38,6 @@ class Traversal:
     source: str = field(default="", compare=False)
     names: tuple[str, ...] | None = None
     crs: str | None = None
-    bag: BagReading | None = field(default=None, compare=False)
     #: how a saved map stores these rows (``float32``, ``float16``, ``sq8``, ``pq``; ``sharded``: through its
     #: shards), read a chunk at a time as stored; None: rows in memory, normalised when matched
     stored: str | None = field(default=None, compare=False)
@@ -254,6 +251,17 @@ def segments_from_gaps(
     if positions is not None and max_distance_gap is not None:
         steps = np.linalg.norm(np.diff(np.asarray(positions, dtype=np.float64), axis=0), axis=1)
         breaks |= steps > max_distance_gap
+    return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)
+
+def time_gap_segments(timestamps: np.ndarray) -> np.ndarray:
+    """Segment ids breaking where the time step exceeds 10x the median step or goes backwards."""
+    steps = np.diff(np.asarray(timestamps, dtype=np.float64))
+    if len(steps) == 0:
+        return np.zeros(len(timestamps), dtype=np.int64)
+    median = float(np.median(steps))
+    breaks = steps < 0
+    if median > 0:
+        breaks |= steps > GAP_FACTOR * median
     return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)
 
 

@@ -11,16 +11,12 @@ import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 
 from seqvpr.evaluation.plots import CORRECT_COLOUR, GT_COLOUR, WRONG_COLOUR, new_figure, save_figure
-
-if TYPE_CHECKING:  # the page's record; imported lazily because localisation_report.py imports this module
-    from seqvpr.evaluation.localisation_report import LocalisationTrace
 
 STATUSES = ("warming up", "localised", "uncertain", "lost")
 MAP_COLOUR = "#9e9e9e"
@@ -78,6 +74,41 @@ def placed_rows(estimate: np.ndarray, best: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- on the map
+
+
+@dataclass(frozen=True)
+class LocalisationTrace:
+    """A replay, one entry per query frame: its frame number (and seconds, with timestamps), the map row the
+    localiser names (-1: none) and its best one, status, score, latency [n, stages] in ms, whether the best map row
+    is correct and a true map row (-1: no ground truth) when known; the map's and the query's positions [.., 2]."""
+
+    frames: np.ndarray
+    estimate: np.ndarray
+    best: np.ndarray
+    status: np.ndarray
+    score: np.ndarray
+    latency: np.ndarray
+    stages: tuple[str, ...]
+    correct: np.ndarray | None = None
+    truth: np.ndarray | None = None
+    seconds: np.ndarray | None = None
+    map_positions: np.ndarray | None = None
+    query_positions: np.ndarray | None = None
+
+    def categories(self) -> np.ndarray:
+        """Each frame's colour key entry: its status, localised split by correctness where known."""
+        return categories(self.status, self.correct, self.truth)
+
+    def rows(self) -> np.ndarray:
+        """The map row each frame is drawn at (its estimate, else the best one it no longer names; -1: none)."""
+        return placed_rows(self.estimate, self.best)
+
+    def time_axis(self) -> tuple[np.ndarray, str]:
+        """Seconds since the first frame when the query has timestamps, else its frame numbers; and the label."""
+        if self.seconds is not None:
+            seconds = np.asarray(self.seconds, dtype=float)
+            return seconds - seconds[0], "time since the first query frame (s)"
+        return np.asarray(self.frames), "query frame"
 
 
 def plot_map_view(trace: LocalisationTrace, path: Path) -> list[str]:

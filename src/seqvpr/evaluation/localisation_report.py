@@ -10,52 +10,15 @@ from __future__ import annotations
 
 import html
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
-from seqvpr.evaluation.localisation_plots import (
-    BY_NAME, categories, category_counts, placed_rows, plot_map_view, plot_over_time,
+from seqvpr.evaluation.localisation_plots import (  # noqa: F401  (LocalisationTrace re-exported)
+    BY_NAME, LocalisationTrace, category_counts, plot_map_view, plot_over_time,
 )
 from seqvpr.evaluation.report import page_html, summary_html
 from seqvpr.io import atomic_folder
-
-
-@dataclass(frozen=True)
-class LocalisationTrace:
-    """A replay, one entry per query frame: its frame number (and seconds, with timestamps), the map row the
-    localiser names (-1: none) and its best one, status, score, latency [n, stages] in ms, whether the best map row
-    is correct and a true map row (-1: no ground truth) when known; the map's and the query's positions [.., 2]."""
-
-    frames: np.ndarray
-    estimate: np.ndarray
-    best: np.ndarray
-    status: np.ndarray
-    score: np.ndarray
-    latency: np.ndarray
-    stages: tuple[str, ...]
-    correct: np.ndarray | None = None
-    truth: np.ndarray | None = None
-    seconds: np.ndarray | None = None
-    map_positions: np.ndarray | None = None
-    query_positions: np.ndarray | None = None
-
-    def categories(self) -> np.ndarray:
-        """Each frame's colour key entry: its status, localised split by correctness where known."""
-        return categories(self.status, self.correct, self.truth)
-
-    def rows(self) -> np.ndarray:
-        """The map row each frame is drawn at (its estimate, else the best one it no longer names; -1: none)."""
-        return placed_rows(self.estimate, self.best)
-
-    def time_axis(self) -> tuple[np.ndarray, str]:
-        """Seconds since the first frame when the query has timestamps, else its frame numbers; and the label."""
-        if self.seconds is not None:
-            seconds = np.asarray(self.seconds, dtype=float)
-            return seconds - seconds[0], "time since the first query frame (s)"
-        return np.asarray(self.frames), "query frame"
 
 
 #: run.json's measures under the names a reader knows, in the order the page lists them

@@ -11,7 +11,8 @@ import math
 import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from matplotlib import colormaps
@@ -24,8 +25,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
 
-if TYPE_CHECKING:  # the report's data types; imported lazily because report.py imports this module
-    from seqvpr.evaluation.report import DistanceView, MethodResult
+from seqvpr.errors import SeqvprError
 
 DPI = 100
 MAX_DRAWN = 1000  # largest number of rows / columns of a distance matrix that is drawn as is
@@ -36,6 +36,48 @@ NO_WINDOW_COLOUR = "#d9d9d9"
 LEGEND_COLUMNS = 2  # columns of the method legends below the curves
 
 Extent = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One row of the report: a method's name, Recall@K for K=1..K_max, its PR curve and summary figures."""
+
+    name: str
+    recall_at_k: dict[int, float]
+    precision: np.ndarray
+    recall: np.ndarray
+    pr_auc: float
+    recall_at_100_precision: float
+    frame_precision: float = float("nan")  # share of the top-1 matches' per-frame correspondences that are right
+
+
+@dataclass(frozen=True)
+class DistanceView:
+    """A distance matrix to draw: [n_query, n_reference] (NaN where no window), GT positives mask, top-1 path, and
+    what its colours and axes show (the colour bar's and the axes' labels)."""
+
+    title: str
+    distances: np.ndarray
+    positives: np.ndarray
+    top1: np.ndarray
+    correct: np.ndarray
+    distance_label: str = "distance"
+    query_label: str = "query frame"
+    reference_label: str = "reference frame"
+
+
+def check_distance_view(view: DistanceView) -> None:
+    """Raise SeqvprError unless the matrix, mask and path of ``view`` agree in shape (before any drawing)."""
+    d = np.asarray(view.distances)
+    if d.ndim != 2:
+        raise SeqvprError(f"distance view {view.title!r}: distances must be 2-D, got shape {d.shape}")
+    if np.shape(view.positives) != d.shape:
+        raise SeqvprError(f"distance view {view.title!r}: positives {np.shape(view.positives)} != distances {d.shape}")
+    if np.shape(view.top1) != (d.shape[0],) or np.shape(view.correct) != (d.shape[0],):
+        raise SeqvprError(f"distance view {view.title!r}: top1 and correct need shape ({d.shape[0]},)")
+    top1 = np.asarray(view.top1)
+    if len(top1) and (top1.min(initial=0) < -1 or top1.max(initial=-1) >= d.shape[1]):
+        raise SeqvprError(f"distance view {view.title!r}: top1 holds a reference outside 0..{d.shape[1] - 1}")
 
 
 def method_colours(names: Sequence[str]) -> dict[str, str]:

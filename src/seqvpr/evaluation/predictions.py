@@ -22,7 +22,7 @@ from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, 
 from seqvpr.io import atomic_write
 
 if TYPE_CHECKING:
-    from seqvpr.matchers.base import MatchResult
+    from seqvpr.results import MatchResult
 
 COLUMNS = ("query", "query_name", "references", "distances", "correct")
 

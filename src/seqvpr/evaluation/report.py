@@ -14,19 +14,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from PIL import Image
 
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.plots import (  # noqa: F401  (re-exported: tests and callers use them from here)
     CORRECT_COLOUR,
     DPI,
+    DistanceView,
+    MethodResult,
     GT_COLOUR,
     MAX_DRAWN,
     NO_WINDOW_COLOUR,
     WRONG_COLOUR,
     block_reduce,
     block_steps,
+    check_distance_view,
     colour_limits,
     drawable_distances,
     method_colours,
@@ -43,34 +45,6 @@ EXAMPLES_DIR = "examples"
 
 
 @dataclass(frozen=True)
-class MethodResult:
-    """One row of the report: a method's name, Recall@K for K=1..K_max, its PR curve and summary figures."""
-
-    name: str
-    recall_at_k: dict[int, float]
-    precision: np.ndarray
-    recall: np.ndarray
-    pr_auc: float
-    recall_at_100_precision: float
-    frame_precision: float = float("nan")  # share of the top-1 matches' per-frame correspondences that are right
-
-
-@dataclass(frozen=True)
-class DistanceView:
-    """A distance matrix to draw: [n_query, n_reference] (NaN where no window), GT positives mask, top-1 path, and
-    what its colours and axes show (the colour bar's and the axes' labels)."""
-
-    title: str
-    distances: np.ndarray
-    positives: np.ndarray
-    top1: np.ndarray
-    correct: np.ndarray
-    distance_label: str = "distance"
-    query_label: str = "query frame"
-    reference_label: str = "reference frame"
-
-
-@dataclass(frozen=True)
 class QueryExample:
     """A query image and its top matches (paths) by one method (``method``: its name, '' when there is one method),
     with whether each is a correct place. Consecutive examples of one query image share its cell in the grid."""
@@ -84,20 +58,6 @@ class QueryExample:
 
 
 # ----------------------------------------------------------------------------------------------- validation
-
-
-def check_distance_view(view: DistanceView) -> None:
-    """Raise SeqvprError unless the matrix, mask and path of ``view`` agree in shape (before any drawing)."""
-    d = np.asarray(view.distances)
-    if d.ndim != 2:
-        raise SeqvprError(f"distance view {view.title!r}: distances must be 2-D, got shape {d.shape}")
-    if np.shape(view.positives) != d.shape:
-        raise SeqvprError(f"distance view {view.title!r}: positives {np.shape(view.positives)} != distances {d.shape}")
-    if np.shape(view.top1) != (d.shape[0],) or np.shape(view.correct) != (d.shape[0],):
-        raise SeqvprError(f"distance view {view.title!r}: top1 and correct need shape ({d.shape[0]},)")
-    top1 = np.asarray(view.top1)
-    if len(top1) and (top1.min(initial=0) < -1 or top1.max(initial=-1) >= d.shape[1]):
-        raise SeqvprError(f"distance view {view.title!r}: top1 holds a reference outside 0..{d.shape[1] - 1}")
 
 
 def check_example(example: QueryExample) -> None:

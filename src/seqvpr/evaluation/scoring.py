@@ -13,7 +13,7 @@ from seqvpr.data.groundtruth import GroundTruth
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 
 if TYPE_CHECKING:
-    from seqvpr.matchers.base import MatchResult
+    from seqvpr.results import MatchResult
 
 
 def evaluate_match(

@@ -20,7 +20,7 @@ from seqvpr.io import atomic_file_set
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.models.seqmatchnet import load_seqmatchnet
 from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import (

@@ -57,8 +57,8 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.methods import METHODS
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
-from seqvpr.matchers.base import MatchResult
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 

@@ -24,9 +24,9 @@ from seqvpr.api import match
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
-from seqvpr.matchers.base import MatchResult
+from seqvpr.results import MatchResult
 from seqvpr.matchers.frames import distance_matrix
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.progress import ProgressFactory
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec

@@ -27,7 +27,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.io import atomic_file_set
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.models.configs import JIST_BRANCHES
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
@@ -195,8 +195,9 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
                    pool: torch.nn.Module, seed: int = 0) -> dict[str, Evaluation]:
     """JIST's SeqGeM retrieval and sequence matching over the same frames, each query window's frames put in
     ``order`` (``ORDERS``; the reference's windows stay as recorded): Recall@1/5/10 of each."""
-    from seqvpr.matchers.base import MatchResult
-    from seqvpr.sequences.topk import TopK, best_of
+    from seqvpr.results import MatchResult
+    from seqvpr.sequences.topk import best_of
+    from seqvpr.results import TopK
 
     spec = SequenceSpec(length)
     ref_rows, ref_frames = centred_windows(len(reference), spec)

@@ -39,7 +39,7 @@ from seqvpr.sequences.filter import FilterSettings
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
-    from seqvpr.matchers.stream import Scored
+    from seqvpr.results import Scored
     from seqvpr.models.registry import TrainedModel
 
 Status = Literal["warming up", "localised", "uncertain", "lost"]
@@ -327,7 +327,7 @@ def next_status(score: float | None, threshold: float, misses: int, lost_after: 
 def map_matcher(saved: SavedMap, settings: LocalizerSettings):
     """The settings' method as a matcher over the map's frames as stored (causal windows; normalised as the map
     is; a SeqMatchNet map's frames already transformed, so plain sequence matching)."""
-    from seqvpr.matchers.base import MatchSettings
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.methods import build_matcher
     from seqvpr.sequences.windows import SequenceSpec
 

@@ -134,7 +134,6 @@ def build_map(
     device: str = "cpu",
     progress: ProgressFactory | None = None,
     frames: str | None = None,
-    loaded: Callable[[str, Traversal], None] | None = None,
     indexed: Callable[[SavedMap], object] | None = None,
     **extraction: Any,
 ) -> SavedMap:
@@ -142,7 +141,7 @@ def build_map(
     runs on the new map before it replaces anything at ``out``, so a failed index leaves the previous map as it
     was."""
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
-                                device=device, progress=progress, frames=frames, loaded=loaded, **extraction)
+                                device=device, progress=progress, frames=frames, **extraction)
     write_indexed_map(Path(out), whole, info, indexed)
     return open_map(out)
 
@@ -160,7 +159,6 @@ def build_sharded_map(
     device: str = "cpu",
     progress: ProgressFactory | None = None,
     frames: str | None = None,
-    loaded: Callable[[str, Traversal], None] | None = None,
     indexed: Callable[[ShardedMap], object] | None = None,
     **extraction: Any,
 ) -> ShardedMap:
@@ -168,19 +166,17 @@ def build_sharded_map(
     (``shards.write_sharded_map``: never the whole map first); ``indexed`` (e.g. ``index_shards``) runs on them
     before they replace anything at ``out``."""
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
-                                device=device, progress=progress, frames=frames, loaded=loaded, **extraction)
+                                device=device, progress=progress, frames=frames, **extraction)
     return write_sharded_map(out, whole, info, shards, overlap, indexed)
 
 
 def described_map(sources: Sequence[str], name: str, description: FrameDescription = FrameDescription(),
                   models: Mapping[str, TrainedModel] | None = None, *, dtype: str = "float32", normalize: bool = True,
                   device: str = "cpu", progress: ProgressFactory | None = None, frames: str | None = None,
-                  loaded: Callable[[str, Traversal], None] | None = None, **extraction: Any) -> tuple[Traversal, MapInfo]:
+                  **extraction: Any) -> tuple[Traversal, MapInfo]:
     """Every source described (cut to source frames ``START:STOP`` when ``frames`` is given), passed through a
     SeqMatchNet model if given, laid end to end (each source its own segments) and L2-normalised (as matching does)
-    unless told not to: the frames, their rows read a chunk at a time, and the map's ``map.json`` record. ``loaded``
-    is told each source and its traversal as soon as it is read (before describing), for a command to report what
-    was read (a bag's topics: ``Traversal.bag``)."""
+    unless told not to: the frames, their rows read a chunk at a time, and the map's ``map.json`` record."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
@@ -191,8 +187,6 @@ def described_map(sources: Sequence[str], name: str, description: FrameDescripti
     described = []
     for source in sources:
         traversal = slice_frame_range(load_traversal(source, "reference"), frames)
-        if loaded is not None:
-            loaded(source, traversal)
         traversal = describe_frames(traversal, description, models, device, progress, **extraction)
         described.append(transformed_by(traversal, models, device))
     whole = concatenate_traversals(described, name)

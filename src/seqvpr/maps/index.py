@@ -444,7 +444,7 @@ class IndexNeighbours:
         self.refine = REFINE if parse_index_spec(saved.info.index["spec"]).pq and self.over == "frames" else 1
 
     def search(self, rows, segments: np.ndarray, width: int):
-        from seqvpr.sequences.topk import TopK
+        from seqvpr.results import TopK
 
         if self.over == "frames":
             frames = np.asarray(rows)

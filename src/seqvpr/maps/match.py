@@ -15,7 +15,9 @@ from seqvpr.maps.files import MapInfo, SavedMap
 from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, build_matcher, check_run
 from seqvpr.models.registry import TrainedModel
-from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import transformed_by
 from seqvpr.progress import ProgressFactory
 from seqvpr.progress import or_logged
@@ -181,7 +183,7 @@ class IndexedRetrieval(Matcher):
 
         from seqvpr.maps.index import open_frame_index, window_search
         from seqvpr.sequences.matching import unit_rows
-        from seqvpr.sequences.topk import TopK
+        from seqvpr.results import TopK
 
         rows = unit_rows(torch.as_tensor(np.asarray(query.descriptors, dtype=np.float32)))
         index = open_frame_index(reference, self.nprobe)

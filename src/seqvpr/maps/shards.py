@@ -26,11 +26,12 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.files import ShardedMap
 from seqvpr.matchers.sharded import check_overlap, shard_numbers
-from seqvpr.sequences.topk import TopK, merge_topks
+from seqvpr.sequences.topk import merge_topks
+from seqvpr.results import TopK
 
 if TYPE_CHECKING:
     from seqvpr.maps.files import SavedMap
-    from seqvpr.matchers.base import MatchResult
+    from seqvpr.results import MatchResult
 
 SHARDABLE_FAMILIES = ("matching", "retrieval")  # per-window scores: a shard's top-K over its own frames is exact
 WHOLE_MAP_SEARCHES = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole map

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -20,26 +19,13 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.matchers.frames import frame_row
 from seqvpr.progress import ProgressFactory
-from seqvpr.matchers.settings import MatchSettings
-from seqvpr.sequences.topk import TopK
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 
 if TYPE_CHECKING:
     from seqvpr.matchers.stream import Stepper
     from seqvpr.sequences.frame_pass import FrameRow
 
-
-@dataclass(frozen=True)
-class MatchResult:
-    """Top-K reference rows per query row, with the traversals they index."""
-
-    reference: Traversal
-    query: Traversal
-    topk: TopK
-    settings: MatchSettings
-    shortlist: TopK | None = None  # the candidates a shortlisted match re-ranked (None: exhaustive)
-    #: per-frame correspondences of the top-1 matches, (query rows, reference rows) [n_query, L], when the matcher
-    #: is not the constant-velocity window alignment (adaptive); None: the windows' own alignment
-    correspondences: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class Matcher(ABC):

@@ -9,7 +9,9 @@ from typing import TYPE_CHECKING, Any
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import check_dimensions, kernel_rows, query_rows
 from seqvpr.progress import ProgressFactory
 from seqvpr.sequences.filter import FilterSettings

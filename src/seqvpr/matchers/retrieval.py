@@ -10,7 +10,9 @@ import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import check_dimensions, query_rows, whole_rows
 from seqvpr.progress import ProgressFactory
 

@@ -16,11 +16,13 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.progress import ProgressFactory
-from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import (
     check_dimensions, frame_transform, kernel_rows, query_rows, transform_pair,
 )
-from seqvpr.sequences.topk import TopK
+from seqvpr.results import TopK
 
 if TYPE_CHECKING:
     from seqvpr.matchers.stream import Stepper

@@ -20,9 +20,12 @@ import numpy as np
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.matchers.base import MatchResult, MatchSettings
-from seqvpr.matchers.stream import Scored, elapsed_ms
-from seqvpr.sequences.topk import TopK, merge_topks, uniqueness
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
+from seqvpr.matchers.stream import elapsed_ms
+from seqvpr.results import Scored
+from seqvpr.sequences.topk import merge_topks, uniqueness
+from seqvpr.results import TopK
 
 
 class ShardRange(Protocol):

@@ -13,9 +13,11 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.matchers.base import MatchResult, MatchSettings, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import query_rows
-from seqvpr.sequences.topk import TopK
+from seqvpr.results import TopK
 
 
 class Neighbours(Protocol):

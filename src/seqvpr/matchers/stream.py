@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -23,20 +23,10 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.matchers.frames import matcher_rows, query_rows, transformed_reference
 from seqvpr.sequences.frame_pass import FrameRow
+from seqvpr.results import Scored
 from seqvpr.sequences.topk import best_k, best_of, uniqueness
 
 
-
-@dataclass(frozen=True)
-class Scored:
-    """One frame's answer: reference rows and distances (ascending), the score (higher: surer), milliseconds spent
-    measuring distances and stepping."""
-
-    indices: np.ndarray
-    distances: np.ndarray
-    score: float
-    distance_ms: float
-    sequence_ms: float
 
 
 class Stepper(Protocol):

@@ -11,9 +11,11 @@ import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.matchers.base import MatchResult, Matcher
+from seqvpr.matchers.base import Matcher
+from seqvpr.results import MatchResult
 from seqvpr.matchers.frames import check_dimensions, query_rows, kernel_rows
-from seqvpr.sequences.topk import TopK, best_of
+from seqvpr.sequences.topk import best_of
+from seqvpr.results import TopK
 from seqvpr.sequences.windows import window_frames, window_starts
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image
 
 from seqvpr.data.images import decode_image, raw_pixels
-from seqvpr.data.loaders.dbstruct import GAP_FACTOR
+from seqvpr.data.traversal import GAP_FACTOR
 from seqvpr.errors import SeqvprError
 from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.ros2.messages import COMPRESSED, IMAGE, ODOMETRY, POSE, STATUS, message

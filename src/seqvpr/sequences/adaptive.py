@@ -141,7 +141,8 @@ def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpe
     points, then adaptive frame matching inside each candidate stretch). Each candidate's reachable stretch is cut
     from the reference and the stretches are scored together as separate segments, so no path crosses two."""
     from seqvpr.sequences.matching import frame_distances, reference_rows
-    from seqvpr.sequences.topk import TopK, best_of
+    from seqvpr.sequences.topk import best_of
+    from seqvpr.results import TopK
     from seqvpr.sequences.windows import window_frames, window_starts
 
     q_starts = window_starts(np.asarray(query_segments), spec.length, spec.offset, "drop")

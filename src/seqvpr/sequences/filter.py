@@ -16,7 +16,8 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.matching import ReferenceRows, distances_to_reference
-from seqvpr.sequences.topk import TopK, best_k
+from seqvpr.sequences.topk import best_k
+from seqvpr.results import TopK
 from seqvpr.sequences.windows import segment_bounds
 
 

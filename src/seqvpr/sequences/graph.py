@@ -20,7 +20,8 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.adaptive import same_segment_masks, steps_min
-from seqvpr.sequences.topk import TopK, rank_order
+from seqvpr.sequences.topk import rank_order
+from seqvpr.results import TopK
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import segment_bounds
 

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.topk import TopK, best_of
+from seqvpr.sequences.topk import best_of
+from seqvpr.results import TopK
 from seqvpr.sequences.matching import aligned_sequence_distances
 from seqvpr.sequences.windows import SequenceSpec, window_frames, window_starts
 

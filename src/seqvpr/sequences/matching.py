@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from seqvpr.errors import SeqvprError
-from seqvpr.sequences.topk import TopK, TopKMerge
+from seqvpr.sequences.topk import TopKMerge
+from seqvpr.results import TopK
 from seqvpr.sequences.windows import SequenceSpec, require_windows, velocity_steps, window_frames, window_starts
 
 ProgressFn = Callable[[int], None]

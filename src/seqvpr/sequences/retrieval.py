@@ -11,7 +11,7 @@ import numpy as np
 
 from seqvpr.errors import SeqvprError
 from seqvpr.sequences.descriptors import SequenceDescriptors
-from seqvpr.sequences.topk import TopK
+from seqvpr.results import TopK
 
 INDEX_KINDS = ("flat", "hnsw")
 HNSW_M = 32

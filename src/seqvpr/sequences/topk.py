@@ -8,24 +8,15 @@ match split into any chunks, shards or streams is the match done whole. ``other_
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from seqvpr import sequences
+from seqvpr.results import TopK
 
 NO_ROW = -1  # an empty entry's row (its distance is +inf)
 _LAST = np.iinfo(np.int64).max  # where the tie rule puts an empty entry's row
-
-
-@dataclass(frozen=True)
-class TopK:
-    """The K best references per query: indices (-1 where fewer exist) and sequence distances (+inf there)."""
-
-    indices: np.ndarray
-    distances: np.ndarray
-    has_window: np.ndarray
 
 
 def rank_order(rows: np.ndarray, distances: np.ndarray, k: int | None = None) -> np.ndarray:

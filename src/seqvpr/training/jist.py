@@ -38,7 +38,7 @@ from seqvpr.models.jist import (
 )
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec, window_frames
 from seqvpr.training.augment import augment_images
 from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members

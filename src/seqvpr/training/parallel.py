@@ -19,7 +19,7 @@ from torch import nn
 
 if TYPE_CHECKING:
     from seqvpr.training.mining import Triplet
-    from seqvpr.training.trainer import LoopSettings, SequenceLearner, Step
+    from seqvpr.training.learner import LoopSettings, SequenceLearner, Step
 
 StepLoss = Callable[["Sequence[Triplet]", "Step", np.random.Generator], "dict[str, torch.Tensor]"]
 

@@ -28,7 +28,7 @@ from seqvpr.training.history import HISTORY_FILE, EpochRecord, record_from_dict,
 from seqvpr.training.state import STATE_FILE, STATE_JSON, flatten_optimizer, unflatten_optimizer
 
 if TYPE_CHECKING:
-    from seqvpr.training.trainer import TrainingData, _Run
+    from seqvpr.training.learner import TrainingData, TrainingRun
 
 LOSS_PREFIX = "loss."
 #: the layout version of ``train_state.json`` (absent: a run from before it recorded digests)
@@ -116,7 +116,7 @@ def _link_or_copy(source: str | Path, target: str | Path) -> None:
 class RunState:
     """Saves and restores one run's model folders and resumable state."""
 
-    def __init__(self, run: _Run) -> None:
+    def __init__(self, run: TrainingRun) -> None:
         self.run = run
         self._records: dict[str, dict[str, Any]] | None = None
 

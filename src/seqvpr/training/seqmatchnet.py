@@ -25,7 +25,7 @@ from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqm
 from seqvpr.matchers.frames import transform_traversal
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.losses import sequence_triplet_loss, window_part
 from seqvpr.training.settings import SeqMatchNetSettings

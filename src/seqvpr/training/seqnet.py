@@ -31,7 +31,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.matchers.settings import MatchSettings
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec, window_frames

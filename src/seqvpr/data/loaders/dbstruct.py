@@ -32,10 +32,9 @@ import numpy as np
 import scipy.io
 from scipy.io.matlab import matfile_version
 
-from seqvpr.data.traversal import Traversal
+from seqvpr.data.traversal import Traversal, time_gap_segments
 from seqvpr.errors import SeqvprError
 
-GAP_FACTOR = 10.0
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
@@ -280,17 +279,6 @@ def _gps(fields: _Fields, name: str, n: int) -> np.ndarray:
         raise SeqvprError(f"{fields.path}: field {name!r} must be [2, {n}] (latitude, longitude), got {value.shape}")
     return np.ascontiguousarray(value.T)
 
-
-def time_gap_segments(timestamps: np.ndarray) -> np.ndarray:
-    """Segment ids breaking where the time step exceeds 10x the median step or goes backwards."""
-    steps = np.diff(np.asarray(timestamps, dtype=np.float64))
-    if len(steps) == 0:
-        return np.zeros(len(timestamps), dtype=np.int64)
-    median = float(np.median(steps))
-    breaks = steps < 0
-    if median > 0:
-        breaks |= steps > GAP_FACTOR * median
-    return np.concatenate([[0], np.cumsum(breaks)]).astype(np.int64)
 
 
 def _as_text(value: np.ndarray) -> str | None:

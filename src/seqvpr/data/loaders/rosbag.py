@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from seqvpr.data.geo import LOCAL, latlon_to_utm
-from seqvpr.data.traversal import Traversal
+from seqvpr.data.traversal import Traversal, time_gap_segments
 from seqvpr.errors import SeqvprError
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -46,16 +46,6 @@ def is_rosbag(path: Path) -> bool:
     """A ROS 1 bag file, or a ROS 2 bag folder (metadata.yaml) or its single ``.mcap``/``.db3`` file."""
     return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
 
-
-@dataclass(frozen=True)
-class BagReading:
-    """What loading a bag found, for a command to report: the camera topic, the position topic (None: the bag
-    gave no positions) and how many frames had no fix within ``tolerance`` seconds (left out)."""
-
-    camera_topic: str
-    position_topic: str | None
-    without_fix: int
-    tolerance: float
 
 
 @dataclass(frozen=True)
@@ -112,19 +102,29 @@ def bag_source(path: str | Path, topics: BagTopics) -> str:
 
 def load_rosbag(path: str | Path, topics: BagTopics = BagTopics(), frames_dir: str | Path | None = None) -> Traversal:
     """The bag's image topic as a traversal of cached frame files (no pixel decoded) named ``BAG:TOPIC@STAMP``, with
-    header timestamps, positions and their ``crs``, time-gap segments and what was read (``bag``)."""
-    from seqvpr.data.loaders.dbstruct import time_gap_segments
-
+    header timestamps, positions and their ``crs`` and time-gap segments; what was read (the topics, the frames left
+    out) goes to the ``seqvpr`` logger, which the command line prints."""
     path = Path(path)
     recording = read_recording(path, topics, Path(frames_dir) if frames_dir is not None else frames_root())
     keep, positions = _positions(recording, topics.tolerance, path)
     stamps = recording.stamps[keep]
     names = tuple(f"{path}:{recording.camera_topic}@{recording.stamp_texts[i]}" for i in keep)
-    reading = BagReading(recording.camera_topic, recording.position_topic if positions is not None else None,
-                         len(recording.stamps) - len(keep), topics.tolerance)
+    _log_reading(bag_source(path, topics), recording.camera_topic,
+                 recording.position_topic if positions is not None else None, len(recording.stamps) - len(keep),
+                 topics.tolerance)
     return Traversal(f"{path.stem}{topics.image or ''}".replace("/", "_"), np.asarray(keep, np.int64),
                      time_gap_segments(stamps), None, tuple(recording.files[i] for i in keep), positions, stamps,
-                     source=str(path), names=names, crs=recording.crs, bag=reading)
+                     source=str(path), names=names, crs=recording.crs)
+
+
+def _log_reading(source: str, camera_topic: str, position_topic: str | None, without_fix: int,
+                 tolerance: float) -> None:
+    """What loading a bag found, one line each: the camera topic, the position topic, the frames left out."""
+    from seqvpr.progress import LOGGER
+
+    LOGGER.info(f"{source}: camera topic {camera_topic}")
+    LOGGER.info(f"{source}: position topic {position_topic or 'none'}")
+    LOGGER.info(f"{source}: {without_fix} frames without a position fix within {tolerance:g} s (left out)")
 
 
 def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | None = None) -> Recording:
