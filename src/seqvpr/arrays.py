@@ -107,16 +107,19 @@ def load_npy(path: str | Path, mmap_mode: str | None = None) -> np.ndarray:
 
 
 class NpzArrays:
-    """The arrays of an opened ``.npz`` (checked by ``open_npz``): ``files``, ``name in``, ``[name]`` (native)."""
+    """The arrays of an opened ``.npz`` (checked by ``open_npz``): ``files``, ``name in``, ``[name]`` (native). Only
+    its ``.npy`` members are arrays; any other member of the zip is not one of them."""
 
     def __init__(self, archive: Any, label: str) -> None:
         self._archive, self.label = archive, label
-        self.files: list[str] = list(archive.files)
+        self.files: list[str] = [name[: -len(".npy")] for name in archive.zip.namelist() if name.endswith(".npy")]
 
     def __contains__(self, name: str) -> bool:
         return name in self.files
 
     def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self.files:
+            raise KeyError(name)
         return native(self._archive[name])
 
 

@@ -98,3 +98,25 @@ def test_bad_seq_bounds_are_one_line(tmp_path):
 def _write(folder, text):
     (folder / "ok.txt").write_text(text)
     return folder / "ok.txt"
+
+
+@pytest.mark.parametrize("content", [b"", b"hello world\n" * 10, bytes(range(256)) * 2])
+def test_a_file_that_is_no_mat_is_named_by_the_descriptor_loader(tmp_path, content):
+    path = tmp_path / "x.mat"
+    path.write_bytes(content)
+    raises_one_line(str(path), load_traversal, str(path), "reference")
+
+
+def test_an_archive_with_members_that_are_no_arrays_names_the_file(tmp_path):
+    import zipfile
+
+    path = tmp_path / "x.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("notes.txt", "not an array")
+    raises_one_line(f"{path}: name the descriptor variable", load_traversal, str(path), "reference")
+
+
+def test_an_archive_with_a_pickled_member_is_refused_not_passed_over(tmp_path):
+    path = tmp_path / "x.npz"
+    np.savez(path, descriptors=np.array([{"a": 1}], dtype=object))
+    raises_one_line("descriptors", load_traversal, str(path), "reference")

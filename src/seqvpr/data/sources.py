@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import zipfile
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -128,10 +129,13 @@ def _traversal_from_folder(folder: Path, role: Role) -> Traversal:
 
 
 def _holds_dbstruct(path: Path) -> bool:
-    """A MAT file whose variables include ``dbStruct`` (unreadable files go to the descriptor loader's errors)."""
+    """A MAT file whose variables include ``dbStruct``. A file scipy cannot list (its reader fails in these ways on
+    bytes that are no MAT file) is left to the descriptor loader, whose error names the file and the reason."""
+    from scipy.io.matlab import MatReadError
+
     try:
         return any(name == "dbStruct" for name, _, _ in scipy.io.whosmat(path))
-    except Exception:
+    except (MatReadError, ValueError, OSError, IndexError, EOFError):
         return False
 
 
@@ -143,10 +147,12 @@ def _dbstruct_side(path: Path, role: Role) -> Traversal:
 
 
 def _is_traversal_npz(path: Path) -> bool:
+    """An archive holding ``descriptors`` (a traversal file). One that is no zip is left to the descriptor loader,
+    whose error names it; an unsafe member (a pickle, a lying size) is ``open_npz``'s one-line error, raised here."""
     try:
         with open_npz(path) as archive:
             return "descriptors" in archive.files
-    except Exception:
+    except (zipfile.BadZipFile, OSError, ValueError):
         return False
 
 
