@@ -148,26 +148,22 @@ def match_reference(reference: Any, query: Traversal, method: str, settings: Mat
                     models: Mapping[str, TrainedModel], *, shortlist: int, history: int, nprobe: int, rerank: int,
                     index: str, progress: ProgressFactory | None, search: Mapping[str, Any],
                     **extraction: Any) -> MatchResult | None:
-    """``match`` once its inputs are opened: by what the reference is (a sharded map, a saved map, a traversal)."""
-    from seqvpr.maps.files import SavedMap, ShardedMap
+    """``match`` once its inputs are opened. A saved or sharded map describes the query as it described its frames
+    and checks the models it was built through (``maps.match.match_map``); a traversal is matched as it is. Either
+    way the method's matcher is stacked for the reference by ``matchers.assemble``."""
+    from seqvpr.maps.match import is_map, match_map
+    from seqvpr.matchers.stack import assemble
     from seqvpr.methods import build_matcher
 
-    if isinstance(reference, ShardedMap):
-        from seqvpr.maps.shards import match_sharded_map
-
-        return match_sharded_map(reference, query, method, settings, models, progress, shortlist=shortlist,
-                                 history=history, nprobe=nprobe, search=search, **extraction)
-    if isinstance(reference, SavedMap):
-        from seqvpr.maps.match import match_map
-
+    if is_map(reference):
         return match_map(reference, query, method, settings, models, index=index, rerank=rerank,
                          shortlist=shortlist, history=history, nprobe=nprobe, progress=progress, search=search,
                          **extraction)
     if shortlist:
         raise SeqvprError(f"--shortlist S needs a map with an index (seqvpr map build --index), not the traversal "
                           f"{reference.source or reference.name}")
-    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress,
-                         **search).topk(reference, query)
+    matcher = build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress, **search)
+    return assemble(matcher, reference).topk(reference, query)
 
 
 def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str | Path | None = None,

@@ -203,7 +203,9 @@ def build_matcher(
     method = check_run(name, models, conf.get("rerank") or 0)
     if method.length is not None:
         settings = replace(settings, sequence=SequenceSpec(method.length))
-    return matcher_class(method).from_method(method, settings, models, build_matcher, progress=progress, **conf)
+    built = matcher_class(method).from_method(method, settings, models, build_matcher, progress=progress, **conf)
+    built.method = method.name
+    return built
 
 
 def image_model(models: Mapping[str, TrainedModel]) -> TrainedModel | None:

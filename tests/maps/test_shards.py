@@ -16,7 +16,6 @@ from hypothesis import given, settings, strategies as st
 from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, match_map
 from seqvpr.maps.files import open_sharded_map
-from seqvpr.maps.shards import match_sharded_map
 from seqvpr.maps.sharding import shard_map, shard_ranges
 from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
@@ -63,7 +62,7 @@ def test_a_sharded_match_is_the_whole_maps(whole, tmp_path, method, length, velo
     query = load_traversal(str(whole / "qry.npz"), "query")
     settings_ = MatchSettings(SequenceSpec(length, velocities=velocities), k=15)
     expected = match_map(load_map_of(whole), query, method, settings_)
-    got = match_sharded_map(sharded, query, method, settings_)
+    got = match_map(sharded, query, method, settings_)
     np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
     np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-6)
     np.testing.assert_array_equal(got.topk.has_window, expected.topk.has_window)
@@ -87,16 +86,16 @@ def test_methods_a_shard_cannot_score_and_windows_longer_than_the_overlap_are_on
     sharded = shard_map(whole / "map", tmp_path / "sharded", 3, 4)
     query = load_traversal(str(whole / "qry.npz"), "query")
     for method in ("hmm", "graph", "hvpr"):
-        raises_one_line("a sharded map is matched by", match_sharded_map, sharded, query, method,
+        raises_one_line("a sharded map is matched by", match_map, sharded, query, method,
                         MatchSettings(SequenceSpec(1 if method != "hvpr" else 5), k=5))
     for method in ("seqslam-cone", "seqslam-hybrid"):
-        raises_one_line("best match over the whole map", match_sharded_map, sharded, query, method,
+        raises_one_line("best match over the whole map", match_map, sharded, query, method,
                         MatchSettings(SequenceSpec(5), k=5))
     raises_one_line("overlap by 4 frames, so windows may span at most 5; this match needs 6",
-                    match_sharded_map, sharded, query, "matching", MatchSettings(SequenceSpec(6), k=5))
+                    match_map, sharded, query, "matching", MatchSettings(SequenceSpec(6), k=5))
     for method, needs in (("adaptive", 9), ("seqslam", 11)):  # the frames their scores read, not only L
         raises_one_line(f"this match needs {needs} (shard it again with --overlap {needs - 1})",
-                        match_sharded_map, sharded, query, method, MatchSettings(SequenceSpec(5), k=5))
+                        match_map, sharded, query, method, MatchSettings(SequenceSpec(5), k=5))
     (tmp_path / "sharded" / "shards.json").write_text('{"format": "seqvpr-sharded-map", "version": 1}')
     raises_one_line("malformed sharded map description", open_sharded_map, tmp_path / "sharded")
 
@@ -179,7 +178,7 @@ def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single
     assert stream_columns(tmp_path / "two") == stream_columns(tmp_path / "one")  # status, score, estimate, best frame
     refused = torchrun(["localize", "--map", tmp_path / "s", *common, "--method", "hmm", "--out", tmp_path / "f"],
                        tmp_path)
-    assert refused.returncode != 0 and "the filter needs the whole map" in refused.stderr
+    assert refused.returncode != 0 and "a sharded map is matched by" in refused.stderr
     assert not (tmp_path / "f").exists()
 
 
@@ -216,12 +215,12 @@ def test_a_shortlisted_sharded_match_is_the_whole_maps_with_flat_indexes(whole, 
     settings_ = MatchSettings(SequenceSpec(length), k=10)
     options = {"shortlist": 4, "history": history}
     expected = match_map(open_map(source), query, method, settings_, **options)
-    got = match_sharded_map(sharded, query, method, settings_, **options)
+    got = match_map(sharded, query, method, settings_, **options)
     np.testing.assert_array_equal(got.shortlist.indices, expected.shortlist.indices)
     np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
     np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-6)
     np.testing.assert_array_equal(got.topk.has_window, expected.topk.has_window)
-    exact = match_sharded_map(sharded, query, method, settings_)
+    exact = match_map(sharded, query, method, settings_)
     assert (got.topk.indices[:, 0] != exact.topk.indices[:, 0]).any() or length == 1  # a shortlist, not exact
 
 
@@ -325,7 +324,7 @@ def test_a_sharded_match_through_a_model_is_the_whole_maps(whole, tmp_path):
     models = {"seqnet": TrainedModel("seqnet", SeqNet(dim, dim, 3).eval(), 5, tmp_path / "seqnet")}
     settings_ = MatchSettings(SequenceSpec(5), k=10)
     expected = match_map(load_map_of(whole), query, "seqnet", settings_, models)
-    got = match_sharded_map(sharded, query, "seqnet", settings_, models)
+    got = match_map(sharded, query, "seqnet", settings_, models)
     np.testing.assert_array_equal(got.topk.indices, expected.topk.indices)
     np.testing.assert_allclose(got.topk.distances, expected.topk.distances, rtol=1e-5)
 
@@ -339,3 +338,14 @@ def test_each_shard_as_a_reference_owns_the_rows_its_record_gives_and_names_its_
     whole_map = load_map_of(whole)
     assert whole_map.owned == slice(0, len(whole_map)) and whole_map.index is None
     assert whole_map.frames.owned == slice(0, len(whole_map)) and whole_map.frames.index is None
+
+
+def test_the_old_sharded_match_name_warns_and_is_match_map(whole, tmp_path):
+    from seqvpr.maps.shards import match_sharded_map
+
+    sharded = shard_map(whole / "map", tmp_path / "sharded", 3, 4)
+    query = load_traversal(whole / "qry.npz", "query")
+    settings_ = MatchSettings(SequenceSpec(5), k=5)
+    with pytest.warns(DeprecationWarning, match="use seqvpr.maps.match_map"):
+        old = match_sharded_map(sharded, query, "matching", settings_)
+    np.testing.assert_array_equal(old.topk.indices, match_map(sharded, query, "matching", settings_).topk.indices)

@@ -1,6 +1,6 @@
-"""A matcher added as one class (``ToyMatcher``: one window distance) and one method record runs in every mode,
-offline, a frame at a time, shortlisted (both) and sharded (one process, two torchrun ranks), each equal to a
-plain loop over the windows; nothing else in seqvpr knows of it."""
+"""A matcher added as one class (``ToyMatcher``: one window distance) and one method record runs in every mode that
+``matchers.assemble`` stacks, offline and a frame at a time: alone, shortlisted, sharded (one process, two torchrun
+ranks) and shortlisted-sharded, each equal to a plain loop over the windows; nothing else in seqvpr knows of it."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ import torch
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps.files import ShardRecord
 from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.sharded import Sharded
-from seqvpr.matchers.shortlisted import ExactNeighbours, Shortlisted
+from seqvpr.matchers import Shortlist, assemble
+from seqvpr.matchers.shortlisted import ExactNeighbours
 from seqvpr.matchers.windows import WindowMatcher
 from seqvpr.methods import METHODS, Method, build_matcher
 from seqvpr.sequences.windows import SequenceSpec
@@ -54,6 +54,9 @@ class ToyShards:
         ranges = tuple(ShardRecord(f"shard-{i}", max(0, a - overlap), a, b)
                        for i, (a, b) in enumerate(zip(bounds, bounds[1:])))
         return cls(reference, len(reference), overlap, ranges)
+
+    def __len__(self) -> int:
+        return self.count
 
     def open_shard(self, number: int) -> Traversal:
         record = self.shards[number]
@@ -156,7 +159,7 @@ def test_the_toy_matcher_offline_and_a_frame_at_a_time_is_the_plain_loop(toy, le
 def test_the_toy_matcher_shortlisted_is_the_plain_loop_over_the_candidates(toy, length, width, history):
     reference, query = route(5)
     matcher = build_matcher("toy", settings(length))
-    shortlisted = Shortlisted(matcher, ExactNeighbours(reference.descriptors), width, history)
+    shortlisted = assemble(matcher, reference, Shortlist(lambda: ExactNeighbours(reference.descriptors), width, history))
     top = shortlisted.topk(reference, query).topk
     candidates = shortlist_oracle(reference, query, length, width, history, stream=False)
     assert_rows_equal(top.indices, top.distances, oracle(reference, query, length, 6, candidates))
@@ -170,10 +173,25 @@ def test_the_toy_matcher_sharded_in_one_process_is_the_plain_loop(toy, shards, o
     reference, query = route(7)
     matcher = build_matcher("toy", settings(4))
     cut = ToyShards.cut(reference, shards, overlap)
-    top = Sharded(matcher).topk(cut, query).topk
+    top = assemble(matcher, cut).topk(cut, query).topk
     assert_rows_equal(top.indices, top.distances, oracle(reference, query, 4, 6))
-    indices, distances = streamed(Sharded(matcher).stream(cut), matcher, query, 6)
+    indices, distances = streamed(assemble(matcher, cut).stream(cut), matcher, query, 6)
     assert_rows_equal(indices, distances, oracle(reference, query, 4, 6, segments=np.zeros(len(query), int)))
+
+
+@pytest.mark.parametrize("shards, overlap, width, history", [(3, 3, 2, 0), (4, 5, 3, 2)])
+def test_the_toy_matcher_shortlisted_and_sharded_is_the_plain_loop_over_the_candidates(toy, shards, overlap, width,
+                                                                                      history):
+    reference, query = route(9)
+    matcher = build_matcher("toy", settings(4))
+    cut = ToyShards.cut(reference, shards, overlap)
+    stack = assemble(matcher, cut, Shortlist(lambda: ExactNeighbours(reference.descriptors), width, history))
+    top = stack.topk(cut, query).topk
+    candidates = shortlist_oracle(reference, query, 4, width, history, stream=False)
+    assert_rows_equal(top.indices, top.distances, oracle(reference, query, 4, 6, candidates))
+    indices, distances = streamed(stack.stream(cut), matcher, query, 6)
+    candidates = shortlist_oracle(reference, query, 4, width, history, stream=True)
+    assert_rows_equal(indices, distances, oracle(reference, query, 4, 6, candidates, np.zeros(len(query), int)))
 
 
 TORCHRUN_SCRIPT = """
@@ -181,14 +199,15 @@ import sys
 sys.path.insert(0, {root!r})
 import numpy as np
 from seqvpr import distributed
-from seqvpr.matchers.sharded import Sharded
+from seqvpr.matchers import assemble
 from seqvpr.methods import METHODS, build_matcher
 from tests.matchers.test_toy_matcher import TOY, ToyShards, route, settings
 
 METHODS["toy"] = TOY
 reference, query = route(7)
 with distributed.process_group("cpu") as world:
-    result = Sharded(build_matcher("toy", settings(4)), world).topk(ToyShards.cut(reference, 3, 3), query)
+    shards = ToyShards.cut(reference, 3, 3)
+    result = assemble(build_matcher("toy", settings(4)), shards, ranks=world).topk(shards, query)
     if world.is_root:
         np.savez({out!r}, indices=result.topk.indices, distances=result.topk.distances)
     else:

@@ -142,7 +142,7 @@ class Localizer:
         self.threshold_source = threshold_source  # where the threshold came from: given, calibrated on what, default
         self.encoder = _frame_encoder(saved, self.models, device)
         self.transform = self.models.get("seqmatchnet")  # the map holds transformed frames; raw descriptors get it
-        self.matcher = map_matcher(saved, settings)
+        self.matcher = method_matcher(saved, settings)
         self.stepper = _stepper(saved, self.matcher, settings)
         self.frame, self.misses, self.since_reset = 0, 0, 0
         self.rows = (FrameRow.empty(saved.info.dim), FrameRow.empty(saved.info.dim))  # each frame's, reused
@@ -324,11 +324,11 @@ def next_status(score: float | None, threshold: float, misses: int, lost_after: 
     return ("lost" if misses >= lost_after else "uncertain"), misses
 
 
-def map_matcher(saved: SavedMap, settings: LocalizerSettings):
-    """The settings' method as a matcher over the map's frames as stored (causal windows; normalised as the map
-    is; a SeqMatchNet map's frames already transformed, so plain sequence matching)."""
-    from seqvpr.sequences.settings import MatchSettings
+def method_matcher(saved: SavedMap, settings: LocalizerSettings):
+    """The settings' method as its family's matcher over the map's frames as stored (causal windows; normalised as
+    the map is; a SeqMatchNet map's frames already transformed, so plain sequence matching)."""
     from seqvpr.methods import build_matcher
+    from seqvpr.sequences.settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     method = "matching" if settings.method == "seqmatchnet" else settings.method
@@ -337,31 +337,33 @@ def map_matcher(saved: SavedMap, settings: LocalizerSettings):
 
 
 def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
-    """The per-frame step the settings ask for: the matcher's own stream, or its shortlist over the map's index
-    (a sharded map's: its shards' indexes merged); under torchrun over a sharded map, each rank its shards."""
+    """The matcher stacked for the map (``matchers.assemble``) and stepped a frame at a time: with a shortlist, over
+    the map's index (a sharded map's: its shards' indexes merged). One process reads a sharded map's rows through its
+    shards as one map; under torchrun, without a shortlist, each rank steps its own shards."""
     from seqvpr import distributed
     from seqvpr.maps.files import open_sharded_map
-    from seqvpr.matchers.shortlisted import Shortlisted
+    from seqvpr.matchers.stack import Shortlist, assemble
 
     world = distributed.current()
     sharded = open_sharded_map(saved.folder) if saved.stored == "sharded" else None  # rows read through shards
-    if sharded is not None and world.size > 1 and not settings.shortlist:
-        from seqvpr.matchers.sharded import Sharded
-
-        _check_shardable(settings)
-        return Sharded(matcher, world).stream(sharded, settings.exclusion)
+    reference = sharded if sharded is not None and world.size > 1 and not settings.shortlist else saved
+    listed = None
     if settings.shortlist:
-        from seqvpr.maps.index import IndexNeighbours
-        from seqvpr.maps.shards import ShardedNeighbours
+        listed = Shortlist(lambda: frame_neighbours(saved if sharded is None else sharded, settings.nprobe, world),
+                           settings.shortlist, settings.history)
+    return assemble(matcher, reference, listed, world).stream(reference, settings.exclusion)
 
-        neighbours = IndexNeighbours(saved, settings.nprobe) if sharded is None else \
-            ShardedNeighbours(sharded, world, settings.nprobe)
-        if neighbours.over != "frames":
-            raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
-                              f"{saved.folder} --index SPEC")
-        return Shortlisted(matcher, neighbours, settings.shortlist, settings.history).stream(saved.frames,
-                                                                                            settings.exclusion)
-    return matcher.stream(saved.frames, settings.exclusion)
+
+def frame_neighbours(reference, nprobe: int, world):
+    """The map's index (a sharded map's: its shards' merged) as a shortlist's search, which a frame at a time must
+    be over frames."""
+    from seqvpr.maps.match import map_neighbours
+
+    neighbours = map_neighbours(reference, nprobe, 0, world)
+    if neighbours.over != "frames":
+        raise SeqvprError(f"--shortlist needs an index over {reference.folder}'s frames: seqvpr map index "
+                          f"{reference.folder} --index SPEC")
+    return neighbours
 
 
 def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
@@ -369,13 +371,6 @@ def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
     if settings.shortlist and saved.stored != "sharded" and (saved.index or {}).get("over") != "frames":
         raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
                           f"{saved.folder} --index SPEC")
-
-
-def _check_shardable(settings: LocalizerSettings) -> None:
-    """Under torchrun a sharded map is localised by sequence matching (the filter needs the whole map)."""
-    if settings.method == "hmm":
-        raise SeqvprError("a sharded map under torchrun is localised by exact or shortlisted sequence matching; the "
-                          "filter needs the whole map (localise it in one process)")
 
 
 # --- calibrated thresholds, kept with the map ---------------------------------------------------------------------

@@ -1,6 +1,7 @@
-"""Matching a query against a saved map: the query described as the map's frames were, the models checked against
-the ones the map went through, then the method's matcher as for any reference (frame matching reads the map chunk by
-chunk; sequence-descriptor methods pool its frames)."""
+"""Matching a query against a saved or a sharded map: the query described as the map's frames were, the models
+checked against the ones the map went through, then the method's matcher stacked for the map (``matchers.assemble``:
+its shards, its index's shortlist) as for any reference (frame matching reads the map chunk by chunk;
+sequence-descriptor methods pool its frames)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.build import FrameDescription, describe_frames, model_records
-from seqvpr.maps.files import MapInfo, SavedMap
+from seqvpr.maps.files import MapInfo, SavedMap, ShardedMap
 from seqvpr.maps.index import model_record
 from seqvpr.methods import METHODS, build_matcher, check_run
 from seqvpr.models.registry import TrainedModel
@@ -66,22 +67,23 @@ def describe_query(
 
 
 @dataclass(frozen=True)
-class PreparedQuery:
-    """A query ready to match against a map: its frames described as the map's, and the method and models left
-    to apply (a map of SeqMatchNet-transformed frames has already had the transform: it matches plainly)."""
+class MapMethod:
+    """The method and models left to apply to a query described as a map's frames (a map of SeqMatchNet-transformed
+    frames has already had the transform: it matches plainly)."""
 
-    frames: Traversal
     method: str
     models: dict[str, TrainedModel]
 
 
-def prepare_query(
-    saved: SavedMap, query: Traversal, method: str, settings: MatchSettings,
-    models: Mapping[str, TrainedModel] | None = None, rerank: int = 0, progress: ProgressFactory | None = None,
-    **extraction: Any,
-) -> PreparedQuery:
-    """The query described as ``saved``'s frames, after checking the method, the models and the normalisation
-    against the map's (once for a sharded map: its shards share one description)."""
+def is_map(reference: object) -> bool:
+    """Whether a reference is an opened map (saved or sharded), which describes a query as it described its frames."""
+    return isinstance(reference, (SavedMap, ShardedMap))
+
+
+def map_method(saved: SavedMap, method: str, settings: MatchSettings,
+               models: Mapping[str, TrainedModel] | None = None, rerank: int = 0) -> MapMethod:
+    """The method and models that match a query against ``saved``, after checking the method, the models and the
+    normalisation against the map's (once for a sharded map: its shards share one description)."""
     models = dict(models or {})
     check_run(method, models, rerank)
     check_map_models(saved.info, str(saved.folder), method, models)
@@ -89,15 +91,14 @@ def prepare_query(
         built = "normalised" if saved.info.normalized else "not normalised"
         raise SeqvprError(f"{saved.folder} holds {built} descriptors: match it with normalisation "
                           f"{'on' if saved.info.normalized else 'off (--no-normalize)'}")
-    frames = describe_query(query, saved, models, settings.device, progress, **extraction)
-    if "seqmatchnet" in (saved.info.model or {}):  # the map holds transformed frames and so does the query now
-        models.pop("seqmatchnet")
+    if "seqmatchnet" in (saved.info.model or {}):  # the map holds transformed frames and so will the query
+        models.pop("seqmatchnet", None)
         method = "matching" if method == "seqmatchnet" else method
-    return PreparedQuery(frames, method, models)
+    return MapMethod(method, models)
 
 
 def match_map(
-    saved: SavedMap,
+    reference: SavedMap | ShardedMap,
     query: Traversal,
     method: str,
     settings: MatchSettings,
@@ -110,48 +111,61 @@ def match_map(
     nprobe: int = 16,
     progress: ProgressFactory | None = None,
     search: Mapping[str, Any] | None = None,
+    ranks: Any = None,
     **extraction: Any,
-) -> MatchResult:
+) -> MatchResult | None:
     """Top-K map frames per query frame by ``method``: what matching the map's sources directly gives; with
     ``shortlist`` S, a frame-matching method re-ranks the candidates the map's index gives (S a query frame; the
-    ``history`` query frames before each window place candidates too)."""
+    ``history`` query frames before each window place candidates too). A sharded map is matched shard by shard
+    (under ``torchrun`` each rank its own, merged on rank 0: the other ranks get None); its shards share one
+    description, checked and applied once a rank. ``search``: the method's own settings (steps, contrast window)."""
+    from seqvpr import distributed
+    from seqvpr.matchers.sharded import is_sharded
+    from seqvpr.matchers.stack import Shortlist, assemble
+
     ensure_policy()  # the one thread policy (seqvpr.threads)
     progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
-    prepared = prepare_query(saved, query, method, settings, models, rerank, progress, **extraction)
-    return match_prepared(saved, prepared, settings, index=index, rerank=rerank, shortlist=shortlist,
-                          history=history, nprobe=nprobe, progress=progress, search=search)
+    world = ranks or distributed.current()
+    described = reference.open_shard(0) if is_sharded(reference) else reference  # the description its frames share
+    chosen = distributed.everywhere(lambda: map_method(described, method, settings, models, rerank), world)
+    matcher = method_matcher(described, chosen, settings, index=index, rerank=rerank, nprobe=nprobe,
+                             progress=progress, search=search)
+    listed = None if not shortlist else Shortlist(lambda: map_neighbours(reference, nprobe, history, world),
+                                                   shortlist, history)
+    stack = distributed.everywhere(lambda: assemble(matcher, reference, listed, world), world)
+    frames = distributed.everywhere(lambda: describe_query(query, described, dict(models or {}), settings.device,
+                                                           progress, **extraction), world)
+    return stack.topk(reference, frames)
 
 
-def match_prepared(
-    saved: SavedMap, prepared: PreparedQuery, settings: MatchSettings, *, index: str = "flat", rerank: int = 0,
-    shortlist: int = 0, history: int = 0, nprobe: int = 16, progress: ProgressFactory | None = None,
-    search: Mapping[str, Any] | None = None,
-) -> MatchResult:
-    """``match_map`` on a query already described as the map's frames (``prepare_query``); ``search``: the
-    method's own settings (steps, contrast window)."""
-    frames, method, models = prepared.frames, prepared.method, prepared.models
-    if shortlist:
+def method_matcher(saved: SavedMap, chosen: MapMethod, settings: MatchSettings, *, index: str = "flat",
+                   rerank: int = 0, nprobe: int = 16, progress: ProgressFactory | None = None,
+                   search: Mapping[str, Any] | None = None) -> Matcher:
+    """The family matcher of the chosen method over ``saved`` (or any map described alike, such as its shards): the
+    method's own, or a search of each map's own index when it already holds the method's sequence descriptors."""
+    if uses_window_index(saved, chosen.method, settings, chosen.models, rerank):
         from seqvpr.maps.index import IndexNeighbours
-        from seqvpr.matchers.shortlisted import Shortlisted
+        from seqvpr.matchers.retrieval import IndexedRetrieval
 
-        check_shortlist(saved, method, models)
-        neighbours = IndexNeighbours(saved, nprobe)
-        matcher = build_matcher(method, settings, models, progress=progress, **(search or {}))
-        return Shortlisted(matcher, neighbours, shortlist, history).topk(saved, frames)
-    return map_matcher(saved, prepared, settings, index=index, rerank=rerank, nprobe=nprobe, progress=progress,
-                       search=search).topk(saved, frames)
+        matcher = IndexedRetrieval(settings, lambda opened: IndexNeighbours(opened, nprobe))
+        matcher.method = chosen.method
+        return matcher
+    return build_matcher(chosen.method, settings, chosen.models, index=index, rerank=rerank, progress=progress,
+                         **(search or {}))
 
 
-def map_matcher(
-    saved: SavedMap, prepared: PreparedQuery, settings: MatchSettings, *, index: str = "flat", rerank: int = 0,
-    nprobe: int = 16, progress: ProgressFactory | None = None, search: Mapping[str, Any] | None = None,
-) -> Matcher:
-    """The matcher of the prepared method over ``saved`` (or any map described alike, such as its shards): its
-    method's, or a search of the map's own index when it already holds the method's sequence descriptors."""
-    method, models = prepared.method, prepared.models
-    if uses_window_index(saved, method, settings, models, rerank):
-        return IndexedRetrieval(settings, nprobe)
-    return build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress, **(search or {}))
+def map_neighbours(reference: SavedMap | ShardedMap, nprobe: int = 16, history: int = 0, ranks: Any = None):
+    """The nearest-neighbour search a shortlist over ``reference`` uses: a map's index, or the shards' indexes
+    merged into one (each rank searching its shards)."""
+    from seqvpr.matchers.sharded import is_sharded
+
+    if is_sharded(reference):
+        from seqvpr.maps.sharded_index import ShardedNeighbours
+
+        return ShardedNeighbours(reference, ranks, nprobe, history)
+    from seqvpr.maps.index import IndexNeighbours
+
+    return IndexNeighbours(reference, nprobe)
 
 
 def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:
@@ -165,40 +179,6 @@ def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, mod
         set(models) == {"seqnet"} and model_record(models["seqnet"].folder)["sha256"] == indexed)
     return (METHODS[method].family == "retrieval" and record.get("over") == f"{METHODS[method].pooling}:{spec.length}"
             and same_windows and same_model and not rerank)
-
-
-class IndexedRetrieval(Matcher):
-    """Retrieval by the sequence descriptors a map's index already holds: the query's windows pooled as the index
-    says and searched in it (the map given to ``topk`` must hold such an index)."""
-
-    family = "retrieval"
-
-    def __init__(self, settings: MatchSettings, nprobe: int = 16) -> None:
-        super().__init__(settings)
-        self.nprobe = nprobe
-
-    def topk(self, reference: SavedMap, query: Traversal) -> MatchResult:  # type: ignore[override]
-        import numpy as np
-        import torch
-
-        from seqvpr.maps.index import open_frame_index, window_search
-        from seqvpr.sequences.matching import unit_rows
-        from seqvpr.results import TopK
-
-        rows = unit_rows(torch.as_tensor(np.asarray(query.descriptors, dtype=np.float32)))
-        index = open_frame_index(reference, self.nprobe)
-        found, distances = window_search(reference, index, rows, query.segment_ids, min(self.settings.k, index.ntotal))
-        return MatchResult(reference.frames, query, TopK(found, distances, found[:, 0] >= 0), self.settings)
-
-
-def check_shortlist(saved: SavedMap, method: str, models: Mapping[str, TrainedModel]) -> None:
-    """A shortlist serves the frame-matching methods, over the frames the map's index holds."""
-    if METHODS[method].family != "matching":
-        raise SeqvprError(f"--shortlist applies to the frame-matching methods (single, matching, seqmatchnet), "
-                          f"not --method {method}")
-    if "seqmatchnet" in models:
-        raise SeqvprError(f"--shortlist with a SeqMatchNet model needs a map built through it: {saved.folder}'s "
-                          "index holds untransformed frames")
 
 
 def shortlist_recall(result: MatchResult, gt) -> float | None:

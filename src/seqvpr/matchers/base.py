@@ -33,6 +33,7 @@ class Matcher(ABC):
     frame (``seqvpr.matchers.stream.WindowStepper``), which a family with an incremental step replaces."""
 
     family = ""  # the family a method record names (``seqvpr.methods``)
+    method = ""  # the method's name it was built for (``seqvpr.methods.build_matcher`` sets it; messages name it)
 
     def __init__(self, settings: MatchSettings, progress: ProgressFactory | None = None) -> None:
         self.settings, self.progress = settings, progress

@@ -70,3 +70,25 @@ def pooling_module(method: Any, models: Mapping[str, Any]) -> torch.nn.Module | 
     if method.needs == "jist":
         return models["jist"].module.sequence_pool
     return None
+
+
+class IndexedRetrieval(Matcher):
+    """Retrieval by sequence descriptors a reference's own index already holds (a saved map indexed over this
+    method's windows): the query's windows pooled as the index says and searched in it. ``open_index`` gives the
+    index of the reference matched (each shard of a sharded map has its own) as ``Neighbours``."""
+
+    family = "retrieval"
+
+    def __init__(self, settings: MatchSettings, open_index: Callable[[Reference], Any]) -> None:
+        super().__init__(settings)
+        self.open_index = open_index
+
+    def topk(self, reference: Reference, query: Traversal) -> MatchResult:
+        import numpy as np
+
+        from seqvpr.sequences.matching import unit_rows
+
+        rows = unit_rows(torch.as_tensor(np.asarray(query.descriptors, dtype=np.float32)))
+        index = self.open_index(reference)
+        top = index.search(rows, query.segment_ids, min(self.settings.k, index.vectors))
+        return MatchResult(reference.frames, query, top, self.settings)

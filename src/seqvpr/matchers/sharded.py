@@ -20,12 +20,11 @@ import numpy as np
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.matchers.base import Matcher
 from seqvpr.matchers.stream import elapsed_ms
-from seqvpr.results import Scored
+from seqvpr.results import MatchResult, Scored, TopK
+from seqvpr.sequences.settings import MatchSettings
 from seqvpr.sequences.topk import merge_topks, uniqueness
-from seqvpr.results import TopK
 
 
 class ShardRange(Protocol):
@@ -47,6 +46,8 @@ class ShardedReference(Protocol):
 
     def open_shard(self, number: int) -> Reference: ...
 
+    def __len__(self) -> int: ...
+
     @property
     def frames(self) -> Traversal: ...
 
@@ -64,6 +65,28 @@ class ShardMatch:
 def shard_numbers(shards: int, rank: int, world: int) -> list[int]:
     """The shards rank ``rank`` of ``world`` matches: every world-th one from its rank (all of them alone)."""
     return list(range(rank, shards, world))
+
+
+SHARDABLE_FAMILIES = ("matching", "retrieval")  # per-window scores: a shard's top-K over its own rows is exact
+WHOLE_REFERENCE_SEARCHES = ("seqslam-cone", "seqslam-hybrid")  # they use each frame's best match over the whole
+
+
+def check_shardable(matcher: Any) -> None:
+    """A matcher whose per-window scores a shard can compute from the rows it holds (its windows' span is checked
+    against a sharded reference's overlap when it is matched, ``check_overlap``)."""
+    search = getattr(getattr(matcher, "search", None), "search", None)
+    if search in WHOLE_REFERENCE_SEARCHES:
+        raise SeqvprError(f"--method {matcher.method} votes with each query frame's best match over the whole map, "
+                          "which no shard sees; match the unsharded map")
+    if matcher.family not in SHARDABLE_FAMILIES:
+        raise SeqvprError(f"--method {matcher.method} scores whole paths or shortlists over the whole map; a sharded "
+                          f"map is matched by sequence matching or sequence descriptors "
+                          f"({', '.join(SHARDABLE_FAMILIES)} methods)")
+
+
+def is_sharded(reference: Any) -> bool:
+    """Whether a reference is split into shards (a ``ShardedReference``), each matched on its own."""
+    return hasattr(reference, "shards") and hasattr(reference, "open_shard")
 
 
 def check_overlap(matcher: Any, sharded: ShardedReference) -> None:
@@ -105,18 +128,33 @@ def no_match(query: Traversal, settings: MatchSettings) -> TopK:
     return TopK(np.full((len(query), settings.k), -1), np.full((len(query), settings.k), np.inf), has_window)
 
 
-class Sharded:
+class Sharded(Matcher):
     """``matcher`` over a ``ShardedReference``, each shard by the rank that holds it (``world``: the distributed
-    run, or the current one)."""
+    run, or the current one). Only a matcher whose scores are per window is sharded (``check_shardable``)."""
 
-    def __init__(self, matcher: Any, world: Any = None) -> None:
+    def __init__(self, matcher: Matcher, world: Any = None) -> None:
         from seqvpr import distributed
 
+        check_shardable(matcher)
         self.matcher, self.world = matcher, world or distributed.current()
+        self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
 
     @property
-    def settings(self) -> MatchSettings:
+    def settings(self) -> MatchSettings:  # type: ignore[override]
         return self.matcher.settings
+
+    def with_settings(self, settings: MatchSettings) -> Sharded:
+        return Sharded(self.matcher.with_settings(settings), self.world)
+
+    def prepare_frame(self, frame, out=None):
+        return self.matcher.prepare_frame(frame, out)
+
+    def own_settings(self) -> dict[str, Any]:
+        return self.matcher.own_settings()
+
+    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
+        """The inner matcher's: a window's distance does not depend on the shard that holds it."""
+        return self.matcher.window_distances(rows, window, starts)
 
     def topk(self, sharded: ShardedReference, query: Traversal) -> MatchResult | None:
         """The whole reference's match on rank 0 (None on the others)."""

@@ -5,7 +5,7 @@ matcher re-ranks only those, offline (``topk``) or a frame at a time (``stream``
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -32,19 +32,37 @@ class Neighbours(Protocol):
         ...
 
 
-class Shortlisted:
+class Shortlisted(Matcher):
     """``matcher`` over the candidates ``neighbours`` proposes: each query frame's ``shortlist`` S nearest
     reference frames place candidate windows (with the ``history`` H frames before each window, up to (L + H) x S
-    a query; an index over windows: each window's own S nearest), re-ranked by the matcher's window distance."""
+    a query; an index over windows: each window's own S nearest), re-ranked by the matcher's window distance. Only
+    a frame-matching matcher re-ranks such candidates, and only over the rows the search holds (no transform)."""
 
     def __init__(self, matcher: Matcher, neighbours: Neighbours, shortlist: int, history: int = 0) -> None:
+        check_shortlistable(matcher)
         if history and neighbours.over != "frames":
             raise SeqvprError(f"--shortlist-history needs an index over frames; this one is over {neighbours.over}")
         self.matcher, self.neighbours, self.shortlist, self.history = matcher, neighbours, shortlist, history
+        self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
 
     @property
-    def settings(self) -> MatchSettings:
+    def settings(self) -> MatchSettings:  # type: ignore[override]
         return self.matcher.settings
+
+    def with_settings(self, settings: MatchSettings) -> Shortlisted:
+        return Shortlisted(self.matcher.with_settings(settings), self.neighbours, self.shortlist, self.history)
+
+    def prepare_frame(self, frame, out=None):
+        return self.matcher.prepare_frame(frame, out)
+
+    def own_settings(self) -> dict[str, Any]:
+        return self.matcher.own_settings()
+
+    def span(self) -> int:
+        return self.matcher.span()
+
+    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
+        return self.matcher.window_distances(rows, window, starts)
 
     def topk(self, reference: Reference, query: Traversal) -> MatchResult | None:
         from seqvpr.sequences.hierarchical import frame_shortlist
@@ -72,7 +90,21 @@ class Shortlisted:
         if self.neighbours.over != "frames":
             raise SeqvprError(f"a shortlist a frame at a time needs an index over frames; this one is over "
                               f"{self.neighbours.over}")
-        return ShortlistStepper(self.matcher, reference, self.neighbours, self.shortlist, self.history, exclusion)
+        from seqvpr.matchers.sharded import is_sharded
+
+        whole = reference.frames if is_sharded(reference) else reference  # a window's rows, read through its shards
+        return ShortlistStepper(self.matcher, whole, self.neighbours, self.shortlist, self.history, exclusion)
+
+
+def check_shortlistable(matcher: Matcher) -> None:
+    """A shortlist's candidates are re-ranked by a frame-matching matcher's window distance, over the rows the
+    search holds (so no transform of them at match time)."""
+    if matcher.family != "matching":
+        raise SeqvprError(f"--shortlist applies to the frame-matching methods (single, matching, seqmatchnet), "
+                          f"not --method {matcher.method}")
+    if getattr(matcher, "transform", None) is not None:
+        raise SeqvprError("--shortlist with a SeqMatchNet model needs a map built through it: the index holds "
+                          "untransformed frames")
 
 
 def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, settings: MatchSettings
