@@ -61,7 +61,7 @@ def test_adaptive_correspondences_at_unit_steps_are_the_windows():
 @settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 9999), k=st.integers(1, 8), exclusion=st.integers(0, 4))
 def test_uniqueness_margins_equal_a_plain_loop(seed, k, exclusion):
-    from seqvpr.evaluation.metrics import uniqueness_margins
+    from seqvpr.sequences.topk import uniqueness_margins
 
     rng = np.random.default_rng(seed)
     indices = np.stack([rng.permutation(30)[:k] for _ in range(6)])

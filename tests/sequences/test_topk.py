@@ -6,7 +6,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.sequences.topk import TopKMerge, best_k, merge_topks, other_place, uniqueness
+from seqvpr.sequences.topk import TopKMerge, best_k, merge_topks, other_place, rank_order, uniqueness_ratio
 from seqvpr.results import TopK
 from tests import oracles
 from tests.helpers import examples
@@ -77,24 +77,24 @@ def test_best_k_of_a_dense_vector_is_the_sorted_list(values, k):
 
 @settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=25), st.integers(0, 6))
-def test_uniqueness_is_one_minus_best_over_the_best_elsewhere(values, exclusion):
+def test_uniqueness_ratio_is_one_minus_best_over_the_best_elsewhere(values, exclusion):
     values = np.array(values)
     best = int(np.argmin(values))
     elsewhere = [v for j, v in enumerate(values) if abs(j - best) > exclusion]
     expected = 1.0 if not elsewhere else max(0.0, 1.0 - values[best] / min(elsewhere))
     rows, ranked = best_k(values, 2 * exclusion + 2)  # enough to hold the best other place
-    assert abs(uniqueness(rows, ranked, exclusion) - expected) < 1e-12
+    assert abs(uniqueness_ratio(rows, ranked, exclusion) - expected) < 1e-12
 
 
 @settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.tuples(st.integers(-1, 30), st.sampled_from([0.0, 0.25, 0.5, 1.0, 3.0, np.inf, np.nan])),
                 max_size=12), st.integers(0, 5))
-def test_uniqueness_is_the_plain_loop_on_any_ranked_list(entries, exclusion):
+def test_uniqueness_ratio_is_the_plain_loop_on_any_ranked_list(entries, exclusion):
     """The compiled score equals the plain loop on any list: empty rows, infinite, NaN and zero distances."""
     rows = np.array([r for r, _ in entries], dtype=np.int64)
     values = np.array([v for _, v in entries], dtype=np.float64)
-    assert uniqueness(rows, values, exclusion) == oracles.uniqueness(rows, values, exclusion)
-    assert uniqueness(list(rows), list(values), exclusion) == oracles.uniqueness(rows, values, exclusion)
+    assert uniqueness_ratio(rows, values, exclusion) == oracles.uniqueness(rows, values, exclusion)
+    assert uniqueness_ratio(list(rows), list(values), exclusion) == oracles.uniqueness(rows, values, exclusion)
 
 
 def test_other_place_skips_the_best_ones_neighbours_and_empty_entries():
@@ -102,5 +102,25 @@ def test_other_place_skips_the_best_ones_neighbours_and_empty_entries():
     distances = np.array([[0.1, 0.2, 0.3, 0.4], [0.1, np.inf, 0.2, 0.3], [0.1, 0.2, 0.3, 0.4]])
     np.testing.assert_array_equal(other_place(indices, distances, 2), [3, -1, -1])
     np.testing.assert_array_equal(other_place(indices, distances, 1), [3, 3, 3])
-    assert uniqueness(np.array([-1]), np.array([np.inf]), 1) == 0.0
-    assert uniqueness(indices[2], distances[2], 5) == 1.0
+    assert uniqueness_ratio(np.array([-1]), np.array([np.inf]), 1) == 0.0
+    assert uniqueness_ratio(indices[2], distances[2], 5) == 1.0
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(tied_matrices)
+def test_the_compiled_tie_rule_ranks_as_rank_order_bit_for_bit(case):
+    """``_fused.enter_ranked`` (through which every compiled top-K enters, rows met in row order) against
+    ``rank_order`` (the numpy definition): the same rows and the same distances, ties included."""
+    from seqvpr.sequences._fused import enter_ranked
+
+    k, values = case
+    for row_values in values:
+        best, where = np.full(k, np.inf), np.full(k, -1, np.int64)
+        for r, v in enumerate(row_values):
+            if v < best[-1]:
+                enter_ranked(v, r, best, where)
+        rows = np.arange(len(row_values))
+        ranked = rank_order(rows, row_values, k)
+        expected = np.where(np.isfinite(row_values[ranked]), rows[ranked], -1)
+        np.testing.assert_array_equal(where[: len(expected)], expected)
+        np.testing.assert_array_equal(best[: len(expected)], np.where(expected >= 0, row_values[ranked], np.inf))

@@ -126,17 +126,3 @@ def frame_precision(query_rows: np.ndarray, reference_rows: np.ndarray, gt: Grou
     return float(gt.contains(q[counted], r[counted]).mean())
 
 
-def uniqueness_margins(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> np.ndarray:
-    """SeqSLAM's windowed uniqueness from a top-K list [n, K]: the best distance minus the best one outside
-    ``exclusion`` frames of it (the K-th when none in the list is outside: a bound), so lower is more unique and it
-    ranks like a distance for PR curves. A margin, not OpenSeqSLAM2's ratio min1/min2: contrast-enhanced distances
-    can be negative, where the ratio means nothing. +inf where a query has no match."""
-    from seqvpr.sequences.topk import other_place
-
-    column = other_place(indices, distances, exclusion)
-    first = np.where(column >= 0, column, distances.shape[1] - 1)
-    second = distances[np.arange(len(distances)), first]
-    matched = (indices[:, 0] >= 0) & np.isfinite(distances[:, 0])
-    margin = np.full(len(distances), np.inf)
-    margin[matched] = distances[matched, 0] - second[matched]  # -inf when no second exists: as unique as can be
-    return margin

@@ -22,7 +22,8 @@ def evaluate_match(
 ) -> Evaluation:
     """Recall@K and PR of a match result, and the precision of its top-1 matches' per-frame correspondences. With
     ``uniqueness`` E, PR ranks the queries by SeqSLAM's windowed uniqueness (exclusion E frames), not by distance."""
-    from seqvpr.evaluation.metrics import frame_precision, uniqueness_margins
+    from seqvpr.evaluation.metrics import frame_precision
+    from seqvpr.sequences.topk import uniqueness_margins
 
     top = result.topk
     scores = top.distances

@@ -111,7 +111,7 @@ class SequenceMatcher(Matcher):
         """The candidates' reference windows re-ordered by this matcher's distance (exact sequence distance, or
         adaptive inside each candidate's stretch), best K kept, with the per-frame pairs of the top-1 matches."""
         from seqvpr.sequences.adaptive import AdaptiveScorer, adaptive_rerank
-        from seqvpr.sequences.hierarchical import rerank
+        from seqvpr.sequences.rerank import rerank
 
         reference, query = self.transformed(reference, query)
         settings = self.settings if k is None else replace(self.settings, k=k)
@@ -127,10 +127,14 @@ class SequenceMatcher(Matcher):
         return MatchResult(reference.frames, query, top, settings, correspondences=pairs)
 
     def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
-        """Mean order-aligned frame distances of the window to the reference windows from ``starts``."""
-        from seqvpr.matchers.stream import window_distances
+        """Mean order-aligned frame distances of the window [L, D] to the reference windows from ``starts``: the
+        family's candidate form (``sequences.rerank.candidate_distances``), as re-ranking computes them."""
+        from seqvpr.sequences.rerank import candidate_distances
 
-        return window_distances(rows, window, starts)
+        if not len(starts):  # no candidate window: nothing to read
+            return np.zeros(0)
+        window = torch.as_tensor(np.asarray(window, np.float32))
+        return candidate_distances(window, rows, np.zeros(1, np.int64), np.asarray(starts)[None], len(window))[0]
 
     def stream(self, reference: Reference, exclusion: int = 10) -> Stepper:
         """Exact causal matching by running diagonal sums for the constant-velocity search at slope 1; any other

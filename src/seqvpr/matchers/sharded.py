@@ -24,7 +24,7 @@ from seqvpr.matchers.base import Matcher
 from seqvpr.matchers.stream import elapsed_ms
 from seqvpr.results import MatchResult, Scored, TopK
 from seqvpr.sequences.settings import MatchSettings
-from seqvpr.sequences.topk import merge_topks, uniqueness
+from seqvpr.sequences.topk import merge_topks, uniqueness_ratio
 
 
 class ShardRange(Protocol):
@@ -276,7 +276,7 @@ class ShardedStepper:
         found = [part for rank_parts in gathered for part in rank_parts]
         merged = merge_topks([TopK(r[None], v[None], np.ones(1, bool)) for r, v in found], len(found) * self.keep)
         rows, values = merged.indices[0], merged.distances[0]
-        score = uniqueness(rows, values, self.exclusion)
+        score = uniqueness_ratio(rows, values, self.exclusion)
         return Scored(rows[: self.k], values[: self.k], score, distance_ms, sequence_ms + elapsed_ms(started))
 
     def state(self) -> dict[str, np.ndarray]:

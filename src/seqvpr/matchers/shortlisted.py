@@ -65,7 +65,7 @@ class Shortlisted(Matcher):
         return self.matcher.window_distances(rows, window, starts)
 
     def topk(self, reference: Reference, query: Traversal) -> MatchResult | None:
-        from seqvpr.sequences.hierarchical import frame_shortlist
+        from seqvpr.sequences.rerank import frame_shortlist
         from seqvpr.sequences.windows import window_starts
 
         settings = self.settings

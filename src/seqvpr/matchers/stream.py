@@ -24,7 +24,7 @@ from seqvpr.errors import SeqvprError
 from seqvpr.matchers.frames import matcher_rows, query_rows, transformed_reference
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.results import Scored
-from seqvpr.sequences.topk import best_k, best_of, uniqueness
+from seqvpr.sequences.topk import best_k, best_of, uniqueness_ratio
 
 
 
@@ -89,7 +89,7 @@ class DiagonalStepper(FullPass):
         if found is None:
             return None
         indices, values = found
-        score = uniqueness(indices, values, self.exclusion)
+        score = uniqueness_ratio(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
@@ -157,7 +157,7 @@ class WindowStepper:
         window = Traversal.from_descriptors(np.stack(list(self.frames)), "window")
         top = self.matcher.topk(self.reference, window).topk
         indices, values = top.indices[-1], top.distances[-1]
-        score = uniqueness(indices, values, self.exclusion)
+        score = uniqueness_ratio(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, 0.0, elapsed_ms(started))
 
     def state(self) -> dict[str, np.ndarray]:
@@ -208,7 +208,7 @@ class ShortlistStepper:
         indices, values = best_of(candidates, values)
         if not len(indices):  # no candidate window: nothing to name (scored as a miss)
             indices, values = np.full(1, -1, np.int64), np.full(1, np.inf)
-        score = uniqueness(indices, values, self.exclusion)
+        score = uniqueness_ratio(indices, values, self.exclusion)
         return Scored(indices[: self.k], values[: self.k], score, (measured - started) * 1e3, elapsed_ms(measured))
 
     def state(self) -> dict[str, np.ndarray]:
@@ -230,16 +230,3 @@ def found_candidates(found, count: int) -> np.ndarray:
     rows = [neighbours[neighbours >= 0] + lag for lag, neighbours in enumerate(found)]
     candidates = np.unique(np.concatenate(rows))
     return candidates[candidates < count]
-
-
-def window_distances(descriptors, window, starts: np.ndarray) -> np.ndarray:
-    """Mean order-aligned distances between the query ``window`` [L, D] (the last L frames, oldest first) and the
-    reference windows from ``starts``: a gather of (L + H) S x L rows at most, too few for a parallel kernel (whose
-    threads would only contend with faiss's)."""
-    if not len(starts):  # no candidate window (here): nothing to read
-        return np.zeros(0)
-    window = np.asarray(window, np.float32)
-    length = len(window)
-    rows = starts[:, None] + np.arange(length)[None, :]
-    gathered = np.asarray(descriptors[rows.ravel()], np.float32).reshape(len(starts), length, -1)
-    return np.linalg.norm(gathered - window[None], axis=2).mean(axis=1).astype(np.float64)

@@ -14,7 +14,6 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
 from seqvpr.matchers.frames import check_dimensions, query_rows, kernel_rows
-from seqvpr.sequences.topk import best_of
 from seqvpr.results import TopK
 from seqvpr.sequences.windows import window_frames, window_starts
 
@@ -41,25 +40,25 @@ class WindowMatcher(Matcher):
                            k)
 
     def rerank(self, reference: Reference, query: Traversal, candidates: TopK, k: int | None = None) -> MatchResult:
-        """The candidates' reference windows (anchor rows, -1 for none) re-ordered by the distance, best K kept."""
+        """The candidates' reference windows (anchor rows, -1 for none) re-ordered by the distance, best K kept
+        (the one re-ranking, ``sequences.rerank.rerank_candidates``)."""
+        from seqvpr.sequences.rerank import rerank_candidates
+
         rows, qry = kernel_rows(reference, self.settings), query_rows(query, self.settings)
         spec, k = self.settings.sequence, self.settings.k if k is None else k
         q_starts = window_starts(query.segment_ids, spec.length, spec.offset, spec.boundary)
         r_starts = window_starts(reference.segment_ids, spec.length, spec.offset, spec.boundary)
-        keep = min(k, candidates.indices.shape[1])
-        indices, distances = np.full((len(query), keep), -1, np.int64), np.full((len(query), keep), np.inf)
-        has_window = (q_starts >= 0) & candidates.has_window
-        tick = self.tick(len(query))
-        for row in np.flatnonzero(has_window):
-            picked = np.asarray(candidates.indices[row])
+
+        def window_distances(chosen: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+            (row,), (picked,) = chosen, anchors
             starts = np.where(picked >= 0, r_starts[np.maximum(picked, 0)], -1)
             window = qry[int(q_starts[row]) : int(q_starts[row]) + spec.length]
             values = np.full(len(picked), np.inf)
             values[starts >= 0] = self.window_distances(rows, window, starts[starts >= 0])
-            indices[row], distances[row] = best_of(picked, values, keep)
-            if tick:
-                tick(1)
-        return MatchResult(reference.frames, query, TopK(indices, distances, has_window), self.settings)
+            return values[None]
+
+        top = rerank_candidates(candidates, q_starts >= 0, k, window_distances, tick=self.tick(len(query)))
+        return MatchResult(reference.frames, query, top, self.settings)
 
     def window_distances(self, rows, window: torch.Tensor | np.ndarray, starts: np.ndarray) -> np.ndarray:
         """The distances of the query ``window`` [L, D] to the reference windows from ``starts``, gathered a block

@@ -217,7 +217,7 @@ def all_finite(x):
 
 @njit(cache=True, nogil=True, boundscheck=False)
 def uniqueness_score(rows, values, exclusion):
-    """``seqvpr.sequences.topk.uniqueness`` on a ranked list (rows int64, values float64)."""
+    """``seqvpr.sequences.topk.uniqueness_ratio`` on a ranked list (rows int64, values float64)."""
     if rows.shape[0] == 0 or rows[0] < 0 or not np.isfinite(values[0]):
         return 0.0
     second = np.inf
@@ -262,6 +262,20 @@ def squared_norms(x: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True, boundscheck=False)
+def enter_ranked(v, r, best, where):
+    """The tie rule, compiled (``topk.rank_order`` in numpy; tested bit for bit against it): insert value ``v`` of
+    row ``r`` into the sorted running top-K ``best``/``where`` (called only when ``v`` beats the K-th), after any
+    equal value, so rows met in order keep the lower row on a tie. Every compiled top-K enters through it."""
+    p = best.shape[0] - 1
+    while p > 0 and best[p - 1] > v:
+        best[p] = best[p - 1]
+        where[p] = where[p - 1]
+        p -= 1
+    best[p] = v
+    where[p] = r
+
+
 @njit(cache=True, parallel=True, boundscheck=False)
 def _topk_update(rows, first, values, indices):
     k = values.shape[1]
@@ -272,13 +286,7 @@ def _topk_update(rows, first, values, indices):
         for j in range(row.shape[0]):
             v = row[j]
             if v < threshold:
-                p = k - 1
-                while p > 0 and best[p - 1] > v:
-                    best[p] = best[p - 1]
-                    where[p] = where[p - 1]
-                    p -= 1
-                best[p] = v
-                where[p] = first + j
+                enter_ranked(v, first + j, best, where)
                 threshold = best[k - 1]
 
 
@@ -407,19 +415,6 @@ def diagonal_means_(ring: np.ndarray, newest: int, exists: np.ndarray, out: np.n
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
-def _enter_ranked(v, r, best, where):
-    """Insert value ``v`` of row ``r`` into the sorted running top-K (called only when ``v`` beats the K-th): after
-    any equal value, so rows met in order keep the lower row on a tie."""
-    p = best.shape[0] - 1
-    while p > 0 and best[p - 1] > v:
-        best[p] = best[p - 1]
-        where[p] = where[p - 1]
-        p -= 1
-    best[p] = v
-    where[p] = r
-
-
-@njit(cache=True, nogil=True, boundscheck=False)
 def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where, convert, query, norms, floor):
     """Rank the windows ending at rows ``lo .. hi - 1`` into ``best``/``where``; with ``convert``, the newest row
     holds dot products, turned into distances (``_distances_row``) a block at a time just before it is summed."""
@@ -437,7 +432,7 @@ def _diagonal_scan(ring, newest, length, exists, lo, hi, best, where, convert, q
         for i in range(e - b):
             v = buffer[i]
             if v < threshold and exists[b + i]:
-                _enter_ranked(v, b + i, best, where)
+                enter_ranked(v, b + i, best, where)
                 threshold = best[best.shape[0] - 1]
 
 
@@ -453,7 +448,7 @@ def _diagonal_topk_parts(ring, newest, length, exists, parts_best, parts_where, 
         for i in range(parts_best.shape[1]):
             v = parts_best[c, i]
             if v < threshold:
-                _enter_ranked(v, parts_where[c, i], best, where)
+                enter_ranked(v, parts_where[c, i], best, where)
                 threshold = best[best.shape[0] - 1]
 
 

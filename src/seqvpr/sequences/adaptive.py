@@ -138,33 +138,34 @@ def _side_costs(d: np.ndarray, reference: int, anchor: int, scorer: AdaptiveScor
 def adaptive_rerank(query: torch.Tensor, reference, shortlist, spec: SequenceSpec, scorer: AdaptiveScorer,
                     query_segments: np.ndarray, reference_segments: np.ndarray, k: int):
     """A shortlist's candidates re-ordered by adaptive distance (CaseVPR's hierarchy: sequence-descriptor start
-    points, then adaptive frame matching inside each candidate stretch). Each candidate's reachable stretch is cut
-    from the reference and the stretches are scored together as separate segments, so no path crosses two."""
+    points, then adaptive frame matching inside each candidate stretch), through the one re-ranking
+    (``rerank.rerank_candidates``). Each candidate's reachable stretch is cut from the reference and the stretches
+    are scored together as separate segments, so no path crosses two."""
     from seqvpr.sequences.matching import frame_distances, reference_rows
-    from seqvpr.sequences.topk import best_of
-    from seqvpr.results import TopK
+    from seqvpr.sequences.rerank import rerank_candidates
     from seqvpr.sequences.windows import window_frames, window_starts
 
     q_starts = window_starts(np.asarray(query_segments), spec.length, spec.offset, "drop")
     r_seg = np.asarray(reference_segments, dtype=np.int64)
-    keep = min(k, shortlist.indices.shape[1])
-    indices = np.full((len(q_starts), keep), -1, dtype=np.int64)
-    distances = np.full((len(q_starts), keep), np.inf)
     before, after = spec.offset * scorer.max_step, (spec.length - 1 - spec.offset) * scorer.max_step
-    for i in np.flatnonzero((q_starts >= 0) & shortlist.has_window):
-        candidates = shortlist.indices[i][shortlist.indices[i] >= 0]
-        if len(candidates) == 0:
-            continue
-        spans = [(max(0, c - before), min(len(r_seg), c + after + 1)) for c in candidates]
-        rows = np.concatenate([np.arange(lo, hi) for lo, hi in spans])
-        labels = np.concatenate([np.full(hi - lo, n) for n, (lo, hi) in enumerate(spans)]) * (r_seg.max() + 1) + r_seg[rows]
-        stretch = reference_rows(reference, rows, query)
-        frames = torch.as_tensor(window_frames(q_starts[i : i + 1], spec.length)[0])
-        scored = scorer(frame_distances(query[frames], stretch), np.zeros(1, np.int64), np.zeros(1, np.int64),
-                        labels, spec)[0].double().cpu().numpy()
-        anchors = np.cumsum([0] + [hi - lo for lo, hi in spans[:-1]]) + (candidates - [lo for lo, _ in spans])
-        values = scored[anchors]
-        rows, best = best_of(candidates, values, keep)
-        indices[i, : len(rows)], distances[i, : len(rows)] = rows, best
-    return TopK(indices, distances, (q_starts >= 0) & shortlist.has_window)
+
+    def adaptive_distances(rows: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+        values = np.full(anchors.shape, np.inf)
+        for i, (row, picked) in enumerate(zip(rows, anchors)):
+            candidates = picked[picked >= 0]
+            if len(candidates) == 0:
+                continue
+            spans = [(max(0, c - before), min(len(r_seg), c + after + 1)) for c in candidates]
+            frames_of = np.concatenate([np.arange(lo, hi) for lo, hi in spans])
+            labels = np.concatenate([np.full(hi - lo, n) for n, (lo, hi) in enumerate(spans)]) * (r_seg.max() + 1) \
+                + r_seg[frames_of]
+            stretch = reference_rows(reference, frames_of, query)
+            frames = torch.as_tensor(window_frames(q_starts[row : row + 1], spec.length)[0])
+            scored = scorer(frame_distances(query[frames], stretch), np.zeros(1, np.int64), np.zeros(1, np.int64),
+                            labels, spec)[0].double().cpu().numpy()
+            anchored = np.cumsum([0] + [hi - lo for lo, hi in spans[:-1]]) + (candidates - [lo for lo, _ in spans])
+            values[i, picked >= 0] = scored[anchored]
+        return values
+
+    return rerank_candidates(shortlist, q_starts >= 0, k, adaptive_distances)
 

@@ -2,7 +2,8 @@
 reference row, empty entries (row -1, distance +inf) last. Every top-K in seqvpr (kernel blocks, reference chunks,
 shard merges, re-ranked shortlists, the online step) is ranked by ``rank_order`` or merged by ``TopKMerge``, so a
 match split into any chunks, shards or streams is the match done whole. ``other_place`` is the one definition of
-"the best match of another place" behind the uniqueness scores.
+"the best match of another place" behind the two uniqueness scores: ``uniqueness_ratio`` (online, higher: surer) and
+``uniqueness_margins`` (offline, lower: more unique, ranked like a distance).
 """
 
 from __future__ import annotations
@@ -98,9 +99,23 @@ def other_place(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> n
     return np.where(outside.any(1), outside.argmax(1), -1)
 
 
-def uniqueness(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> float:
-    """How much one ranked list's best match stands out: 1 - best / (the best of another place, ``other_place``), in
+def uniqueness_ratio(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> float:
+    """The online score (a localiser's, a stream's), how much one ranked list's best match stands out: 1 - best / (the best of another place, ``other_place``), in
     [0, 1]; 0 with no match, 1 when no other place is in the list (SeqSLAM's ratio test as a score). A list of the
     best 2 x ``exclusion`` + 2 rows holds the best other place of the whole map when one exists."""
     return sequences._fused.uniqueness_score(np.asarray(indices, dtype=np.int64),  # compiled: scored every frame
                                              np.asarray(distances, dtype=np.float64), exclusion)
+
+
+def uniqueness_margins(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> np.ndarray:
+    """The offline score (``--uniqueness E``, for PR curves): SeqSLAM's windowed uniqueness from a top-K list [n, K]: the best distance minus the best one outside
+    ``exclusion`` frames of it (the K-th when none in the list is outside: a bound), so lower is more unique and it
+    ranks like a distance for PR curves. A margin, not OpenSeqSLAM2's ratio min1/min2: contrast-enhanced distances
+    can be negative, where the ratio means nothing. +inf where a query has no match."""
+    column = other_place(indices, distances, exclusion)
+    first = np.where(column >= 0, column, distances.shape[1] - 1)
+    second = distances[np.arange(len(distances)), first]
+    matched = (indices[:, 0] >= 0) & np.isfinite(distances[:, 0])
+    margin = np.full(len(distances), np.inf)
+    margin[matched] = distances[matched, 0] - second[matched]  # -inf when no second exists: as unique as can be
+    return margin

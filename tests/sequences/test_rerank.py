@@ -5,7 +5,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.sequences.hierarchical import rerank
+from seqvpr.sequences.rerank import rerank
 from seqvpr.sequences.matching import TopK, sequence_topk
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import examples, raises_one_line
