@@ -117,11 +117,12 @@ def test_retrieval_and_hierarchical_families(pair):
 
 def test_models_and_methods_that_do_not_go_together_are_one_line_errors():
     jist = {"jist": trained("jist", SeqNet(4, 4, 1))}
-    raises_one_line("--method seqnet needs a SeqNet --model", check_models, METHODS["seqnet"], {})
-    raises_one_line("got a SeqMatchNet --model", check_models, METHODS["jist"], {"seqmatchnet": SMN})
-    raises_one_line("use --method seqnet", check_models, METHODS["delta"], {"seqnet": SEQNET})
-    raises_one_line("use --method jist", check_models, METHODS["matching"], jist)
-    raises_one_line("--rerank N needs", match_method, "matching", None, None, SETTINGS, rerank=5)
+    raises_one_line("method seqnet needs a SeqNet model (models; seqvpr train seqnet --out), got none", check_models,
+                    METHODS["seqnet"], {})
+    raises_one_line("got a SeqMatchNet model", check_models, METHODS["jist"], {"seqmatchnet": SMN})
+    raises_one_line("use method seqnet", check_models, METHODS["delta"], {"seqnet": SEQNET})
+    raises_one_line("use method jist", check_models, METHODS["matching"], jist)
+    raises_one_line("rerank N needs", match_method, "matching", None, None, SETTINGS, rerank=5)
     raises_one_line("method 'magic' is not known", match_method, "magic", None, None, SETTINGS)
 
 
@@ -142,9 +143,9 @@ def test_a_cosplace_model_describes_frames_for_any_method_but_jist():
     for name in ("single", "matching", "seqgem", "delta", "hvpr", "seqmatchnet", "seqnet"):
         check_models(METHODS[name], {**cosplace, **{k: m for k, m in (("seqmatchnet", SMN), ("seqnet", SEQNET))
                                                     if METHODS[name].needs == k}})
-    raises_one_line("needs a JIST --model", check_models, METHODS["jist"], cosplace)
+    raises_one_line("needs a JIST model (models;", check_models, METHODS["jist"], cosplace)
     jist = {"jist": trained("jist", SeqNet(4, 4, 1))}
-    raises_one_line("a JIST --model and a CosPlace --model both describe the images", check_models, METHODS["jist"],
+    raises_one_line("a JIST model and a CosPlace model (models) both describe the images", check_models, METHODS["jist"],
                     {**jist, **cosplace})
     assert run_length(METHODS["matching"], {**cosplace, "seqmatchnet": trained("seqmatchnet", SMN.module, 3)}) == 3
     assert run_length(METHODS["seqgem"], cosplace) == 1 and run_length(METHODS["single"], cosplace) == 1

@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 if TYPE_CHECKING:
     from seqvpr.data.traversal import Traversal
@@ -160,7 +160,7 @@ def match_reference(reference: Any, query: Traversal, method: str, settings: Mat
                          shortlist=shortlist, history=history, nprobe=nprobe, progress=progress, search=search,
                          **extraction)
     if shortlist:
-        raise SeqvprError(f"--shortlist S needs a map with an index (seqvpr map build --index), not the traversal "
+        raise SettingError(f"{{shortlist}} S needs a map with an index (seqvpr map build --index), not the traversal "
                           f"{reference.source or reference.name}")
     matcher = build_matcher(method, settings, models, index=index, rerank=rerank, progress=progress, **search)
     return assemble(matcher, reference).topk(reference, query)

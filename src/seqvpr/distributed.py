@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TypeVar
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 T = TypeVar("T")
 
@@ -161,14 +161,22 @@ def everywhere(work: Callable[[], T], world: Ranks | None = None) -> T:
     try:
         value = work()
     except Exception as failure:  # reported to every rank below, then raised on each
-        error = str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"
+        error = failure_text(failure)
     errors: list[str | None] = [None] * world.size
     _wait(dist.all_gather_object, world, errors, error)
     failed = [(rank, text) for rank, text in enumerate(errors) if text is not None]
     if failed:
         rank, text = failed[0]
-        raise SeqvprError(f"rank {rank} of {world.size} failed: {text}")
+        raise SettingError(f"rank {rank} of {world.size} failed: {text}")
     return value  # type: ignore[return-value]
+
+
+def failure_text(failure: BaseException) -> str:
+    """What a rank's failure sends the others: a SettingError's template (so each rank's message names settings as
+    its caller does), another error's message, or an unexpected one's type and message."""
+    if isinstance(failure, SettingError):
+        return failure.template
+    return str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"
 
 
 def gather_to_root(work: Callable[[], T], world: Ranks | None = None) -> list[T] | None:
@@ -211,10 +219,10 @@ def broadcast_from_root(work: Callable[[], T], world: Ranks | None = None) -> T:
         try:
             message = [work(), None]
         except Exception as failure:  # sent to every rank below, then raised on each
-            message = [None, str(failure) if isinstance(failure, SeqvprError) else f"{type(failure).__name__}: {failure}"]
+            message = [None, failure_text(failure)]
     _wait(dist.broadcast_object_list, world, message, src=0)
     if message[1] is not None:
-        raise SeqvprError(f"rank 0 of {world.size} failed: {message[1]}")
+        raise SettingError(f"rank 0 of {world.size} failed: {message[1]}")
     return message[0]
 
 

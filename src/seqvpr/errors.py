@@ -4,12 +4,31 @@ import csv
 import errno
 import os
 import pickle
+import re
 import struct
 import zipfile
+from collections.abc import Mapping
 
 
 class SeqvprError(ValueError):
     """Bad input or an impossible request; the CLI prints the message on one line and exits non-zero."""
+
+
+SETTING_NAME = re.compile(r"\{([a-z][a-z0-9_]*)\}")  # a setting named in a SettingError's template
+
+
+class SettingError(SeqvprError):
+    """A bad argument or setting. Its ``template`` names settings in braces (``{seq_len} must be ...``): the message
+    names them as a Python caller passes them (``seq_len must be ...``), and ``naming(names)`` as another caller
+    spells them (the command line's flags: ``--seq-len must be ...``)."""
+
+    def __init__(self, template: str) -> None:
+        self.template = template
+        super().__init__(self.naming({}))
+
+    def naming(self, names: Mapping[str, str]) -> str:
+        """The message with each setting called what ``names`` calls it (its own name where ``names`` has none)."""
+        return SETTING_NAME.sub(lambda found: names.get(found.group(1), found.group(1)), self.template)
 
 
 class SeqvprWarning(UserWarning):

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 
@@ -117,7 +117,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 
 def get_method(name: str) -> Method:
     if name not in METHODS:
-        raise SeqvprError(f"method {name!r} is not known (choose from: {', '.join(METHODS)})")
+        raise SettingError(f"{{method}} {name!r} is not known (choose from: {', '.join(METHODS)})")
     return METHODS[name]
 
 
@@ -134,18 +134,18 @@ def check_models(method: Method, models: Mapping[str, TrainedModel]) -> None:
     """A method and models that do not go together are a one-line error."""
     describing = [kind for kind in IMAGE_MODELS if kind in models]
     if len(describing) > 1:
-        titles = " and a ".join(f"{MODEL_TITLES[kind]} --model" for kind in describing)
-        raise SeqvprError(f"a {titles} both describe the images: give one of them")
+        titles = " and a ".join(f"{MODEL_TITLES[kind]} model" for kind in describing)
+        raise SettingError(f"a {titles} ({{models}}) both describe the images: give one of them")
     if method.needs is not None and method.needs not in models:
         given = next(iter(models), None)
-        found = "no --model" if given is None else f"a {MODEL_TITLES[given]} --model"
-        raise SeqvprError(f"--method {method.name} needs a {MODEL_TITLES[method.needs]} --model "
-                          f"(seqvpr train {method.needs} --out), got {found}")
+        found = "none" if given is None else f"a {MODEL_TITLES[given]} model"
+        raise SettingError(f"{{method}} {method.name} needs a {MODEL_TITLES[method.needs]} model ({{models}}; "
+                           f"seqvpr train {method.needs} --out), got {found}")
     for kind in models:
         if not method.accepts(kind):
-            advice = (f"gives sequence descriptors itself: use --method {kind} (or leave --method out)"
+            advice = (f"gives sequence descriptors itself: use {{method}} {kind} (or leave {{method}} out)"
                       if kind in ("seqnet", "jist") else "does not apply")
-            raise SeqvprError(f"a {MODEL_TITLES[kind]} --model {advice}, not --method {method.name}")
+            raise SettingError(f"a {MODEL_TITLES[kind]} model ({{models}}) {advice}, not {{method}} {method.name}")
 
 
 def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0, length: int | None = None) -> Method:
@@ -154,9 +154,9 @@ def check_run(name: str, models: Mapping[str, TrainedModel], rerank: int = 0, le
     method = get_method(name)
     check_models(method, models)
     if rerank < 0 or (rerank and method.family == "matching"):
-        raise SeqvprError(f"--rerank N needs N >= 0 and a --method other than matching (got {rerank}, {name})")
+        raise SettingError(f"{{rerank}} N needs N >= 0 and a {{method}} other than matching (got {rerank}, {name})")
     if method.length is not None and length not in (None, method.length):
-        raise SeqvprError(f"--method {name} uses L = {method.length}; leave --seq-len out (got {length})")
+        raise SettingError(f"{{method}} {name} uses L = {method.length}; leave {{seq_len}} out (got {length})")
     return method
 
 

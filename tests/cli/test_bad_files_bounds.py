@@ -46,7 +46,7 @@ CASES = {
     "-L: not an integer": ((*M, "-L", "2.5"), "'-L': '2.5' is not an integer"),
     "-L: zero": ((*M, "-L", "0"), "'-L': 0 is not in [1, inf]"),
     "-L: negative": ((*M, "-L", "-3"), "'-L': -3 is not in [1, inf]"),
-    "-L: huge, names the longest segment": ((*M, "-L", "100000000000"), "-L 100000000000: longer than every segment of reference"),
+    "-L: huge, names the longest segment": ((*M, "-L", "100000000000"), "--seq-len 100000000000: longer than every segment of reference"),
     "-L: huge against a map": ((*MAP, "-L", "100000"), "(longest segment:"),
     # --- --shortlist
     "shortlist: 1e9 is not an integer": ((*MAP, "--shortlist", "1e9"), "'--shortlist': '1e9' is not an integer"),

@@ -232,9 +232,9 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
     match = ["match", "-r", ref, "-q", qry, "--radius", "5m"]
     images = ["-r", world["train_reference"], "-q", world["train_query"]]
     return {
-        "method without model": ([*match, "--method", "seqnet"], "--method seqnet needs a SeqNet --model"),
+        "method without model": ([*match, "--method", "seqnet"], "--method seqnet needs a SeqNet model (--model; seqvpr train seqnet --out), got none"),
         "seqnet model, other method": ([*match, "--model", seqnet_run[0], "--method", "delta"], "use --method seqnet"),
-        "jist method, seqnet model": ([*match, "--model", seqnet_run[0], "--method", "jist"], "got a SeqNet --model"),
+        "jist method, seqnet model": ([*match, "--model", seqnet_run[0], "--method", "jist"], "got a SeqNet model"),
         "jist model, matching": ([*match, "--model", jist_run[0], "--method", "matching"], "use --method jist"),
         "jist model on descriptors": ([*match, "--model", jist_run[0]], "descriptors only"),
         "missing model folder": ([*match, "--model", tmp_path / "absent"], "no such model folder"),

@@ -132,9 +132,9 @@ def test_bad_frames_are_one_line_and_the_localiser_goes_on(route):
     raises_one_line("NaN or infinite", localizer.update, np.full(16, np.nan, np.float32))
     raises_one_line("takes a descriptor [D]", localizer.update, np.zeros((4, 4, 3), np.uint8))
     assert localizer.update(query[6]).frame == 6  # the bad frames left no trace
-    raises_one_line("takes no --shortlist", Localizer.open, route / "map", method="hmm", shortlist=5)
+    raises_one_line("takes no shortlist", Localizer.open, route / "map", method="hmm", shortlist=5)
     raises_one_line("needs an index over", Localizer.open, route / "map", shortlist=5)
-    raises_one_line("not --method delta", Localizer.open, route / "map", method="delta")
+    raises_one_line("not method delta", Localizer.open, route / "map", method="delta")
 
 
 def test_keyframe_gating_skips_a_stopped_robot(route):

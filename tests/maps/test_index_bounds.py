@@ -43,6 +43,6 @@ def test_a_shortlist_is_clipped_to_the_index_and_the_history_to_the_query():
 def test_a_shortlist_over_the_memory_budget_is_one_line():
     settings = MatchSettings(SequenceSpec(5), memory_budget=2**20)
     shortlist_size(10, 0, vectors=300, n_query=100, settings=settings)  # 100 x 5 x 10 x 24 bytes: within 1 MiB
-    with pytest.raises(SeqvprError, match="--shortlist 300 with --shortlist-history 0 and -L 5: .* over the "
-                                          "--memory-budget"):
+    with pytest.raises(SeqvprError, match="shortlist 300 with history 0 and seq_len 5: .* over the "
+                                          "memory_budget"):
         shortlist_size(300, 0, vectors=300, n_query=100, settings=settings)

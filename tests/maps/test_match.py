@@ -93,7 +93,7 @@ def test_mismatched_queries_and_models_are_one_line_errors(route, tmp_path):
     plain = build_map([str(route / "ref.npz")], tmp_path / "plain")
     smn = models_of(route, ("seqmatchnet",))
     transformed = build_map([str(route / "ref.npz")], tmp_path / "smn", models=smn)
-    raises_one_line("holds SeqMatchNet-transformed frames, which --method seqgem does not use", match_map,
+    raises_one_line("holds SeqMatchNet-transformed frames, which method seqgem does not use", match_map,
                     transformed, query, "seqgem", SETTINGS, smn)
     raises_one_line("was built through the seqmatchnet model", match_map, transformed, query, "matching", SETTINGS)
     save_seqmatchnet(tmp_path / "other", FrameTransform(TransformConfig(16), seed=2), {"sequence": {"length": 5}})

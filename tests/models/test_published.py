@@ -332,5 +332,5 @@ def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsy
     import_checkpoint(tmp_path / "jist.pth", tmp_path / "jist")
     code, _, stderr = run_cli(monkeypatch, capsys, "match", *common, "--model", tmp_path / "jist",
                               "--out", tmp_path / "x")
-    assert code == 2 and "a JIST --model and a CosPlace --model both describe the images" in stderr
+    assert code == 2 and "a JIST model and a CosPlace model (--model) both describe the images" in stderr
     assert stderr.count("\n") == 1 and not (tmp_path / "x").exists()

@@ -186,7 +186,7 @@ def test_a_map_or_model_mismatch_is_one_line_at_start_up(small_map, tmp_path, mo
 
     save_seqmatchnet(tmp_path / "smn", FrameTransform(TransformConfig(16, out_dim=8), seed=3), {})
     for args, said in [(("--model", tmp_path / "smn"), "build the map through the SeqMatchNet model"),
-                       (("-L", "50"), "-L 50 is longer than every segment"),
+                       (("-L", "50"), "--seq-len 50 is longer than every segment"),
                        (("--restore",), "--restore starts from the state in --state")]:
         code, out, err = run_cli(monkeypatch, capsys, "node", "--map", small_map, *args)
         assert code == 2 and len(error_lines(err)) == 1 and said in error_lines(err)[0], err

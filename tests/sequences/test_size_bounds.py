@@ -15,13 +15,13 @@ from seqvpr.sequences.windows import MAX_VELOCITIES, SequenceSpec, check_length,
 def test_a_velocity_range_is_made_up_to_the_bound_and_refused_past_it():
     assert len(parse_velocities("0.01:10:0.01")) == MAX_VELOCITIES
     assert parse_velocities("0.8:1.2:0.1") == (0.8, 0.9, 1.0, 1.1, 1.2)
-    with pytest.raises(SeqvprError, match=f"--velocities '0.5:2:1e-7': 15000001 velocities, at most {MAX_VELOCITIES}"):
+    with pytest.raises(SeqvprError, match=f"velocities '0.5:2:1e-7': 15000001 velocities, at most {MAX_VELOCITIES}"):
         parse_velocities("0.5:2:1e-7")
 
 
 @pytest.mark.parametrize("text", ["1e300", "0.8,nan", "0.5:inf:1", "0,1", "-1", "99:101:1"])
 def test_a_velocity_out_of_range_is_one_line(text):
-    with pytest.raises(SeqvprError, match="--velocities"):
+    with pytest.raises(SeqvprError, match="^velocities"):  # a Python caller's argument; the CLI's --velocities
         parse_velocities(text)
 
 
@@ -39,7 +39,7 @@ def test_the_cone_and_hybrid_grid_is_bounded():
 def test_a_length_longer_than_every_segment_names_l_and_the_longest():
     segments = np.r_[np.zeros(7, int), np.ones(12, int)]
     check_length(12, segments, "query q.npz")
-    with pytest.raises(SeqvprError, match=r"-L 13: longer than every segment of query q.npz \(longest segment: 12"):
+    with pytest.raises(SeqvprError, match=r"seq_len 13: longer than every segment of query q.npz \(longest segment: 12"):
         check_length(13, segments, "query q.npz")
 
 

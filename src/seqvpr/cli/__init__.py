@@ -15,7 +15,7 @@ import warnings
 import click
 
 from seqvpr.cli.help import tag
-from seqvpr.errors import SeqvprError, SeqvprWarning, os_refusal
+from seqvpr.errors import SeqvprError, SeqvprWarning, SettingError, os_refusal
 from seqvpr.io import raise_for_signal
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
@@ -114,6 +114,15 @@ class EchoHandler(logging.Handler):
         click.echo(f"seqvpr: {record.getMessage()}", err=True)
 
 
+def flagged(error: SeqvprError) -> str:
+    """An error's message as a command-line user reads it: the settings it names, as flags (``options.FLAGS``)."""
+    if isinstance(error, SettingError):
+        from seqvpr.cli.options import FLAGS
+
+        return error.naming(FLAGS)
+    return str(error)
+
+
 def show_library_log() -> None:
     """Route the library's progress lines to stderr, once per process; only rank 0 of a torchrun run reports."""
     logger = logging.getLogger("seqvpr")
@@ -155,7 +164,7 @@ def main() -> None:
         error.show()
         sys.exit(error.exit_code)
     except SeqvprError as error:
-        click.echo(f"seqvpr: error: {error}", err=True)
+        click.echo(f"seqvpr: error: {flagged(error)}", err=True)
         sys.exit(2)
     except OSError as error:  # the system said no (no space, read-only, permission...): one line, when we know it
         refusal = os_refusal(error)

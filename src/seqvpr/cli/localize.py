@@ -132,33 +132,11 @@ def open_localizer(o: dict[str, Any], k: int):
     from seqvpr.localization import Localizer
     from seqvpr.sequences.filter import FilterSettings
 
-    method = o["method"] or ("seqmatchnet" if o["model_dirs"] and _has_seqmatchnet(o["model_dirs"]) else "matching")
     steps = FilterSettings(o["min_step"], o["max_step"], o["floor"], o["sharpness"])
-    _check_length(o["map_dir"], o["seq_len"], method)
-    return Localizer.open(o["map_dir"], list(o["model_dirs"]) or None, o["device"], method=method,
+    return Localizer.open(o["map_dir"], list(o["model_dirs"]) or None, o["device"], method=o["method"],
                           seq_len=o["seq_len"], k=k, shortlist=o["shortlist"], history=o["history"],
                           nprobe=o["nprobe"], threshold=o["threshold"], lost_after=o["lost_after"],
                           exclusion=o["exclusion"], keyframe_distance=o["keyframe_distance"], filter=steps)
-
-
-def _check_length(map_dir: str, length: int, method: str) -> None:
-    """A window longer than every segment of the map would never be complete: the localiser would never answer."""
-    import numpy as np
-
-    from seqvpr.maps import open_map
-
-    if method == "hmm":
-        return
-    longest = int(np.unique(open_map(map_dir).frames.segment_ids, return_counts=True)[1].max())
-    if length > longest:
-        raise SeqvprError(f"-L {length} is longer than every segment of {map_dir} (longest: {longest} frames): "
-                          "it would never localise")
-
-
-def _has_seqmatchnet(folders) -> bool:
-    from seqvpr.models.registry import model_kind
-
-    return any(model_kind(f).name == "seqmatchnet" for f in folders)
 
 
 def _calibrate(o: dict[str, Any], localizer, run, gt):

@@ -12,6 +12,19 @@ import click
 from seqvpr.errors import SeqvprError, os_refusal
 
 #: how images become descriptors: patch-normalised thumbnails, one of the backbones, or torchscript:PATH
+#: the one table from the library's setting names (what a Python caller passes, what its errors name) to the flags a
+#: command-line user gives: an error naming ``{seq_len}`` reads ``--seq-len`` here (``SettingError.naming``)
+FLAGS = {
+    "seq_len": "--seq-len", "align": "--align", "boundary": "--boundary", "velocities": "--velocities",
+    "method": "--method", "models": "--model", "model": "--model", "rerank": "--rerank", "index": "--index",
+    "shortlist": "--shortlist", "history": "--shortlist-history", "nprobe": "--nprobe", "steps": "--steps",
+    "contrast_window": "--contrast-window", "proposer": "--proposer", "memory_budget": "--memory-budget",
+    "dtype": "--dtype", "device": "--device", "normalize": "--no-normalize", "threshold": "--threshold",
+    "lost_after": "--lost-after", "exclusion": "--exclusion", "keyframe_distance": "--keyframe-distance",
+    "frames": "--frames", "radius": "--radius", "ground_truth": "--ground-truth", "uniqueness": "--uniqueness",
+    "k": "--k", "overlap": "--overlap", "shards": "--shards",
+}
+
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
 DESCRIPTORS = ("patchnorm", *BACKBONES)
 TORCHSCRIPT_PREFIX = "torchscript:"

@@ -9,7 +9,7 @@ import numpy as np
 
 from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.arrays import file_mapped
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 GAP_FACTOR = 10.0  # a time step this many times the median one starts a segment (time_gap_segments)
 
@@ -276,7 +276,7 @@ def frame_positions(traversal: Traversal, spacing: float = 1.0) -> Traversal:
                    headings=np.zeros(len(traversal)))
 
 
-def parse_frame_range(text: str | None, what: str = "--frames") -> tuple[int | None, int | None]:
+def parse_frame_range(text: str | None, what: str = "{frames}") -> tuple[int | None, int | None]:
     """``START:STOP`` (either side may be empty) -> a half-open range of source frame indices; ``what`` names the
     option or field in the one-line error."""
     if not text:
@@ -287,10 +287,10 @@ def parse_frame_range(text: str | None, what: str = "--frames") -> tuple[int | N
             raise ValueError
         return (int(start) if start else None), (int(stop) if stop else None)
     except ValueError:
-        raise SeqvprError(f"{what} {text!r}: expected START:STOP, e.g. 17:2000") from None
+        raise SettingError(f"{what} {text!r}: expected START:STOP, e.g. 17:2000") from None
 
 
-def slice_frame_range(traversal: Traversal, text: str | None, what: str = "--frames") -> Traversal:
+def slice_frame_range(traversal: Traversal, text: str | None, what: str = "{frames}") -> Traversal:
     """The frames ``START:STOP`` (source frame indices) of a traversal; errors name ``what``."""
     start, stop = parse_frame_range(text, what)
     if start is None and stop is None:
@@ -298,7 +298,7 @@ def slice_frame_range(traversal: Traversal, text: str | None, what: str = "--fra
     try:
         return traversal.slice_frames(start, stop)
     except SeqvprError as error:
-        raise SeqvprError(f"{what} {text}: {error}") from None
+        raise SettingError(f"{what} {text}: {error}") from None
 
 
 def check_disjoint(a: str, b: str, names: tuple[str, str]) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from seqvpr.data.geo import utm_to_latlon
-from seqvpr.errors import SeqvprError, reading
+from seqvpr.errors import SeqvprError, SettingError, reading
 from seqvpr.io import atomic_write
 from seqvpr.localization.saved import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
@@ -78,14 +78,14 @@ class LocalizerSettings:
         online = online_methods()
         if self.method not in online:
             get_method(self.method)  # an unknown name: one line listing the methods
-            raise SeqvprError(f"a localiser runs {', '.join(online)}, not --method {self.method}")
+            raise SettingError(f"a localiser runs {', '.join(online)}, not {{method}} {self.method}")
         if self.shortlist and get_method(self.method).family != "matching":
-            raise SeqvprError(f"--method {self.method} keeps a belief over every map frame: it takes no --shortlist")
+            raise SettingError(f"{{method}} {self.method} keeps a belief over every map frame: it takes no {{shortlist}}")
         if min(self.seq_len, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
-            raise SeqvprError("localiser settings: seq_len, k and lost_after must be >= 1; shortlist, history and "
+            raise SettingError("localiser settings: {seq_len}, {k} and {lost_after} must be >= 1; {shortlist}, {history} and "
                               "exclusion >= 0")
         if self.history and not self.shortlist:
-            raise SeqvprError(f"--shortlist-history H needs a --shortlist (got H = {self.history})")
+            raise SettingError(f"{{history}} H needs a {{shortlist}} (got H = {self.history})")
 
     @property
     def window(self) -> int:
@@ -152,13 +152,17 @@ class Localizer:
     @classmethod
     def open(cls, map_folder: str | Path | SavedMap, model: str | Path | Sequence[str | Path] | None = None,
              device: str = "cpu", **settings: Any) -> Localizer:
-        """A localiser over the map in ``map_folder`` with ``LocalizerSettings(**settings)``; ``model`` the folder(s)
-        the map was built through (checked by sha256), or a SeqMatchNet model applied to both sides."""
+        """A localiser over the map in ``map_folder`` (or the map opened) with ``LocalizerSettings(**settings)``;
+        ``model`` the folder(s) the map was built through (checked by sha256), or a SeqMatchNet model applied to both
+        sides. ``method`` None (or left out): the SeqMatchNet model's method when one is given, else ``matching``."""
         ensure_policy()  # the one thread policy (seqvpr.threads)
         started = time.perf_counter()
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
-        chosen = LocalizerSettings(**settings)
         models = _load_models(saved, model, device)
+        if settings.get("method") is None:  # a SeqMatchNet model's own method, else plain sequence matching
+            settings = {**settings, "method": "seqmatchnet" if "seqmatchnet" in models else "matching"}
+        chosen = LocalizerSettings(**settings)
+        _check_window(saved, chosen)
         _check_index(saved, chosen)
         if saved.info.count >= LONG_OPEN or models:  # seconds to read the map's norms or to build a network
             LOGGER.info(f"localiser: opening {saved.folder} ({saved.info.count} frames, {saved.info.dim}-D), "
@@ -167,7 +171,7 @@ class Localizer:
             raise SeqvprError(f"a localiser compares frames as {saved.folder} stores them: build the map through the "
                               "SeqMatchNet model (seqvpr map build --model) to localise with it")
         if chosen.method == "seqmatchnet" and "seqmatchnet" not in models:
-            raise SeqvprError("--method seqmatchnet needs its SeqMatchNet --model (the one the map was built through)")
+            raise SettingError("{method} seqmatchnet needs its SeqMatchNet {model} (the one the map was built through)")
         threshold, source = ((chosen.threshold, "given") if chosen.threshold is not None
                              else stored_threshold(saved.folder, chosen))
         localizer = cls(saved, chosen, models, threshold, device, source)
@@ -361,15 +365,25 @@ def frame_neighbours(reference, nprobe: int, world):
 
     neighbours = map_neighbours(reference, nprobe, 0, world)
     if neighbours.over != "frames":
-        raise SeqvprError(f"--shortlist needs an index over {reference.folder}'s frames: seqvpr map index "
+        raise SettingError(f"{{shortlist}} needs an index over {reference.folder}'s frames: seqvpr map index "
                           f"{reference.folder} --index SPEC")
     return neighbours
+
+
+def _check_window(saved: SavedMap, settings: LocalizerSettings) -> None:
+    """A window longer than every segment of the map would never be complete: the localiser would never answer."""
+    if settings.method == "hmm":
+        return
+    longest = int(np.unique(saved.frames.segment_ids, return_counts=True)[1].max())
+    if settings.window > longest:
+        raise SettingError(f"{{seq_len}} {settings.window} is longer than every segment of {saved.folder} (longest: "
+                           f"{longest} frames): it would never localise")
 
 
 def _check_index(saved: SavedMap, settings: LocalizerSettings) -> None:
     """A shortlist needs the map's index over frames (a sharded map's shards are checked as they open)."""
     if settings.shortlist and saved.stored != "sharded" and (saved.index or {}).get("over") != "frames":
-        raise SeqvprError(f"--shortlist needs an index over {saved.folder}'s frames: seqvpr map index "
+        raise SettingError(f"{{shortlist}} needs an index over {saved.folder}'s frames: seqvpr map index "
                           f"{saved.folder} --index SPEC")
 
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.maps.build import FrameDescription, describe_frames, model_records
 from seqvpr.maps.files import MapInfo, SavedMap, ShardedMap
 from seqvpr.maps.index import model_record
@@ -20,9 +20,9 @@ from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
 from seqvpr.sequences.settings import MatchSettings
 from seqvpr.matchers.frames import transformed_by
-from seqvpr.progress import ProgressFactory
-from seqvpr.progress import or_logged
+from seqvpr.progress import ProgressFactory, or_logged
 from seqvpr.threads import ensure_policy
+
 
 def check_map_models(info: MapInfo, folder: str, method: str, models: Mapping[str, TrainedModel]) -> None:
     """The models a map's frames went through must be given again (same weights); an image model it was not built
@@ -32,17 +32,17 @@ def check_map_models(info: MapInfo, folder: str, method: str, models: Mapping[st
     given = model_records(models) or {}
     for kind, record in built.items():
         if kind not in given:
-            raise SeqvprError(f"{folder} was built through the {kind} model {record['folder']} "
-                              f"(sha256 {record['sha256'][:12]}): pass it with --model")
+            raise SettingError(f"{folder} was built through the {kind} model {record['folder']} "
+                               f"(sha256 {record['sha256'][:12]}): pass it in {{models}}")
         if given[kind]["sha256"] != record["sha256"]:
-            raise SeqvprError(f"--model {given[kind]['folder']} is not the {kind} model {folder} was built with "
-                              f"({record['folder']}, sha256 {record['sha256'][:12]})")
+            raise SettingError(f"{{models}}: {given[kind]['folder']} is not the {kind} model {folder} was built with "
+                               f"({record['folder']}, sha256 {record['sha256'][:12]})")
     extra = [kind for kind in given if kind not in built and kind != "seqmatchnet"]
     if extra:
         raise SeqvprError(f"{folder} was built without the {extra[0]} model {given[extra[0]]['folder']}: its frames "
                           "are another descriptor's (build the map with it)")
     if "seqmatchnet" in built and METHODS[method].family != "matching":
-        raise SeqvprError(f"{folder} holds SeqMatchNet-transformed frames, which --method {method} does not use: "
+        raise SettingError(f"{folder} holds SeqMatchNet-transformed frames, which {{method}} {method} does not use: "
                           "build the map without the SeqMatchNet model and give it to seqvpr match")
 
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
 from seqvpr.sequences.settings import MatchSettings
@@ -55,4 +55,4 @@ class GraphMatcher(Matcher):
         return MatchResult(reference.frames, query, top, settings)
 
     def stream(self, reference: Reference, exclusion: int = 10) -> Stepper:
-        raise SeqvprError("--method graph scores whole paths over the whole query: it matches offline only")
+        raise SettingError("{method} graph scores whole paths over the whole query: it matches offline only")

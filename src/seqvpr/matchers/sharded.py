@@ -19,7 +19,7 @@ import numpy as np
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.matchers.stream import elapsed_ms
 from seqvpr.results import MatchResult, Scored, TopK
@@ -76,10 +76,10 @@ def check_shardable(matcher: Any) -> None:
     against a sharded reference's overlap when it is matched, ``check_overlap``)."""
     search = getattr(getattr(matcher, "search", None), "search", None)
     if search in WHOLE_REFERENCE_SEARCHES:
-        raise SeqvprError(f"--method {matcher.method} votes with each query frame's best match over the whole map, "
+        raise SettingError(f"{{method}} {matcher.method} votes with each query frame's best match over the whole map, "
                           "which no shard sees; match the unsharded map")
     if matcher.family not in SHARDABLE_FAMILIES:
-        raise SeqvprError(f"--method {matcher.method} scores whole paths or shortlists over the whole map; a sharded "
+        raise SettingError(f"{{method}} {matcher.method} scores whole paths or shortlists over the whole map; a sharded "
                           f"map is matched by sequence matching or sequence descriptors "
                           f"({', '.join(SHARDABLE_FAMILIES)} methods)")
 

@@ -12,7 +12,7 @@ import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
 from seqvpr.sequences.settings import MatchSettings
@@ -41,7 +41,7 @@ class Shortlisted(Matcher):
     def __init__(self, matcher: Matcher, neighbours: Neighbours, shortlist: int, history: int = 0) -> None:
         check_shortlistable(matcher)
         if history and neighbours.over != "frames":
-            raise SeqvprError(f"--shortlist-history needs an index over frames; this one is over {neighbours.over}")
+            raise SettingError(f"{{history}} needs an index over frames; this one is over {neighbours.over}")
         self.matcher, self.neighbours, self.shortlist, self.history = matcher, neighbours, shortlist, history
         self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
 
@@ -88,7 +88,7 @@ class Shortlisted(Matcher):
         from seqvpr.matchers.stream import ShortlistStepper
 
         if self.neighbours.over != "frames":
-            raise SeqvprError(f"a shortlist a frame at a time needs an index over frames; this one is over "
+            raise SettingError(f"a {{shortlist}} a frame at a time needs an index over frames; this one is over "
                               f"{self.neighbours.over}")
         from seqvpr.matchers.sharded import is_sharded
 
@@ -100,11 +100,11 @@ def check_shortlistable(matcher: Matcher) -> None:
     """A shortlist's candidates are re-ranked by a frame-matching matcher's window distance, over the rows the
     search holds (so no transform of them at match time)."""
     if matcher.family != "matching":
-        raise SeqvprError(f"--shortlist applies to the frame-matching methods (single, matching, seqmatchnet), "
-                          f"not --method {matcher.method}")
+        raise SettingError(f"{{shortlist}} applies to the frame-matching methods (single, matching, seqmatchnet), "
+                           f"not {{method}} {matcher.method}")
     if getattr(matcher, "transform", None) is not None:
-        raise SeqvprError("--shortlist with a SeqMatchNet model needs a map built through it: the index holds "
-                          "untransformed frames")
+        raise SettingError("{shortlist} with a SeqMatchNet model needs a map built through it: the index holds "
+                           "untransformed frames")
 
 
 def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, settings: MatchSettings
@@ -115,9 +115,9 @@ def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, set
     shortlist, history = min(shortlist, max(vectors, 1)), min(history, n_query)
     cost = n_query * (settings.sequence.length + history) * shortlist * 8 * 3  # neighbours, candidates, sorting
     if settings.memory_budget is not None and cost > settings.memory_budget:
-        raise SeqvprError(f"--shortlist {shortlist} with --shortlist-history {history} and -L "
-                          f"{settings.sequence.length}: the candidates of {n_query} queries need {cost / 2**20:.0f} "
-                          f"MiB, over the --memory-budget of {settings.memory_budget / 2**20:.0f} MiB (lower them)")
+        raise SettingError(f"{{shortlist}} {shortlist} with {{history}} {history} and {{seq_len}} "
+                           f"{settings.sequence.length}: the candidates of {n_query} queries need {cost / 2**20:.0f} "
+                           f"MiB, over the {{memory_budget}} of {settings.memory_budget / 2**20:.0f} MiB (lower them)")
     return shortlist, history
 
 

@@ -20,10 +20,10 @@ class MatchSettings:
     memory_budget: int | None = 2 * 1024**3
 
     def __post_init__(self) -> None:
-        from seqvpr.errors import SeqvprError
+        from seqvpr.errors import SettingError
 
         if self.k < 1:
-            raise SeqvprError(f"K (matches kept per query) must be at least 1, got {self.k}")
+            raise SettingError(f"{{k}} (matches kept per query) must be at least 1, got {self.k}")
 
     def as_dict(self) -> dict:
         return asdict(self)

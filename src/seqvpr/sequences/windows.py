@@ -14,7 +14,7 @@ from typing import Literal
 
 import numpy as np
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 Align = Literal["centered", "causal"]
 Boundary = Literal["drop", "shift"]
@@ -40,13 +40,13 @@ class SequenceSpec:
 
     def __post_init__(self) -> None:
         if int(self.length) != self.length or self.length < 1:
-            raise SeqvprError(f"seq_len must be a positive integer, got {self.length}")
+            raise SettingError(f"{{seq_len}} must be a positive integer, got {self.length}")
         if self.align not in ("centered", "causal"):
-            raise SeqvprError(f"align must be 'centered' or 'causal', got {self.align!r}")
+            raise SettingError(f"{{align}} must be 'centered' or 'causal', got {self.align!r}")
         if self.boundary not in ("drop", "shift"):
-            raise SeqvprError(f"boundary must be 'drop' or 'shift', got {self.boundary!r}")
+            raise SettingError(f"{{boundary}} must be 'drop' or 'shift', got {self.boundary!r}")
         if not self.velocities or any(not np.isfinite(v) or v <= 0 for v in self.velocities):
-            raise SeqvprError(f"velocities must be positive numbers, got {self.velocities}")
+            raise SettingError(f"{{velocities}} must be positive numbers, got {self.velocities}")
         check_velocities(self.velocities)
 
     @property
@@ -114,10 +114,10 @@ def check_length(length: int, segment_ids: np.ndarray, what: str) -> None:
     seg_start, seg_end = segment_bounds(np.asarray(segment_ids))
     longest = int((seg_end - seg_start).max(initial=0))
     if length > longest:
-        raise SeqvprError(f"-L {length}: longer than every segment of {what} (longest segment: {longest} frames)")
+        raise SettingError(f"{{seq_len}} {length}: longer than every segment of {what} (longest segment: {longest} frames)")
 
 
-def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]:
+def parse_velocities(text: str, what: str = "{velocities}") -> tuple[float, ...]:
     """``1`` or ``0.8,1,1.2`` or ``0.8:1.2:0.1`` (min:max:step) -> velocities; ``what`` names the option or key.
     A range is counted before it is made: more than ``MAX_VELOCITIES`` is one line, not millions of trajectories."""
     try:
@@ -125,7 +125,7 @@ def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]
         if ":" in text and not (len(numbers) == 3 and numbers[2] > 0 and numbers[0] <= numbers[1]):
             raise ValueError
     except ValueError:
-        raise SeqvprError(f"{what} {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
+        raise SettingError(f"{what} {text!r}: expected V, V1,V2,... or MIN:MAX:STEP") from None
     if ":" not in text:
         check_velocities(numbers, what)
         return numbers
@@ -133,29 +133,29 @@ def parse_velocities(text: str, what: str = "--velocities") -> tuple[float, ...]
     check_velocities((lo, hi), what)
     count = int((hi - lo) / step + 0.5) + 1
     if count > MAX_VELOCITIES:
-        raise SeqvprError(f"{what} {text!r}: {count} velocities, at most {MAX_VELOCITIES} (widen the step)")
+        raise SettingError(f"{what} {text!r}: {count} velocities, at most {MAX_VELOCITIES} (widen the step)")
     velocities = tuple(float(v) for v in np.round(np.arange(lo, hi + step / 2, step), 6))
     check_velocities(velocities, what)
     return velocities
 
 
-def check_velocities(velocities: tuple[float, ...], what: str = "velocities") -> None:
+def check_velocities(velocities: tuple[float, ...], what: str = "{velocities}") -> None:
     """One line unless there are at most ``MAX_VELOCITIES`` velocities, each positive and at most ``MAX_VELOCITY``
     (a trajectory count or a slope past these costs passes and windows no match needs)."""
     if len(velocities) > MAX_VELOCITIES:
-        raise SeqvprError(f"{what}: {len(velocities)} velocities, at most {MAX_VELOCITIES} (widen the step)")
+        raise SettingError(f"{what}: {len(velocities)} velocities, at most {MAX_VELOCITIES} (widen the step)")
     if any(not (0 < v <= MAX_VELOCITY) for v in velocities):
         bad = next(v for v in velocities if not 0 < v <= MAX_VELOCITY)
-        raise SeqvprError(f"{what}: velocities must be in (0, {MAX_VELOCITY:g}] reference frames per query frame, "
+        raise SettingError(f"{what}: velocities must be in (0, {MAX_VELOCITY:g}] reference frames per query frame, "
                           f"got {bad!r}")
 
 
-def parse_steps(text: str, what: str = "--steps") -> tuple[int, int]:
+def parse_steps(text: str, what: str = "{steps}") -> tuple[int, int]:
     """``MIN:MAX`` reference frames per query frame (adaptive matching): 0 <= MIN <= MAX <= 16."""
     try:
         low, high = (int(x) for x in text.split(":"))
         if not 0 <= low <= high <= 16:
             raise ValueError
     except ValueError:
-        raise SeqvprError(f"{what} {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
+        raise SettingError(f"{what} {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
     return low, high
