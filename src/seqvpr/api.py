@@ -32,20 +32,15 @@ SETTING_NAMES = ("k", "align", "boundary", "velocities", "normalize", "dtype", "
 
 def load_models(models: Iterable[str | Path] | Mapping[str, TrainedModel] | None,
                 device: str = "cpu") -> dict[str, TrainedModel]:
-    """Models by kind: loaded model folders (one per kind), or a mapping of loaded ones as given."""
-    from seqvpr.models.registry import load_trained_model
+    """Models by kind: model folders loaded (``models.registry.load_models``: one per kind), or a mapping of loaded
+    ones as given."""
+    from seqvpr.models.registry import load_models as load_folders
 
     if models is None:
         return {}
     if isinstance(models, Mapping):
         return dict(models)
-    loaded: dict[str, TrainedModel] = {}
-    for folder in models:
-        model = load_trained_model(folder, device)
-        if model.kind in loaded:
-            raise SeqvprError(f"model {folder}: a second {model.kind} model (give one model per kind)")
-        loaded[model.kind] = model
-    return loaded
+    return load_folders(models, device)
 
 
 def open_reference(reference: Any) -> Any:

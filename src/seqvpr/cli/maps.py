@@ -16,7 +16,6 @@ from seqvpr.cli.options import (
 )
 from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
-from seqvpr.errors import SeqvprError
 
 BUILD_EPILOG = """\b
 Examples:
@@ -275,12 +274,6 @@ def _description(o: dict[str, Any], device: str):
 
 def _models(folders: tuple[str, ...], device: str) -> dict:
     """The --model folders loaded by kind (one per kind)."""
-    from seqvpr.models.registry import load_trained_model, model_kind
+    from seqvpr.models.registry import load_models
 
-    models: dict = {}
-    for folder in folders:
-        kind = model_kind(folder).name
-        if kind in models:
-            raise SeqvprError(f"--model {folder}: a second {kind} model (give one --model per kind)")
-        models[kind] = load_trained_model(folder, device)
-    return models
+    return load_models(folders, device)

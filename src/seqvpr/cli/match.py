@@ -318,19 +318,14 @@ def _check_map_options(o: dict[str, Any], built: str) -> None:
 def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
     """The --model folders loaded by kind, and the method (--method or the models' own), checked together."""
     from seqvpr.methods import check_run, implied_method
-    from seqvpr.models.registry import load_trained_model, model_kind
+    from seqvpr.models.registry import load_models, model_kinds
 
-    kinds: dict[str, str] = {}
-    for folder in o["model_dirs"]:
-        kind = model_kind(folder).name
-        if kind in kinds:
-            raise SeqvprError(f"--model {folder}: a second {kind} model (give one --model per kind)")
-        kinds[kind] = folder
+    kinds = model_kinds(o["model_dirs"])
     method = o["method"] or implied_method(kinds)
     check_run(method, kinds, o["rerank"], o["seq_len"])  # before any model or data is read
     if "jist" in kinds and o["pca_dim"]:
         raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
-    return {kind: load_trained_model(folder, o["device"]) for kind, folder in kinds.items()}, method
+    return load_models(kinds.values(), o["device"]), method
 
 
 def _frames(reference, query, models: dict, o: dict[str, Any]):

@@ -301,9 +301,9 @@ def _load_models(saved: SavedMap, model: str | Path | Sequence[str | Path] | Non
     if not folders and not saved.info.model:
         return {}
     from seqvpr.maps.match import check_map_models
-    from seqvpr.models.registry import load_trained_model
+    from seqvpr.models.registry import load_models
 
-    models = {m.kind: m for m in (load_trained_model(f, device) for f in folders)}
+    models = load_models(folders, device)
     check_map_models(saved.info, str(saved.folder), "matching", models)
     return models
 

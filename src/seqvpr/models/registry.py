@@ -1,5 +1,6 @@
 """One record per model kind: its format name in ``config.json``, what it consumes, the method it implies, and its
-model file's save and load; ``load_trained_model(folder)`` loads any trained model folder by its format.
+model file's save and load; ``load_trained_model(folder)`` loads any trained model folder by its format, and
+``load_models(folders)`` a set of them by kind (one per kind), as every entry point takes them.
 
 Adding a model kind is one module in ``models/`` (the module, ``save_<kind>``, ``load_<kind>``) and one record
 here; ``seqvpr match --model`` and every library entry point then know it.
@@ -7,14 +8,14 @@ here; ``seqvpr match --model`` and every library entry point then know it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.models import cosplace, jist, seqmatchnet, seqnet
 from seqvpr.models.files import CONFIG_FILE, read_model_config
 
@@ -98,3 +99,20 @@ def load_trained_model(folder: str | Path, device: str = "cpu") -> TrainedModel:
     """Any trained model folder (``seqvpr train --out``), loaded by its kind; one-line errors when it is wrong."""
     folder = Path(folder)
     return model_kind(folder).load(folder, device)
+
+
+def model_kinds(folders: Iterable[str | Path]) -> dict[str, Path]:
+    """Each model folder by its kind, read from its config alone (no weights loaded): one folder per kind, a
+    second of a kind is a one-line error."""
+    kinds: dict[str, Path] = {}
+    for folder in folders:
+        kind = model_kind(folder).name
+        if kind in kinds:
+            raise SettingError(f"{{models}}: {folder} is a second {kind} model (give one model per kind)")
+        kinds[kind] = Path(folder)
+    return kinds
+
+
+def load_models(folders: Iterable[str | Path], device: str = "cpu") -> dict[str, TrainedModel]:
+    """Model folders loaded by kind (one per kind): what every entry point that takes models loads them with."""
+    return {kind: load_trained_model(folder, device) for kind, folder in model_kinds(folders).items()}
