@@ -62,12 +62,14 @@ def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int
                    align: str = "centered", boundary: str = "drop", velocities: Iterable[float] = (1.0,),
                    normalize: bool = True, dtype: str = "float32", device: str = "cpu",
                    memory_budget: int | None = DEFAULT_BUDGET) -> MatchSettings:
-    """The settings of a match: windows of ``seq_len`` frames (the method's or its model's length when None)."""
+    """The settings of a match: windows of ``seq_len`` frames (the method's or its model's length when None; a method
+    of fixed length refuses another), checked before any data is read."""
     from seqvpr.sequences.settings import MatchSettings
-    from seqvpr.methods import get_method, run_length
+    from seqvpr.methods import check_run, run_length
     from seqvpr.sequences.windows import SequenceSpec
 
-    length = seq_len or run_length(get_method(method), models)
+    chosen = check_run(method, models, 0, seq_len)
+    length = seq_len or run_length(chosen, models)
     spec = SequenceSpec(length, align, boundary, tuple(velocities))  # type: ignore[arg-type]
     return MatchSettings(spec, k, normalize, dtype, device, memory_budget)
 

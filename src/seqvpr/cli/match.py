@@ -119,20 +119,14 @@ RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retr
 @locks_output("out_dir")
 def match(**o: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    k_values, speeds, budget = _checked_options(o)
+    k_values = _checked_options(o)
     models, method = _models_and_method(o)
+    settings, search = _settings(o, method, models, k_values)
     from seqvpr import distributed
     from seqvpr.api import match as match_reference
-    from seqvpr.sequences.settings import MatchSettings
-    from seqvpr.methods import run_length
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.sequences.windows import SequenceSpec, parse_steps
 
-    sides = _map_sides(o, models, method) if o["map_dir"] else _traversal_sides(o, models, method)
-    spec = SequenceSpec(o["seq_len"] or run_length(METHODS[method], models), o["align"], o["boundary"], speeds)
-    settings = MatchSettings(spec, _top_k(k_values, o["uniqueness"]), not o["no_normalize"], o["dtype"], o["device"],
-                             budget)
-    search = {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
+    sides = _map_sides(o, settings) if o["map_dir"] else _traversal_sides(o, models, settings)
     with distributed.process_group(o["device"]) as world:
         result = match_reference(sides.reference, sides.query, method, models=models, settings=settings,
                                  shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"],
@@ -150,7 +144,20 @@ def match(**o: Any) -> None:
     if o["shortlist"]:
         run["shortlist"] = _shortlist_record(o, result, sides.gt, sides.index_spec)
     shown = (result.reference, result.query) if o["map_dir"] else (sides.reference, sides.query)
-    _write_and_print(o, result, sides.gt, evaluation, run, run_label(method, spec.length, o), shown)
+    _write_and_print(o, result, sides.gt, evaluation, run, run_label(method, settings.sequence.length, o), shown)
+
+
+def _settings(o: dict[str, Any], method: str, models: dict, k_values: tuple[int, ...]):
+    """The one place the options become the library's settings: the match's (``seqvpr.api.match_settings``: L is
+    the method's or its model's when -L is not given) and the method's own search settings."""
+    from seqvpr.api import match_settings
+    from seqvpr.sequences.windows import parse_steps, parse_velocities
+
+    settings = match_settings(method, models, o["seq_len"], k=_top_k(k_values, o["uniqueness"]), align=o["align"],
+                              boundary=o["boundary"], velocities=parse_velocities(o["velocities"]),
+                              normalize=not o["no_normalize"], dtype=o["dtype"], device=o["device"],
+                              memory_budget=parse_size(o["memory_budget"]))
+    return settings, {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
 
 
 @dataclass(frozen=True)
@@ -167,17 +174,17 @@ class Sides:
     index_spec: str | None = None
 
 
-def _traversal_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
+def _traversal_sides(o: dict[str, Any], models: dict, settings) -> Sides:
     """``--reference`` and ``--query`` loaded, cut, checked against L, ground truth resolved, both described."""
     from seqvpr.data.sources import load_pair
-    from seqvpr.methods import image_model, run_length
+    from seqvpr.methods import image_model
     from seqvpr.evaluation.ground_truth import ground_truth_of_kept, resolve_ground_truth
 
     _sharded_reference(None)
     reference, query = load_pair(o["reference"], o["query"], o["frames"])
     if o["msls_subtask"]:
         query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
-    _check_length(o["seq_len"] or run_length(METHODS[method], models), reference, query)
+    _check_length(settings.sequence.length, reference, query)
     gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"],
                               layout=o["gt_layout"])
     has_images = reference.image_paths is not None
@@ -191,13 +198,12 @@ def _traversal_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
     return Sides(reference, query, gt, descriptor, record)
 
 
-def _map_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
+def _map_sides(o: dict[str, Any], settings) -> Sides:
     """``--map`` opened (a sharded one as its shards), the query loaded and cut, checked against L, ground truth
     resolved on the map's frame table; the map describes the query as it described its frames."""
     from seqvpr.data.sources import load_traversal
     from seqvpr.data.traversal import slice_frame_range
     from seqvpr.maps.files import open_map, open_sharded_map
-    from seqvpr.methods import run_length
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
     sharded = _sharded_reference(o["map_dir"])
@@ -206,34 +212,30 @@ def _map_sides(o: dict[str, Any], models: dict, method: str) -> Sides:
     _check_map_options(o, info.description["descriptor"])
     query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
     table = reference.frames
-    _check_length(o["seq_len"] or run_length(METHODS[method], models), table, query)
+    _check_length(settings.sequence.length, table, query)
     gt = resolve_ground_truth(table, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
     record = {"map": o["map_dir"], **({"shards": len(reference.shards)} if sharded else {})}
     return Sides(reference, query, gt, info.description["descriptor"], record, sharded,
                  (info.index or {}).get("spec"))
 
 
-def _checked_options(o: dict[str, Any]):
-    """The options checked before any data is read: the K values, velocities and memory budget parsed, --out
-    replaceable (and holding none of the inputs), the sequence and shortlist options coherent."""
+def _checked_options(o: dict[str, Any]) -> tuple[int, ...]:
+    """The options checked before any model or data is read: the K values parsed (returned), --out replaceable (and
+    holding none of the inputs), the reference and shortlist options coherent."""
     from seqvpr.io import check_replaceable
-    from seqvpr.sequences.windows import SequenceSpec, parse_steps, parse_velocities
 
-    k_values, speeds, budget = parse_ks(o["ks"]), parse_velocities(o["velocities"]), parse_size(o["memory_budget"])
-    parse_steps(o["steps"])
+    k_values = parse_ks(o["ks"])
     if o["pca_dim"] < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
     check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("reference", "query", "map_dir", "gt_file",
                                                                      "cache_dir")] + list(o["model_dirs"]))
-    if o["seq_len"] is not None:
-        SequenceSpec(o["seq_len"], o["align"], o["boundary"], speeds)
     if bool(o["map_dir"]) == bool(o["reference"]):
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
     if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
         raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
     if o["history"] < 0 or (o["history"] and not o["shortlist"]):
         raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
-    return k_values, speeds, budget
+    return k_values
 
 
 def _msls_subtask(query: str, subtask: str, frames: str | None):
@@ -322,7 +324,7 @@ def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
 
     kinds = model_kinds(o["model_dirs"])
     method = o["method"] or implied_method(kinds)
-    check_run(method, kinds, o["rerank"], o["seq_len"])  # before any model or data is read
+    check_run(method, kinds, o["rerank"])  # before any model or data is read (-L: with the settings)
     if "jist" in kinds and o["pca_dim"]:
         raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
     return load_models(kinds.values(), o["device"]), method
