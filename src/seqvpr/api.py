@@ -69,7 +69,7 @@ def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int
     from seqvpr.sequences.windows import SequenceSpec
 
     chosen = check_run(method, models, 0, seq_len)
-    length = seq_len or run_length(chosen, models)
+    length = seq_len if seq_len is not None else run_length(chosen, models)
     spec = SequenceSpec(length, align, boundary, tuple(velocities))  # type: ignore[arg-type]
     return MatchSettings(spec, k, normalize, dtype, device, memory_budget)
 

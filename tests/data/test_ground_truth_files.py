@@ -34,7 +34,7 @@ def test_square_matrices_need_a_layout_and_bad_ones_are_one_line(tmp_path):
     square = np.eye(4, dtype=bool)
     square[0, 1] = True
     np.save(tmp_path / "sq.npy", square)
-    raises_one_line("fits 4 reference and 4 query frames both ways: give --gt-layout", load_ground_truth_file,
+    raises_one_line("fits 4 reference and 4 query frames both ways: give layout", load_ground_truth_file,
                     tmp_path / "sq.npy", 4, 4)
     np.testing.assert_array_equal(dense(load_ground_truth_file(tmp_path / "sq.npy", 4, 4, "ref-query")), square.T)
     np.testing.assert_array_equal(dense(load_ground_truth_file(tmp_path / "sq.npy", 4, 4, "query-ref")), square)

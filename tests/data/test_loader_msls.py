@@ -69,7 +69,7 @@ def test_sequences_are_segments_in_frame_order_with_positions(city):
 def test_a_subtask_keeps_its_frames(city):
     night = load_msls_side(city / "query", "d2n")
     assert {p.name.split("_")[0] for p in night.image_paths} == {"qB"}
-    raises_one_line("--msls-subtask 'x2y' is not known", load_msls_side, city / "query", "x2y")
+    raises_one_line("subtask 'x2y' is not known", load_msls_side, city / "query", "x2y")
 
 
 def test_match_runs_on_msls_end_to_end(city, tmp_path, monkeypatch, capsys):

@@ -24,7 +24,7 @@ def test_the_threshold_is_the_lowest_that_reaches_the_target(pairs, target):
 
 
 def test_bad_targets_and_empty_calibrations_are_one_line():
-    raises_one_line("--target-precision must be in (0, 1]", find_threshold, np.ones(3), np.ones(3, bool), 1.5)
+    raises_one_line("target_precision must be in (0, 1]", find_threshold, np.ones(3), np.ones(3, bool), 1.5)
     raises_one_line("no frame of the calibration traversal", find_threshold, np.zeros(0), np.zeros(0, bool), 0.9)
 
 

@@ -228,7 +228,7 @@ def test_a_seqnet_window_index_answers_seqnet_retrieval_and_records_its_model(ro
     save_seqnet(tmp_path / "seqnet", SeqNet(16, 8, 3), {"sequence": {"length": 5}})
     save_seqnet(tmp_path / "other", SeqNet(16, 8, 3), {"sequence": {"length": 5}})
     saved = build_map([str(route / "ref.npz")], tmp_path / "m")
-    raises_one_line("needs its SeqNet (--index-model)", add_index, saved, IndexSpec("flat"), windows=5,
+    raises_one_line("needs its SeqNet (index_model)", add_index, saved, IndexSpec("flat"), windows=5,
                     method="seqnet")
     record = add_index(saved, IndexSpec("flat"), windows=5, method="seqnet", model_folder=tmp_path / "seqnet")
     assert record["dim"] == 8 and record["model"]["folder"] == str(tmp_path / "seqnet")

@@ -37,7 +37,7 @@ def whole(tmp_path_factory):
 @given(count=st.integers(1, 500), shards=st.integers(1, 9), overlap=st.integers(0, 40))
 def test_shards_own_equal_runs_that_tile_the_map_and_store_overlap_beyond_them(count, shards, overlap):
     if shards > count:
-        raises_one_line("--shards must be between 1", shard_ranges, count, shards, overlap)
+        raises_one_line("shards must be between 1", shard_ranges, count, shards, overlap)
         return
     ranges = shard_ranges(count, shards, overlap)
     assert [a for _, a, _, _ in ranges] == [0, *[b for _, _, b, _ in ranges[:-1]]] and ranges[-1][2] == count
@@ -94,7 +94,7 @@ def test_methods_a_shard_cannot_score_and_windows_longer_than_the_overlap_are_on
     raises_one_line("overlap by 4 frames, so windows may span at most 5; this match needs 6",
                     match_map, sharded, query, "matching", MatchSettings(SequenceSpec(6), k=5))
     for method, needs in (("adaptive", 9), ("seqslam", 11)):  # the frames their scores read, not only L
-        raises_one_line(f"this match needs {needs} (shard it again with --overlap {needs - 1})",
+        raises_one_line(f"this match needs {needs} (shard it again with overlap {needs - 1})",
                         match_map, sharded, query, method, MatchSettings(SequenceSpec(5), k=5))
     (tmp_path / "sharded" / "shards.json").write_text('{"format": "seqvpr-sharded-map", "version": 1}')
     raises_one_line("malformed sharded map description", open_sharded_map, tmp_path / "sharded")

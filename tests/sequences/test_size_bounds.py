@@ -45,5 +45,5 @@ def test_a_length_longer_than_every_segment_names_l_and_the_longest():
 
 def test_the_filter_steps_are_bounded():
     FilterSettings(max_step=MAX_STEP)
-    with pytest.raises(SeqvprError, match=f"--max-step {MAX_STEP + 1} is above {MAX_STEP}"):
+    with pytest.raises(SeqvprError, match=f"max_step {MAX_STEP + 1} is above {MAX_STEP}"):
         FilterSettings(max_step=MAX_STEP + 1)

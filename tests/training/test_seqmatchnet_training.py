@@ -95,7 +95,7 @@ def test_resume_refuses_other_settings_a_second_run_and_starts_over_without_stat
     train_seqmatchnet(data, TransformConfig(16), replace(SMALL, epochs=1), tmp_path / "run")
     raises_one_line("lr", train_seqmatchnet, data, TransformConfig(16), replace(SMALL, lr=0.1), tmp_path / "run",
                     resume=True)
-    raises_one_line("--resume", train_seqmatchnet, data, TransformConfig(16), SMALL, tmp_path / "run")
+    raises_one_line("use resume to continue it", train_seqmatchnet, data, TransformConfig(16), SMALL, tmp_path / "run")
     fresh = train_seqmatchnet(data, TransformConfig(16), replace(SMALL, epochs=1), tmp_path / "new", resume=True)
     assert [r.epoch for r in fresh.history] == [0, 1]  # nothing to resume yet: a killed-at-start run starts over
 

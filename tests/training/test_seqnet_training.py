@@ -158,7 +158,7 @@ def test_resume_after_kill_gives_the_same_weights(tmp_path):
     assert state["seqnet"] == {"in_dim": 32, "out_dim": 16, "w": 2}
     raises_one_line("cannot resume with w=3", train_seqnet, data, replace(SMALL, w=3), tmp_path / "killed",
                     resume=True)
-    raises_one_line("--resume", train_seqnet, data, SMALL, tmp_path / "killed")
+    raises_one_line("use resume to continue it", train_seqnet, data, SMALL, tmp_path / "killed")
 
 
 def test_training_is_deterministic_for_a_seed_and_varies_with_it(tmp_path):

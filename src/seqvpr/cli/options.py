@@ -18,11 +18,19 @@ FLAGS = {
     "seq_len": "--seq-len", "align": "--align", "boundary": "--boundary", "velocities": "--velocities",
     "method": "--method", "models": "--model", "model": "--model", "rerank": "--rerank", "index": "--index",
     "shortlist": "--shortlist", "history": "--shortlist-history", "nprobe": "--nprobe", "steps": "--steps",
-    "contrast_window": "--contrast-window", "proposer": "--proposer", "memory_budget": "--memory-budget",
+    "contrast_window": "--contrast-window", "memory_budget": "--memory-budget",
     "dtype": "--dtype", "device": "--device", "normalize": "--no-normalize", "threshold": "--threshold",
     "lost_after": "--lost-after", "exclusion": "--exclusion", "keyframe_distance": "--keyframe-distance",
     "frames": "--frames", "radius": "--radius", "ground_truth": "--ground-truth", "uniqueness": "--uniqueness",
-    "k": "--k", "overlap": "--overlap", "shards": "--shards",
+    "k": "--k", "overlap": "--overlap", "shards": "--shards", "pos_radius": "--pos-radius",
+    "neg_radius": "--neg-radius", "negatives": "--negatives", "rate": "--rate", "cache_dir": "--cache-dir",
+    "epochs": "--epochs", "target_precision": "--target-precision", "subtask": "--msls-subtask",
+    "layout": "--gt-layout", "window_method": "--window-method", "windows": "--windows", "index_model": "--index-model",
+    "topic": "--topic", "cell_size": "--cell-size", "resume": "--resume", "out": "--out", "weights": "--weights",
+    "max_step": "--max-step", "image_size": "--image-size", "no_positive": "--no-positive", "optimizer": "--optimizer",
+    "jitter": "--jitter", "hue": "--hue", "crop_scale": "--crop-scale", "max_iterations": "--max-iterations",
+    "init": "--init", "trainable_stages": "--trainable-stages", "refresh_every": "--refresh-every",
+    "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr",
 }
 
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")

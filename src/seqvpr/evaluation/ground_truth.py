@@ -10,7 +10,7 @@ import numpy as np
 from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError, SeqvprWarning
+from seqvpr.errors import SeqvprWarning, SettingError
 
 
 def ground_truth(
@@ -26,7 +26,7 @@ def ground_truth(
         if reference.positions is not None and query.positions is not None:
             radius = Radius(25.0, "m")
         else:
-            raise SeqvprError("frame-aligned traversals need a frame radius, e.g. --radius 2f (or a --ground-truth file)")
+            raise SettingError("frame-aligned traversals need a frame radius, e.g. {radius} 2f (or a {ground_truth} file)")
     return ground_truth_within_radius(query, reference, radius)
 
 
@@ -41,7 +41,7 @@ def resolve_ground_truth(
     from seqvpr.data.sources import ground_truth_spec
 
     if radius and file:
-        raise SeqvprError(f"give --radius or --ground-truth, not both: {file} decides which frames match")
+        raise SettingError(f"give {{radius}} or {{ground_truth}}, not both: {file} decides which frames match")
     spec = ground_truth_spec(description) if description is not None else None
     if file is None and radius is None and spec is not None:
         return ground_truth(reference, query, spec.radius, spec.file)

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 
 from seqvpr.data.groundtruth import GroundTruth
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 NoPositivePolicy = Literal["exclude", "miss"]
 DEFAULT_KS = (1, 5, 10, 20)
@@ -93,7 +93,7 @@ def evaluate(
 ) -> Evaluation:
     """Score top-K ``predictions`` [n_query, K] (reference rows, -1 = none) against ``gt``."""
     if no_positive not in ("exclude", "miss"):
-        raise SeqvprError(f"no_positive must be 'exclude' or 'miss', got {no_positive!r}")
+        raise SettingError(f"{{no_positive}} must be 'exclude' or 'miss', got {no_positive!r}")
     if gt.shape[0] != len(predictions):
         raise SeqvprError(f"ground truth has {gt.shape[0]} queries but there are {len(predictions)} predictions")
     has_positive = gt.has_positive()

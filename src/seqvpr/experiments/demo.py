@@ -19,7 +19,7 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.features.extraction import ExtractorConfig
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.api import match
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
@@ -62,9 +62,9 @@ class DemoSettings:
 
     def __post_init__(self) -> None:
         if not 50 <= self.frames <= MAX_DEMO_FRAMES:  # each frame is two rendered images
-            raise SeqvprError(f"--frames must be at least 50 and at most {MAX_DEMO_FRAMES}, got {self.frames}")
+            raise SettingError(f"{{frames}} must be at least 50 and at most {MAX_DEMO_FRAMES}, got {self.frames}")
         if self.epochs < 1:
-            raise SeqvprError(f"--epochs must be at least 1, got {self.epochs}")
+            raise SettingError(f"{{epochs}} must be at least 1, got {self.epochs}")
 
     @classmethod
     def quick(cls, **changes) -> DemoSettings:

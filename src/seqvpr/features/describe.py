@@ -8,7 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import (
     BACKBONES,
     TORCHSCRIPT,
@@ -55,7 +55,7 @@ def describe(
     tick = progress(len(traversal), f"describe {traversal.name}") if progress else None
     if descriptor == "patchnorm":
         if cache_dir is not None:
-            raise SeqvprError("--cache-dir applies to backbone descriptors: patch-normalised thumbnails are not cached "
+            raise SettingError("{cache_dir} applies to backbone descriptors: patch-normalised thumbnails are not cached "
                               "(they cost about what reading the cache would)")
         rows, kept = patchnorm_extraction(traversal.image_paths, config, tick, skip_bad)
         kept_traversal = traversal if len(kept) == len(traversal) else traversal.select(kept)

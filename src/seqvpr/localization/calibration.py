@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ def find_threshold(scores: np.ndarray, correct: np.ndarray, target: float, posit
     accepted frames (score >= threshold) are right at least ``target`` of the time. Recall is over ``positives``
     frames (those with a true place; default: every frame given), since accepting a frame with none is wrong."""
     if not 0.0 < target <= 1.0:
-        raise SeqvprError(f"--target-precision must be in (0, 1], got {target}")
+        raise SettingError(f"{{target_precision}} must be in (0, 1], got {target}")
     scores, correct = np.asarray(scores, np.float64), np.asarray(correct, bool)
     if not len(scores):
         raise SeqvprError("cannot calibrate: no frame of the calibration traversal was scored")

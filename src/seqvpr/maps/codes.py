@@ -8,7 +8,7 @@ import re
 
 import numpy as np
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 PLAIN = ("float32", "float16")
 SIDE_FILES = {"sq8": "quantizer.npy", "pq": "pq_centroids.npy"}
@@ -24,7 +24,7 @@ def parse_storage(storage: str, dim: int | None = None) -> tuple[str, int]:
         raise SeqvprError(f"map storage {storage!r} is not known (float32, float16, sq8 or pq:M, e.g. pq:64)")
     m = int(match.group(1))
     if dim is not None and dim % m:
-        raise SeqvprError(f"--dtype {storage}: M = {m} must divide the dimension {dim}")
+        raise SettingError(f"{{dtype}} {storage}: M = {m} must divide the dimension {dim}")
     return "pq", m
 
 
@@ -142,7 +142,7 @@ def _train_product_quantizer(rows, m: int, seed: int):
 
     n, dim = len(rows), rows.shape[1]
     if n < 256:
-        raise SeqvprError(f"--dtype pq:{m} needs at least 256 frames to train its codebooks, the map has {n}")
+        raise SettingError(f"{{dtype}} pq:{m} needs at least 256 frames to train its codebooks, the map has {n}")
     quantizer = faiss.ProductQuantizer(dim, m, 8)
     quantizer.cp.seed = seed
     sample = np.sort(np.random.default_rng(seed).choice(n, size=min(n, PQ_TRAIN_ROWS), replace=False))

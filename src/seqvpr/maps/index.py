@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from seqvpr.arrays import load_npy
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.identity import check_digest, remember_digest, seal_files
 from seqvpr.io import commit_folder, output_lock, temporary_folder
 from seqvpr.maps.files import INFO_FILE, SavedMap, is_plain_name, open_map
@@ -58,16 +58,16 @@ def parse_index_spec(text: str) -> IndexSpec:
         return IndexSpec(spec)
     if match := re.fullmatch(r"hnsw:(\d+)", spec):
         if not 2 <= int(match.group(1)) <= MAX_HNSW_M:
-            raise SeqvprError(f"--index {text!r}: hnsw:M needs M at least 2 and at most {MAX_HNSW_M} (links a node)")
+            raise SettingError(f"{{index}} {text!r}: hnsw:M needs M at least 2 and at most {MAX_HNSW_M} (links a node)")
         return IndexSpec("hnsw", m=int(match.group(1)))
     if match := re.fullmatch(r"ivf:(\d+)(?:,pq:(\d+))?", spec):
         return IndexSpec("ivf", nlist=_positive(match.group(1), text), pq=_positive(match.group(2) or "0", text, 0))
-    raise SeqvprError(f"--index {text!r}: expected auto, flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
+    raise SettingError(f"{{index}} {text!r}: expected auto, flat, hnsw:M or ivf:NLIST[,pq:M] (e.g. ivf:1024,pq:32)")
 
 
 def _positive(value: str, text: str, least: int = 1) -> int:
     if int(value) < least:
-        raise SeqvprError(f"--index {text!r}: numbers must be at least {least}")
+        raise SettingError(f"{{index}} {text!r}: numbers must be at least {least}")
     return int(value)
 
 
@@ -83,7 +83,7 @@ def window_vectors(descriptors, segments: np.ndarray, length: int, method: str, 
     from seqvpr.sequences.windows import SequenceSpec
 
     if method not in WINDOW_METHODS:
-        raise SeqvprError(f"--window-method {method!r} is not known (choose from: {', '.join(WINDOW_METHODS)})")
+        raise SettingError(f"{{window_method}} {method!r} is not known (choose from: {', '.join(WINDOW_METHODS)})")
     rows = descriptors if isinstance(descriptors, np.ndarray) else descriptors[:]  # coded rows: decoded
     return sequence_descriptors(rows, np.asarray(segments), SequenceSpec(length), method, model)
 
@@ -224,11 +224,11 @@ def check_index_spec(spec: IndexSpec, n: int, dim: int) -> None:
     """One line, before any training, when ``spec`` does not fit ``n`` vectors of ``dim``: more IVF lists than
     vectors, PQ bytes that do not divide the dimension, or fewer vectors than PQ's k-means needs."""
     if spec.kind == "ivf" and spec.nlist > n:
-        raise SeqvprError(f"--index {spec}: {spec.nlist} lists for {n} frames (use at most one list per frame)")
+        raise SettingError(f"{{index}} {spec}: {spec.nlist} lists for {n} frames (use at most one list per frame)")
     if spec.pq and dim % spec.pq:
-        raise SeqvprError(f"--index {spec}: pq:{spec.pq} must divide the dimension {dim}")
+        raise SettingError(f"{{index}} {spec}: pq:{spec.pq} must divide the dimension {dim}")
     if spec.pq and n < PQ_CENTROIDS:
-        raise SeqvprError(f"--index {spec}: PQ trains {PQ_CENTROIDS} codes a byte and needs at least {PQ_CENTROIDS} "
+        raise SettingError(f"{{index}} {spec}: PQ trains {PQ_CENTROIDS} codes a byte and needs at least {PQ_CENTROIDS} "
                           f"frames; the map has {n} (use ivf:NLIST without pq)")
 
 
@@ -255,9 +255,9 @@ def add_index(
     and ``map.json`` naming them, with their digests and the identity of the rows they index, then replaces the
     map by one atomic exchange. A reader sees the map with its old index or with the new one, never a mix."""
     if windows < 0:
-        raise SeqvprError(f"--windows must be 0 (frames) or a window length, got {windows}")
+        raise SettingError(f"{{windows}} must be 0 (frames) or a window length, got {windows}")
     if (method == "seqnet") != (model_folder is not None) and windows:
-        raise SeqvprError("an index over seqnet windows needs its SeqNet (--index-model), and only it takes one")
+        raise SettingError("an index over seqnet windows needs its SeqNet ({index_model}), and only it takes one")
     with output_lock(saved.folder):
         current = open_map(saved.folder)  # under the lock: the rows this index is built over
         if current.info.identity != saved.info.identity:
@@ -368,7 +368,7 @@ def _seqnet(folder: str | Path):
 
     model = load_trained_model(folder)
     if model.kind != "seqnet":
-        raise SeqvprError(f"--model {folder} is a {model.kind} model; an index over seqnet windows needs a SeqNet")
+        raise SettingError(f"{{models}} {folder} is a {model.kind} model; an index over seqnet windows needs a SeqNet")
     return model.module
 
 

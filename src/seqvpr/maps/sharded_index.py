@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.maps.files import SavedMap, ShardedMap
 from seqvpr.matchers.sharded import shard_numbers
 from seqvpr.results import TopK
@@ -55,5 +55,5 @@ def shard_index_over(sharded: ShardedMap, shard: SavedMap, history: int = 0) -> 
                           "--index SPEC")
     over = shard.info.index["over"]
     if history and over != "frames":
-        raise SeqvprError(f"--shortlist-history needs an index over frames; {shard.folder}'s is over {over}")
+        raise SettingError(f"{{history}} needs an index over frames; {shard.folder}'s is over {over}")
     return over

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.identity import DigestWriter, combined_identity
 from seqvpr.io import atomic_folder, atomic_write
 from seqvpr.maps.codes import SIDE_FILES, fit_encoder, parse_storage, stored_shape
@@ -32,7 +32,7 @@ def shard_ranges(count: int, shards: int, overlap: int) -> list[tuple[int, int, 
     """``(first, own_first, own_last, last)`` of each of ``shards`` equal runs of ``count`` frames, ``overlap``
     frames past each end (clipped to the map)."""
     if not 1 <= shards <= count:
-        raise SeqvprError(f"--shards must be between 1 and the map's {count} frames, got {shards}")
+        raise SettingError(f"{{shards}} must be between 1 and the map's {count} frames, got {shards}")
     bounds = [count * i // shards for i in range(shards + 1)]
     return [(max(0, a - overlap), a, b, min(count, b + overlap)) for a, b in zip(bounds, bounds[1:])]
 
@@ -41,7 +41,7 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
     """Split the map at ``source`` into ``shards`` shard maps under ``out`` (written atomically: ``shards.json``
     last, inside a temporary folder renamed when complete). A map with an index gives each shard one like it."""
     if overlap < 0:
-        raise SeqvprError(f"--overlap must be 0 or more frames, got {overlap}")
+        raise SettingError(f"{{overlap}} must be 0 or more frames, got {overlap}")
     saved = open_map(source)
     records = []
     with atomic_folder(out, SHARDS_FILE) as tmp:
@@ -64,7 +64,7 @@ def write_sharded_map(out: str | Path, frames: Traversal, info: MapInfo, shards:
     would have (``whole_map_digests``). The same shards, bit for bit, as ``shard_map`` of the whole map. ``indexed``
     (e.g. ``index_shards``) runs before the sharded map replaces anything at ``out``: committed as one."""
     if overlap < 0:
-        raise SeqvprError(f"--overlap must be 0 or more frames, got {overlap}")
+        raise SettingError(f"{{overlap}} must be 0 or more frames, got {overlap}")
     assert frames.descriptors is not None
     ranges = shard_ranges(len(frames), shards, overlap)
     parse_storage(info.dtype, frames.descriptors.shape[1])  # an unknown storage fails before any work

@@ -12,7 +12,7 @@ import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.sequences.matching import unit_rows
 
@@ -28,7 +28,7 @@ def query_rows(query: Traversal, settings: MatchSettings) -> torch.Tensor:
         raise SeqvprError(f"{query.source or query.name}: no descriptors (describe() the images first)")
     dtype = {"float32": torch.float32, "float64": torch.float64}.get(settings.dtype)
     if dtype is None:
-        raise SeqvprError(f"dtype must be float32 or float64, got {settings.dtype!r}")
+        raise SettingError(f"{{dtype}} must be float32 or float64, got {settings.dtype!r}")
     try:
         array = query.descriptors
         if not isinstance(array, np.ndarray):  # a saved map's coded rows, decoded

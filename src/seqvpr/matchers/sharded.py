@@ -93,9 +93,9 @@ def check_overlap(matcher: Any, sharded: ShardedReference) -> None:
     """The matcher's windows (its span: adaptive paths, SeqSLAM's contrast neighbourhood) must fit the overlap."""
     span = matcher.span()
     if span - 1 > sharded.overlap:
-        raise SeqvprError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
+        raise SettingError(f"{sharded.folder}: its shards overlap by {sharded.overlap} frames, so windows may span "
                           f"at most {sharded.overlap + 1}; this match needs {span} (shard it again with "
-                          f"--overlap {span - 1})")
+                          f"{{overlap}} {span - 1})")
 
 
 def owned_rows(rows: np.ndarray, record: ShardRange) -> tuple[np.ndarray, np.ndarray]:

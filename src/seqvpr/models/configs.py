@@ -8,7 +8,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Literal
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 Init = Literal["reference", "identity"]
 
@@ -46,7 +46,7 @@ class TransformConfig:
                               f"out={self.out_dim} hidden={self.hidden}")
         check_dim(self.output_dim, "--out-dim")
         if self.init not in ("reference", "identity"):
-            raise SeqvprError(f"init must be 'reference' or 'identity', got {self.init!r}")
+            raise SettingError(f"{{init}} must be 'reference' or 'identity', got {self.init!r}")
 
     @property
     def output_dim(self) -> int:
@@ -113,12 +113,12 @@ class JistConfig:
         if self.backbone not in JIST_BACKBONES:
             raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(JIST_BACKBONES)})")
         if isinstance(self.trainable_stages, str):
-            raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
+            raise SettingError(f"{{trainable_stages}} must be a tuple of stage names, got {self.trainable_stages!r}")
         if not self.trainable_stages:
             object.__setattr__(self, "trainable_stages", DEFAULT_STAGES[self.backbone])
         object.__setattr__(self, "trainable_stages", tuple(self.trainable_stages))
         if not all(isinstance(s, str) for s in self.trainable_stages):
-            raise SeqvprError(f"trainable_stages must be a tuple of stage names, got {self.trainable_stages!r}")
+            raise SettingError(f"{{trainable_stages}} must be a tuple of stage names, got {self.trainable_stages!r}")
         for name in ("out_dim", "seq_length"):
             value = getattr(self, name)
             if int(value) != value or value < 1:
@@ -133,4 +133,4 @@ class JistConfig:
             if not (math.isfinite(value) and value > 0):
                 raise SeqvprError(f"{name} must be a positive number, got {value}")
         if not (math.isfinite(self.cosface_m) and self.cosface_m >= 0):
-            raise SeqvprError(f"cosface_m must be a number >= 0, got {self.cosface_m}")
+            raise SettingError(f"{{cosface_m}} must be a number >= 0, got {self.cosface_m}")

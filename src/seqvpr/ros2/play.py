@@ -10,7 +10,7 @@ from pathlib import Path
 
 from seqvpr.data.loaders.rosbag import IMAGE_TYPES, BagTopics, position_connection, topic_connection
 from seqvpr.data.traversal import parse_frame_range
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.progress import ProgressFactory
 from seqvpr.ros2.dds import EVERY_SAMPLE, Bus, wait_for_match
 from seqvpr.ros2.messages import encode, outgoing
@@ -43,7 +43,7 @@ def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, fr
     from rosbags.highlevel import AnyReader
 
     if not rate > 0:
-        raise SeqvprError(f"--rate must be a positive number, got {rate}")
+        raise SettingError(f"{{rate}} must be a positive number, got {rate}")
     path = Path(bag)
     with AnyReader([path]) as reader:
         camera = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
@@ -81,7 +81,7 @@ def _frame_span(times: list[int], frames: str | None, path: Path) -> tuple[int, 
     start, stop = parse_frame_range(frames)
     span = range(len(times))[slice(start, stop)]
     if not len(span) or span.step != 1:
-        raise SeqvprError(f"--frames {frames}: {path} has {len(times)} camera frames; that range holds none")
+        raise SettingError(f"{{frames}} {frames}: {path} has {len(times)} camera frames; that range holds none")
     return span.start, span.stop
 
 

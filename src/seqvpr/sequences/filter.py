@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.matching import ReferenceRows, distances_to_reference
 from seqvpr.sequences.topk import best_k
 from seqvpr.results import TopK
@@ -41,7 +41,7 @@ class FilterSettings:
         if self.min_step > self.max_step:
             raise SeqvprError(f"filter steps: min_step {self.min_step} is above max_step {self.max_step}")
         if self.max_step > MAX_STEP:  # each step a frame is a pass over the belief
-            raise SeqvprError(f"filter steps: --max-step {self.max_step} is above {MAX_STEP} map frames per frame")
+            raise SettingError(f"filter steps: {{max_step}} {self.max_step} is above {MAX_STEP} map frames per frame")
         if not 0.0 <= self.floor < 1.0:
             raise SeqvprError(f"filter floor must be in [0, 1), got {self.floor}")
         if not self.sharpness > 0 or self.radius < 0:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.adaptive import same_segment_masks, steps_min
 from seqvpr.sequences.topk import rank_order
 from seqvpr.results import TopK
@@ -48,8 +48,8 @@ def graph_topk(query: torch.Tensor, reference: torch.Tensor, k: int, query_segme
     """The K reference frames per query frame with the cheapest whole path through them (mean cost per frame)."""
     n_q, n_r = len(query), len(reference)
     if memory_budget is not None and 3 * n_q * n_r * 8 > memory_budget:
-        raise SeqvprError(f"graph matching holds three {n_q} x {n_r} matrices ({3 * n_q * n_r * 8 / 2**30:.1f} GiB), "
-                          f"more than --memory-budget; match fewer frames (--frames) or raise the budget")
+        raise SettingError(f"graph matching holds three {n_q} x {n_r} matrices ({3 * n_q * n_r * 8 / 2**30:.1f} GiB), "
+                          f"more than {{memory_budget}}; match fewer frames ({{frames}}) or raise the budget")
     d = frame_distances(query, reference).double().cpu().numpy()
     hidden = float(np.quantile(d, settings.hidden_quantile))
     marginal = path_costs(d, np.asarray(query_segments), np.asarray(reference_segments), settings.fanout, hidden,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from seqvpr import sequences
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.windows import window_starts
 
 
@@ -28,7 +28,7 @@ class DiagonalSums:
 
     def __init__(self, reference_segments: np.ndarray, length: int) -> None:
         if length < 1:
-            raise SeqvprError(f"seq_len must be a positive integer, got {length}")
+            raise SettingError(f"{{seq_len}} must be a positive integer, got {length}")
         segments = np.asarray(reference_segments)
         self.length = length
         self.window_exists = window_starts(segments, length, length - 1, "drop") >= 0

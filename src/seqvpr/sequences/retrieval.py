@@ -9,7 +9,7 @@ from __future__ import annotations
 import faiss
 import numpy as np
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.descriptors import SequenceDescriptors
 from seqvpr.results import TopK
 
@@ -53,7 +53,7 @@ def retrieve(
     ``build_index(reference.vectors)``) is reused if given, else one of ``kind`` is built.
     """
     if k < 1:
-        raise SeqvprError(f"k must be at least 1, got {k}")
+        raise SettingError(f"{{k}} must be at least 1, got {k}")
     if query.dim != reference.dim:
         raise SeqvprError(
             f"sequence descriptor dimensions differ: query has {query.dim}, reference has {reference.dim}"

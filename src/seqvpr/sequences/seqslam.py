@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.matching import WindowScorer, max_span, sequence_rows
 from seqvpr.sequences.windows import MAX_VELOCITIES, SequenceSpec, segment_bounds, velocity_steps, window_starts
 
@@ -93,7 +93,7 @@ def velocity_grid(spec: SequenceSpec) -> tuple[float, ...]:
         return (1.0,)
     low, high = (int(np.floor(h * v + 0.5)) for v in (min(spec.velocities), max(spec.velocities)))
     if high - max(low, 1) + 1 > MAX_VELOCITIES:
-        raise SeqvprError(f"--velocities {min(spec.velocities):g}:{max(spec.velocities):g} with -L {spec.length}: "
+        raise SettingError(f"{{velocities}} {min(spec.velocities):g}:{max(spec.velocities):g} with {{seq_len}} {spec.length}: "
                           f"{high - max(low, 1) + 1} trajectories, at most {MAX_VELOCITIES} (narrow the range or "
                           "shorten -L)")
     return tuple(k / h for k in range(max(low, 1), high + 1)) or (1.0,)

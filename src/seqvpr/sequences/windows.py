@@ -103,8 +103,9 @@ def require_windows(starts: np.ndarray, span: int, what: str, segment_ids: np.nd
         return
     seg_start, seg_end = segment_bounds(np.asarray(segment_ids))
     longest = int((seg_end - seg_start).max())
-    raise SeqvprError(
-        f"{what}: sequence length {span} is longer than every segment (longest segment: {longest} frames)"
+    raise SettingError(
+        f"{what}: a window of {span} frames ({{seq_len}}) is longer than every segment (longest segment: {longest} "
+        "frames)"
     )
 
 

@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from seqvpr.data.groundtruth import Radius
 from seqvpr.data.sources import load_pair, load_traversal
 from seqvpr.data.traversal import Traversal, check_disjoint, slice_frame_range
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SettingError
 from seqvpr.training.settings import NEGATIVE_RADIUS_FACTOR
 from seqvpr.training.trainer import TrainingData
 
@@ -25,7 +25,7 @@ def training_radii(
     positive = positive or radius
     negative = negative or Radius(NEGATIVE_RADIUS_FACTOR[kind] * positive.value, positive.unit)
     if kind == "jist" and len({radius.unit, positive.unit, negative.unit}) > 1:
-        raise SeqvprError("--radius, --pos-radius and --neg-radius must share one unit (all m or all f)")
+        raise SettingError("{radius}, {pos_radius} and {neg_radius} must share one unit (all m or all f)")
     return radius, positive, negative
 
 

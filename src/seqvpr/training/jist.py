@@ -29,7 +29,7 @@ from torch import nn
 
 from seqvpr.data.groundtruth import GroundTruth, Radius
 from seqvpr.data.traversal import Traversal, frame_positions
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.files import MODEL_FILE, read_tensors
 from seqvpr.models.jist import (
@@ -83,11 +83,11 @@ def jist_positions(traversal: Traversal, radius: Radius) -> Traversal:
         raise SeqvprError(f"{label}: JIST trains from images, this traversal holds descriptors only")
     if radius.unit == "m":
         if traversal.positions is None:
-            raise SeqvprError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
-                              f"radius, e.g. --radius 1f")
+            raise SettingError(f"{label}: no positions for a radius in metres; frame-aligned data takes a frame "
+                              f"radius, e.g. {{radius}} 1f")
         return traversal
     if traversal.positions is not None:
-        raise SeqvprError(f"--radius {radius}: {label} has positions; give the radius in metres, e.g. 25m "
+        raise SettingError(f"{{radius}} {radius}: {label} has positions; give the radius in metres, e.g. 25m "
                           f"(a frame radius is for frame-aligned traversals without positions)")
     return frame_positions(traversal)
 
@@ -125,10 +125,10 @@ def check_cells(grouping: CellGrouping, negative: Radius) -> None:
     widest = grouping.cell_m * (math.sqrt(2.0) if negative.unit == "m" else 1.0)
     if widest > negative.value:
         what = f"diagonal {widest:g}{negative.unit}" if negative.unit == "m" else f"{widest:g} frames"
-        raise SeqvprError(
+        raise SettingError(
             f"CosPlace cells of {grouping.cell_m:g}{negative.unit} ({what}) are wider than the negative radius "
             f"{negative}: images of one class would be negatives of each other; use a cell size of at most "
-            f"{negative.value / (widest / grouping.cell_m):g}{negative.unit} (--cell-size) or a larger --neg-radius"
+            f"{negative.value / (widest / grouping.cell_m):g}{negative.unit} ({{cell_size}}) or a larger {{neg_radius}}"
         )
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from seqvpr.data.groundtruth import GroundTruth
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.matching import sequence_distance_rows
 from seqvpr.sequences.topk import rank_order
 from seqvpr.sequences.windows import SequenceSpec, window_starts
@@ -53,7 +53,7 @@ def mining_kernel(method: SequenceMethod, spec: SequenceSpec, reference_segments
         return seqmatch_rows(spec, reference_segments)
     if method == "single":
         return centre_frame_rows(spec, reference_segments)
-    raise SeqvprError(f"mining must be 'seqmatch' or 'single', got {method!r}")
+    raise SettingError(f"{{mining}} must be 'seqmatch' or 'single', got {method!r}")
 
 
 MAX_NEGATIVES = 1000  # hard negatives mined a query
@@ -71,7 +71,7 @@ class MiningConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= self.negatives <= MAX_NEGATIVES:  # the negative cache holds this many a query
-            raise SeqvprError(f"--negatives must be from 1 to {MAX_NEGATIVES}, got {self.negatives}")
+            raise SettingError(f"{{negatives}} must be from 1 to {MAX_NEGATIVES}, got {self.negatives}")
         if self.pool is not None and self.pool < 1:
             raise SeqvprError(f"negative pool must be >= 1 (or all), got {self.pool}")
 

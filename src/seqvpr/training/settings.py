@@ -11,7 +11,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.models.configs import check_dim
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -43,23 +43,23 @@ def check_optimizer_settings(settings: Any) -> None:
     """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``)."""
     for name in ("refresh_every", "batch_size", "lr_step", "select_k"):
         if getattr(settings, name) is not None and getattr(settings, name) < 1:
-            raise SeqvprError(f"{name} must be >= 1, got {getattr(settings, name)}")
+            raise SettingError(f"{{{name}}} must be >= 1, got {getattr(settings, name)}")
     if settings.epochs < 0:
-        raise SeqvprError(f"epochs must be >= 0, got {settings.epochs}")
+        raise SettingError(f"{{epochs}} must be >= 0, got {settings.epochs}")
     if settings.optimizer not in ("sgd", "adam"):
-        raise SeqvprError(f"optimizer must be 'sgd' or 'adam', got {settings.optimizer!r}")
+        raise SettingError(f"{{optimizer}} must be 'sgd' or 'adam', got {settings.optimizer!r}")
     if not (settings.lr > 0 and math.isfinite(settings.lr)):
-        raise SeqvprError(f"learning rate must be a positive number, got {settings.lr}")
+        raise SettingError(f"{{lr}} (learning rate) must be a positive number, got {settings.lr}")
 
 
 def check_augmentation(jitter: float, hue: float, crop_scale: float) -> None:
     """CosPlace-style augmentation strengths: jitter in [0, 1], hue in [0, 0.5] of a turn, crop area in (0, 1]."""
     if not (math.isfinite(jitter) and 0 <= jitter <= 1):
-        raise SeqvprError(f"jitter must be in [0, 1], got {jitter}")
+        raise SettingError(f"{{jitter}} must be in [0, 1], got {jitter}")
     if not (math.isfinite(hue) and 0 <= hue <= 0.5):
-        raise SeqvprError(f"hue must be in [0, 0.5] (a fraction of a turn), got {hue}")
+        raise SettingError(f"{{hue}} must be in [0, 0.5] (a fraction of a turn), got {hue}")
     if not (math.isfinite(crop_scale) and 0 < crop_scale <= 1):
-        raise SeqvprError(f"crop_scale must be in (0, 1] (the smallest share of the area a crop keeps), got {crop_scale}")
+        raise SettingError(f"{{crop_scale}} must be in (0, 1] (the smallest share of the area a crop keeps), got {crop_scale}")
 
 
 def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
@@ -232,9 +232,9 @@ class JistTrainSettings(SettingsRecord):
             if int(value) != value or value < 1:
                 raise SeqvprError(f"{name} must be a positive integer, got {value}")
         if self.max_iterations is not None and (int(self.max_iterations) != self.max_iterations or self.max_iterations < 1):
-            raise SeqvprError(f"max_iterations must be a positive integer or None, got {self.max_iterations}")
+            raise SettingError(f"{{max_iterations}} must be a positive integer or None, got {self.max_iterations}")
         if self.group_per not in ("iteration", "epoch"):
-            raise SeqvprError(f"group_per must be 'iteration' or 'epoch', got {self.group_per!r}")
+            raise SettingError(f"{{group_per}} must be 'iteration' or 'epoch', got {self.group_per!r}")
         if self.select_k not in self.ks:
             raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
         check_augmentation(self.jitter, self.hue, self.crop_scale)

@@ -26,7 +26,7 @@ import torch
 
 from seqvpr import distributed, threads
 from seqvpr.data.groundtruth import ground_truth_within_radius
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.io import check_replaceable
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
 from seqvpr.training.history import EpochRecord
@@ -84,7 +84,7 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
     def set_up() -> tuple[_Run, bool]:
         run = _Run(data, learner, settings)
         if run.state.exists(out) and not resume:
-            raise SeqvprError(f"{out}: already holds a training run (use --resume to continue it, or another --out)")
+            raise SettingError(f"{out}: already holds a training run (use {{resume}} to continue it, or another {{out}})")
         check_replaceable(out, STATE_JSON)  # each epoch replaces the folder whole: say now if it cannot
         return run, resume and run.state.exists(out)
 

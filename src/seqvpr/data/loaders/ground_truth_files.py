@@ -13,7 +13,7 @@ import scipy.sparse as sp
 
 from seqvpr.arrays import PICKLE_REFUSAL, check_regular_file, load_mat, load_npy, open_npz
 from seqvpr.data.groundtruth import GroundTruth
-from seqvpr.errors import SeqvprError, reading
+from seqvpr.errors import SeqvprError, SettingError, reading
 
 
 def load_ground_truth_file(
@@ -77,10 +77,10 @@ def _oriented(matrix: np.ndarray, path: Path, n_query: int | None, n_reference: 
     """The dense matrix as [n_query, n_reference]: as ``layout`` says (``ref-query``: the Brisbane event set's and
     VPR-Bench's [n_reference, n_query]), else as the traversal sizes decide; a square one needs ``layout``."""
     if layout not in (None, "ref-query", "query-ref"):
-        raise SeqvprError(f"--gt-layout must be ref-query or query-ref, got {layout!r}")
+        raise SettingError(f"{{layout}} must be ref-query or query-ref, got {layout!r}")
     if layout is None:
         if n_query is None or n_reference is None:
-            raise SeqvprError(f"{path}: a dense ground truth needs the traversal sizes or --gt-layout")
+            raise SettingError(f"{path}: a dense ground truth needs the traversal sizes or {{layout}}")
         layout = _layout_from_sizes(matrix.shape, n_query, n_reference, path)
     hard = matrix.T if layout == "ref-query" else matrix
     return GroundTruth(sp.csr_array(hard), description=f"dense ground truth ({layout}) from {path.name}")
@@ -145,7 +145,7 @@ def _layout_from_sizes(shape: tuple[int, int], n_query: int, n_reference: int, p
         if rq != qr:
             return "ref-query" if rq else "query-ref"
         if rq and qr:
-            raise SeqvprError(f"{path}: a {shape[0]} x {shape[1]} matrix fits {n_reference} reference and {n_query} "
-                              "query frames both ways: give --gt-layout ref-query or query-ref")
+            raise SettingError(f"{path}: a {shape[0]} x {shape[1]} matrix fits {n_reference} reference and {n_query} "
+                              "query frames both ways: give {layout} ref-query or query-ref")
     raise SeqvprError(f"{path}: a {shape[0]} x {shape[1]} matrix fits neither {n_reference} reference x {n_query} "
                       "query frames nor the reverse")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 SEQUENCE_COLUMNS = ("sequence_key", "sequence_id")  # the code names it sequence_key, the README sequence_id
 SUBTASKS = ("all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d")
@@ -76,7 +76,7 @@ def _kept_keys(folder: Path, keys: list[str], subtask: str | None, keep_panorama
     kept = set(keys)
     if subtask is not None:
         if subtask not in SUBTASKS:
-            raise SeqvprError(f"--msls-subtask {subtask!r} is not known (choose from: {', '.join(SUBTASKS)})")
+            raise SettingError(f"{{subtask}} {subtask!r} is not known (choose from: {', '.join(SUBTASKS)})")
         index = read_csv_rows(folder / "subtask_index.csv")
         _column(index, (subtask,), folder / "subtask_index.csv")
         marked = [row.get("key", keys[i] if i < len(keys) else "") for i, row in enumerate(index)

@@ -24,7 +24,7 @@ import numpy as np
 
 from seqvpr.data.geo import LOCAL, latlon_to_utm
 from seqvpr.data.traversal import Traversal, time_gap_segments
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 GPS_TYPE, ODOM_TYPE = "sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry"
@@ -141,6 +141,8 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
             frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
             position = position_connection(reader, topics, path)
             fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
+    except SeqvprError:  # the topics asked for are not there: already one line, naming them
+        raise
     except (OSError, ValueError, KeyError) as error:
         raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {error})") from None
     except Exception as error:  # rosbags' own errors (ReaderError, ...) name the problem
@@ -165,7 +167,7 @@ def topic_connection(reader, types: tuple[str, ...], topic: str | None, path: Pa
         raise SeqvprError(f"{path}: no {what} topic {topic} (its {what} topics: {', '.join(names) or 'none'})")
     if len({c.topic for c in found}) != 1:
         listing = ", ".join(names) or "none"
-        raise SeqvprError(f"{path}: name the {what} topic with --topic (its {what} topics: {listing})")
+        raise SettingError(f"{path}: name the {what} topic with {{topic}} (its {what} topics: {listing})")
     return found[0]
 
 
