@@ -63,7 +63,7 @@ def test_streaming_equals_offline_causal_matching(n_query, n_map, length, seed):
         if not (run.scored.any()):
             return  # no window anywhere: the offline kernel refuses such a query (L longer than every segment)
         try:
-            offline = SequenceMatcher(MatchSettings(SequenceSpec(length, "causal"), k=4)).topk(saved.frames, query)
+            offline = SequenceMatcher(MatchSettings(SequenceSpec(length, "causal"), k=4)).topk(saved, query)
         except Exception:  # the map has no window of L frames: then no frame may be localised either
             assert (run.best[run.scored] == -1).all()
             return

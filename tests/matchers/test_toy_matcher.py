@@ -66,6 +66,9 @@ class ToyShards:
     def frames(self) -> Traversal:
         return self.reference
 
+    def as_map(self) -> Traversal:
+        return self.reference
+
 
 def route(seed: int = 3) -> tuple[Traversal, Traversal]:
     reference, query = generate_route(n_frames=70, dim=6, seed=seed)

@@ -1,7 +1,8 @@
 """What a matcher matches against: a ``Reference``. A traversal in memory, a saved map (its frame table, rows
 memory-mapped or coded) and a sharded map (rows read through its shards) all are one, so no code asks which it
 holds: the matcher reads ``stored`` to know whether the rows are a saved map's (as the map normalised them, read a
-chunk at a time) or in memory (normalised when matched)."""
+chunk at a time) or in memory (normalised when matched). A traversal's rows are always in memory; a saved map knows
+how it stores its own."""
 
 from __future__ import annotations
 

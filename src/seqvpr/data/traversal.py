@@ -38,9 +38,8 @@ class Traversal:
     source: str = field(default="", compare=False)
     names: tuple[str, ...] | None = None
     crs: str | None = None
-    #: how a saved map stores these rows (``float32``, ``float16``, ``sq8``, ``pq``; ``sharded``: through its
-    #: shards), read a chunk at a time as stored; None: rows in memory, normalised when matched
-    stored: str | None = field(default=None, compare=False)
+    #: a traversal's rows are in memory, normalised when matched (a saved map, ``SavedMap``, knows its storage)
+    stored = None
 
     def __post_init__(self) -> None:
         n = len(self.frame_index)
@@ -126,8 +125,8 @@ class Traversal:
 
     @property
     def plain_rows(self) -> bool:
-        """Whether the rows are a saved map's float32 array, read as they are (no decoding)."""
-        return self.stored == "float32"
+        """Whether the rows are a saved map's float32 array, read as they are (a traversal's never are)."""
+        return False
 
     @property
     def frames(self) -> Traversal:
@@ -146,7 +145,7 @@ class Traversal:
 
     def with_descriptors(self, descriptors: np.ndarray) -> Traversal:
         """The same frames with new descriptor rows in memory (for instance after a learned transform)."""
-        return replace(self, descriptors=descriptors, stored=None)
+        return replace(self, descriptors=descriptors)
 
     def select(self, rows: np.ndarray) -> Traversal:
         """Keep the given rows (indices or boolean mask); removing frames from a run starts a new segment."""
@@ -160,7 +159,6 @@ class Traversal:
         new_run[1:] = (np.diff(rows) != 1) | (np.diff(kept_ids) != 0)
         return replace(
             self,
-            stored=None,
             frame_index=self.frame_index[rows],
             segment_ids=np.cumsum(new_run) - 1,
             descriptors=None if self.descriptors is None else self.descriptors[rows],

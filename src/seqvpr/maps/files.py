@@ -211,6 +211,8 @@ class SavedMap:
     folder: Path
     info: MapInfo
     frames: Traversal
+    #: how its rows are read: as ``info.dtype`` stores them (None), or ``sharded``: through a sharded map's shards
+    storage: str | None = None
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -221,8 +223,8 @@ class SavedMap:
     name = property(lambda self: self.frames.name)
     source = property(lambda self: self.frames.source)
     segment_ids = property(lambda self: self.frames.segment_ids)
-    stored = property(lambda self: self.frames.stored)
-    plain_rows = property(lambda self: self.frames.plain_rows)
+    stored = property(lambda self: self.storage or self.info.dtype)  # read a chunk at a time as stored
+    plain_rows = property(lambda self: self.stored == "float32")  # a float32 array, read as it is (no decoding)
     dim = property(lambda self: self.info.dim)
     index = property(lambda self: self.info.index)
 
@@ -321,7 +323,7 @@ def open_map(folder: str | Path) -> SavedMap:
     paths = None if names is None else FramePaths(names)
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
                        column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder),
-                       names=names, crs=info.crs, stored=info.dtype, **optional)
+                       names=names, crs=info.crs, **optional)
     return SavedMap(folder, info, frames)
 
 
@@ -408,7 +410,7 @@ class ShardedMap:
         map, so every command (match, localize, map info) takes one."""
         values = {**self.info, "sources": tuple(MapSource(**s) for s in self.info["sources"]),
                   "columns": tuple(self.info.get("columns", ())), "index": None, "shard": None}
-        return SavedMap(self.folder, MapInfo(**with_crs(values)), map_table(self))
+        return SavedMap(self.folder, MapInfo(**with_crs(values)), map_table(self), storage="sharded")
 
 
 def is_sharded_map(folder: str | Path) -> bool:
@@ -493,4 +495,4 @@ def map_table(sharded: ShardedMap) -> Traversal:
     return Traversal(sharded.folder.name, joined["frame_index"], joined["segment_ids"],
                      ShardedRows(sharded, shards), joined["image_paths"], joined["positions"],
                      joined["timestamps"], joined["headings"], source=str(sharded.folder), names=joined["names"],
-                     crs=shards[0].frames.crs, stored="sharded")
+                     crs=shards[0].frames.crs)

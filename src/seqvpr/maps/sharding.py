@@ -122,7 +122,7 @@ def frame_range(frames: Traversal, lo: int, hi: int) -> Traversal:
     return replace(frames, frame_index=frames.frame_index[lo:hi], segment_ids=frames.segment_ids[lo:hi],
                    descriptors=RowRange(frames.descriptors, lo, hi), image_paths=cut(frames.image_paths),
                    positions=cut(frames.positions), timestamps=cut(frames.timestamps), headings=cut(frames.headings),
-                   names=None if names is None else tuple(names[lo:hi]), stored=None)
+                   names=None if names is None else tuple(names[lo:hi]))
 
 
 def range_sources(sources: tuple[MapSource, ...], lo: int, hi: int) -> tuple[MapSource, ...]:

@@ -46,6 +46,10 @@ class ShardedReference(Protocol):
 
     def open_shard(self, number: int) -> Reference: ...
 
+    def as_map(self) -> Reference:
+        """The whole reference, its rows read through the shards (what a step over all of it reads)."""
+        ...
+
     def __len__(self) -> int: ...
 
     @property

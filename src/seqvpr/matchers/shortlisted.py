@@ -92,7 +92,7 @@ class Shortlisted(Matcher):
                               f"{self.neighbours.over}")
         from seqvpr.matchers.sharded import is_sharded
 
-        whole = reference.frames if is_sharded(reference) else reference  # a window's rows, read through its shards
+        whole = reference.as_map() if is_sharded(reference) else reference  # a window's rows, read through its shards
         return ShortlistStepper(self.matcher, whole, self.neighbours, self.shortlist, self.history, exclusion)
 
 
