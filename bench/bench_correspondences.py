@@ -32,8 +32,8 @@ def main() -> None:
     args = parser.parse_args()
     from seqvpr.evaluation.predictions import save_correspondences
     from seqvpr.results import MatchResult
-    from seqvpr.sequences.settings import MatchSettings
-    from seqvpr.matchers.frames import query_rows
+    from seqvpr.sequences.match_settings import MatchSettings
+    from seqvpr.matchers.rows import query_rows
     from seqvpr.matchers.sequence import top1_pairs
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
     from seqvpr.evaluation.scoring import match_correspondences

@@ -30,7 +30,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import parse_radius
+from seqvpr.data.ground_truth import parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
@@ -38,7 +38,7 @@ from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe, netvlad_extractor, whiten_pair
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 

@@ -44,7 +44,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import Radius
+from seqvpr.data.ground_truth import Radius
 from seqvpr.data.sources import load_pair
 from seqvpr.data.traversal import slice_frame_range
 from seqvpr.evaluation.metrics import Evaluation

@@ -24,12 +24,12 @@ except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from seqvpr.api import match
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
 from seqvpr.data.sources import load_pair
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
 from seqvpr.features.extraction import ExtractorConfig
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 SIZES = ("64x32", "128x64", "192x96", "256x128")

@@ -40,7 +40,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import Radius, parse_radius
+from seqvpr.data.ground_truth import Radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.localization import Localizer

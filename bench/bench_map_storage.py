@@ -21,7 +21,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import parse_radius
+from seqvpr.data.ground_truth import parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import slice_frame_range
 from seqvpr.errors import SeqvprError
@@ -29,7 +29,7 @@ from seqvpr.maps import build_map, match_map
 from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 GARDENS = "gardenspoint_delf_hdc/descriptors/GardensPointWalking/{}/delf_hdc_4096_ortho_sigma_nx5ny7.mat"

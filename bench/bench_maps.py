@@ -48,7 +48,7 @@ except ImportError:  # running from a checkout without an installed package
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps import open_map, match_map
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 DIM, QUERIES, LENGTH, K = 256, 1000, 5, 20

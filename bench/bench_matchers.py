@@ -36,7 +36,7 @@ def timed_casevpr(query: torch.Tensor, reference: torch.Tensor, length: int, rep
     """Median seconds of ``seqvpr.match(..., "casevpr")`` (shortlist and adaptive re-rank) over ``repeats`` runs."""
     from seqvpr.data.traversal import Traversal
     from seqvpr.api import match
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
 
     def traversal(name: str, rows: torch.Tensor) -> Traversal:
         return Traversal(name, np.arange(len(rows)), np.zeros(len(rows), np.int64), rows.numpy())

@@ -63,7 +63,7 @@ except ImportError:  # running from a checkout without an installed package
 import numba
 
 from seqvpr.threads import use_threads
-from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius
+from seqvpr.data.ground_truth import ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig

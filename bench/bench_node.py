@@ -84,7 +84,7 @@ def run_node(name: str, policy: str, args, env: dict, work: Path) -> dict:
     """The node over ``name``'s map with drop ``policy`` (default or no-drop) while the night drive plays; its
     statuses and its closing line, as one row."""
     from seqvpr.ros2.dds import Recorder
-    from seqvpr.ros2.frames import status_values
+    from seqvpr.ros2.camera import status_values
 
     recorder = Recorder("/seqvpr/status", STATUS)
     node = seqvpr(env, "node", "--map", build_map(name, args, env, work), "--topic", "/camera/image_raw/compressed",

@@ -38,7 +38,7 @@ try:
 except ImportError:  # running from a checkout without an installed package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.evaluation.metrics import evaluate
@@ -48,7 +48,7 @@ from seqvpr.maps.files import MapInfo, MapSource, write_map
 from seqvpr.maps.index import add_index, parse_index_spec
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.features.describe import describe
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 DIM, LENGTH, K = 256, 5, 20

@@ -58,7 +58,7 @@ def _describe(work: Path) -> None:
 def _match(work: Path) -> None:
     from seqvpr.data.traversal import Traversal
     from seqvpr.matchers.sequence import SequenceMatcher
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     rng = np.random.default_rng(1)

@@ -158,7 +158,7 @@ def streamed(matcher, reference: Traversal, query: Traversal) -> np.ndarray:
 
 def stream_rows(device: str, size: dict) -> list[Row]:
     """The online methods a frame at a time on the device against the CPU (the best row of every frame)."""
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     reference, query = generate_route(n_frames=min(size["frames"], 400), dim=size["dim"], seed=4)

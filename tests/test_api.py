@@ -14,7 +14,7 @@ from seqvpr.data.sources import save_traversal_npz
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.sharding import shard_map
 from seqvpr.matchers.sequence import SequenceMatcher
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route
 from tests.helpers import raises_one_line

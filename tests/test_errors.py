@@ -14,7 +14,7 @@ import seqvpr
 from seqvpr.cli.options import FLAGS
 from seqvpr.errors import SettingError
 from seqvpr.maps.sharding import shard_map
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import raises_one_line, run_cli, write_route_files
 

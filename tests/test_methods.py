@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from seqvpr.cli.match import match
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
 from seqvpr.experiments.benchmark import read_config
 from seqvpr.matchers.hierarchical import HierarchicalMatcher
 from seqvpr.matchers.retrieval import RetrievalMatcher
-from seqvpr.matchers.frames import transform_traversal
+from seqvpr.matchers.rows import transform_traversal
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.methods import (
     IMAGE_MODELS, IMPLIED_METHODS, METHODS, MODEL_TITLES, build_matcher, check_models, implied_method, matcher_class,
@@ -23,7 +23,7 @@ from seqvpr.methods import (
 from seqvpr.models.configs import TransformConfig
 from seqvpr.models.registry import TrainedModel
 from seqvpr.models.seqmatchnet import FrameTransform
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route

@@ -22,7 +22,7 @@ __version__ = "0.1.0"
 EXPORTS = {
     "load_traversal": "seqvpr.data.sources", "Traversal": "seqvpr.data.traversal",
     "match": "seqvpr.api", "evaluate": "seqvpr.api",
-    "MatchSettings": "seqvpr.sequences.settings", "SequenceSpec": "seqvpr.sequences.windows",
+    "MatchSettings": "seqvpr.sequences.match_settings", "SequenceSpec": "seqvpr.sequences.windows",
     "build_map": "seqvpr.maps.build", "open_map": "seqvpr.maps.files",
     "Localizer": "seqvpr.localization.localizer",
 }

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from seqvpr.data.traversal import Traversal
     from seqvpr.evaluation.metrics import Evaluation
     from seqvpr.results import MatchResult
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 
@@ -64,7 +64,7 @@ def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int
                    memory_budget: int | None = DEFAULT_BUDGET) -> MatchSettings:
     """The settings of a match: windows of ``seq_len`` frames (the method's or its model's length when None; a method
     of fixed length refuses another), checked before any data is read."""
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.methods import check_run, run_length
     from seqvpr.sequences.windows import SequenceSpec
 

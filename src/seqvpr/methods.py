@@ -29,7 +29,7 @@ from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
     from seqvpr.matchers.base import Matcher
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 

@@ -10,7 +10,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from seqvpr.data.traversal import Traversal
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
 
 
 @dataclass(frozen=True)

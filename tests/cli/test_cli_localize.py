@@ -92,8 +92,8 @@ def test_bad_localize_options_are_one_line(route, tmp_path, monkeypatch, capsys,
 def test_the_report_counts_each_status_as_the_summary_does(route, tmp_path, monkeypatch, capsys):
     import re
 
-    from seqvpr.evaluation import localisation_report
-    from seqvpr.evaluation.localisation_plots import legend_label
+    from seqvpr.evaluation import localization_report
+    from seqvpr.evaluation.localization_plots import legend_label
 
     drawn: dict[str, list[str]] = {}
     for name in ("plot_map_view", "plot_over_time"):

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from seqvpr.cli import cli
 from seqvpr.cli.train import train_jist_command, train_seqmatchnet_command, train_seqnet_command
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius, parse_radius
 from seqvpr.training.data import classification_traversals, training_data, training_pairs
 from seqvpr.data.sources import load_traversal, save_traversal_npz
 from seqvpr.synthetic.routes import generate_route
@@ -20,7 +20,7 @@ from seqvpr.synthetic.world import write_demo_world
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.models.jist import describe_with_jist, load_jist
 from seqvpr.cli.train import jist_values

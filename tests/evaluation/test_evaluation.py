@@ -5,7 +5,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius, parse_radius
+from seqvpr.data.ground_truth import GroundTruth, Radius, ground_truth_within_radius, parse_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate, pr_curve
 from tests import oracles

@@ -69,11 +69,11 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
 
 
 def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table(monkeypatch, capsys, route, tmp_path):
-    from seqvpr.data.groundtruth import ground_truth_within_radius
+    from seqvpr.data.ground_truth import ground_truth_within_radius
     from seqvpr.experiments.benchmark import load_splits
     from tests.helpers import match_method
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     config = route / "bench_matchers.toml"
@@ -100,7 +100,7 @@ def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table
 def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(monkeypatch, capsys, route, tmp_path):
     from seqvpr.matchers.retrieval import RetrievalMatcher
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.models.seqnet import load_seqnet
 
@@ -113,7 +113,7 @@ def test_seqnet_row_and_hvpr_shortlist_and_jist_not_applicable_on_descriptors(mo
     assert rows["seqnet"]["error"] == "" and rows["hvpr"]["error"] == ""
     # oracle: the trained SeqNet, reloaded, scored through the library on the test split
     from seqvpr.experiments.benchmark import load_splits, read_config
-    from seqvpr.data.groundtruth import ground_truth_within_radius
+    from seqvpr.data.ground_truth import ground_truth_within_radius
 
     splits = load_splits(read_config(config).datasets[0])
     model, _ = load_seqnet(tmp_path / "b" / "demo" / "seqnet")
@@ -144,12 +144,12 @@ min_images = 2
 
 @pytest.mark.slow
 def test_jist_trains_on_an_image_dataset_and_a_rerun_reuses_it(monkeypatch, capsys, tmp_path):
-    from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+    from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
     from seqvpr.experiments.benchmark import load_splits, read_config
     from seqvpr.models.jist import describe_with_jist, load_jist
     from seqvpr.matchers.retrieval import RetrievalMatcher
     from seqvpr.evaluation.scoring import evaluate_match
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
     from seqvpr.synthetic.world import write_demo_world
     from seqvpr.training.jist import jist_setup
@@ -228,7 +228,7 @@ def test_jist_defaults_are_the_same_in_train_jist_and_the_benchmark(monkeypatch,
     same model config, run settings and radii (negatives at 2.5x the positive radius, the recipe for the frames)."""
     import seqvpr.training.jist as jist
     from seqvpr.experiments.benchmark import Splits, train_kind
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.data.sources import load_pair
     from seqvpr.synthetic.world import write_demo_world
 

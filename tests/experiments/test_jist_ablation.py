@@ -10,11 +10,11 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from seqvpr.api import match
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.experiments.jist_ablation import ORDERS, ordered_scores, reorder_windows
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqGeM
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.settings import THUMBNAIL_RECIPE, with_recipe

@@ -21,7 +21,7 @@ from seqvpr.maps.index import IndexSpec, add_index
 from tests.helpers import match_method
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.features.describe import describe
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import examples, raises_one_line, write_route_files
 

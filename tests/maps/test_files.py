@@ -124,7 +124,7 @@ def test_map_files_take_the_umask_mode_not_a_private_one(sources, tmp_path):
 
 def test_pq_stores_m_bytes_a_frame_and_still_ranks_like_float32(tmp_path):
     from seqvpr.maps import match_map
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     folder = write_route_files(tmp_path, 600, 16, 9)

@@ -18,7 +18,7 @@ from seqvpr.maps.index import (
 )
 from seqvpr.maps.match import shortlist_recall
 from seqvpr.evaluation.ground_truth import ground_truth
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.rerank import frame_shortlist
 from seqvpr.sequences.windows import SequenceSpec, window_starts
 from tests.helpers import examples, raises_one_line, write_route_files

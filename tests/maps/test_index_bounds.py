@@ -8,7 +8,7 @@ import pytest
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.index import MAX_HNSW_M, PQ_CENTROIDS, check_index_spec, parse_index_spec
 from seqvpr.matchers.shortlisted import shortlist_size
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 
 

@@ -17,7 +17,7 @@ from seqvpr.models.jist import build_jist, save_jist
 from seqvpr.models.registry import load_trained_model
 from seqvpr.models.seqmatchnet import FrameTransform, save_seqmatchnet
 from seqvpr.models.seqnet import save_seqnet
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.world import write_demo_world

@@ -17,7 +17,7 @@ from seqvpr.data.sources import load_traversal
 from seqvpr.maps import build_map, match_map
 from seqvpr.maps.files import open_sharded_map
 from seqvpr.maps.sharding import shard_map, shard_ranges
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from tests.helpers import examples, raises_one_line, run_cli, write_route_files
 

@@ -17,10 +17,10 @@ import torch
 
 from seqvpr.data.traversal import Traversal
 from seqvpr.maps.files import ShardRecord
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers import Shortlist, assemble
 from seqvpr.matchers.shortlisted import ExactNeighbours
-from seqvpr.matchers.windows import WindowMatcher
+from seqvpr.matchers.window_matcher import WindowMatcher
 from seqvpr.methods import METHODS, Method, build_matcher
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.synthetic.routes import generate_route

@@ -304,7 +304,7 @@ def test_command_line_import_then_match_with_a_cosplace_model(monkeypatch, capsy
     from seqvpr.data.sources import load_pair
     from seqvpr.api import match
     from seqvpr.methods import describe_for_models
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     torch.save(upstream_cosplace_state(seed=5, out_dim=32), tmp_path / "r18_cosplace.pth")

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 from seqvpr.data.geo import latlon_to_utm
-from seqvpr.ros2.frames import status_values
+from seqvpr.ros2.camera import status_values
 from seqvpr.ros2.messages import EMPTY, IMAGE, POSE, STATUS, message, outgoing
 from tests.bags import fixes, write_bag
 from tests.helpers import run_cli

@@ -7,7 +7,7 @@ import scipy.sparse as sp
 import torch
 from hypothesis import given, settings, strategies as st
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.evaluation.metrics import frame_precision
 from seqvpr.sequences.adaptive import AdaptiveScorer
 from seqvpr.sequences.correspondences import adaptive_correspondences, window_correspondences

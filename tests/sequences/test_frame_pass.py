@@ -6,7 +6,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.matchers.frames import frame_row
+from seqvpr.matchers.rows import frame_row
 from seqvpr.sequences.frame_pass import FrameRow, ReferenceBlocks
 from seqvpr.sequences.matching import distances_to_reference, unit_rows
 from tests.helpers import examples, raises_one_line

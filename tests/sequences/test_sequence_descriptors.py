@@ -6,12 +6,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from seqvpr.data.groundtruth import parse_radius
+from seqvpr.data.ground_truth import parse_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import evaluate
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.ground_truth import ground_truth
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.descriptors import (
     FIXED_POOLINGS,
     SeqGeM,

@@ -115,7 +115,7 @@ class NoNormBackbone(nn.Module):
 
 
 def jist_data(root: Path):
-    from seqvpr.data.groundtruth import Radius
+    from seqvpr.data.ground_truth import Radius
     from seqvpr.data.sources import load_traversal
     from seqvpr.training.trainer import TrainingData
 

@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 from torch import nn
 
-from seqvpr.data.groundtruth import Radius
+from seqvpr.data.ground_truth import Radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.jist import JistConfig
 from seqvpr.training.jist import JistTrainSettings, train_jist

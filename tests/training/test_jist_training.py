@@ -12,14 +12,14 @@ import pytest
 import torch
 from torch import nn
 
-from seqvpr.data.groundtruth import Radius
+from seqvpr.data.ground_truth import Radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import frame_positions
 from seqvpr.models.files import MODEL_FILE, read_json, read_tensors
 from seqvpr.models.jist import ImageStore, JistConfig, build_jist, describe_with_jist, load_jist
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import window_frames
 from seqvpr.synthetic.world import write_demo_world
 from seqvpr.training.cosplace import CellGrouping, assign_classes, group_members
@@ -195,7 +195,7 @@ def test_saved_model_reloads_and_scores_its_validation_recall(data, run):
     reference, query = (describe_with_jist(loaded, t, W, H, store=store) for t in (data.val_reference, data.val_query))
     result_match = RetrievalMatcher(MatchSettings(training_spec(3), k=5), "seqgem", loaded.sequence_pool).topk(
         reference, query)
-    from seqvpr.data.groundtruth import ground_truth_within_radius
+    from seqvpr.data.ground_truth import ground_truth_within_radius
 
     gt = ground_truth_within_radius(query, reference, Radius(25.0, "m"))
     assert evaluate_match(result_match, gt, (1, 5)).recall == result.best_recall

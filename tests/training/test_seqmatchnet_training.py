@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from seqvpr.data.groundtruth import Radius
+from seqvpr.data.ground_truth import Radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, apply_transform
 from seqvpr.sequences.windows import SequenceSpec

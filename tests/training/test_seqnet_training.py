@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
 from seqvpr.synthetic.routes import generate_route
 from seqvpr.data.traversal import Traversal
 from seqvpr.sequences.descriptors import SeqNet, sequence_descriptors

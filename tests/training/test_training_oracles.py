@@ -7,7 +7,7 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig
 from seqvpr.sequences.matching import aligned_sequence_distances, sequence_distance_rows

@@ -50,7 +50,7 @@ def convert(**o: Any) -> None:
 def write_dbstruct_set(out: Path, reference, query, radius_text: str) -> list[Path]:
     """The .db, each side's seqBounds (and descriptors .npy, when it has them) and the dataset.toml naming them,
     committed as one set (``seqvpr.io.atomic_file_set``, the .toml last): never a new .db beside old .npy files."""
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.data.loaders.dbstruct import write_dbstruct
     from seqvpr.io import atomic_file_set
 

@@ -231,7 +231,7 @@ def _write_page(folder: Path, summary: dict[str, Any], run, gt, localizer) -> No
     """The report page: the replay as plain arrays, the threshold and where it came from, the measures."""
     import numpy as np
 
-    from seqvpr.evaluation.localisation_report import (
+    from seqvpr.evaluation.localization_report import (
         LocalisationTrace, describe_replay, localisation_metric_rows, write_localisation_report,
     )
     from seqvpr.localization.replay import STAGES, correct_best

@@ -379,7 +379,7 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
     """--out as one folder (``seqvpr.io.atomic_folder``): predictions.csv, correspondences.csv (when the method pairs
     frames) and run.json last, swapped in whole; then the table (or one JSON object) on stdout."""
     from seqvpr.evaluation.predictions import save_correspondences, save_match_predictions
-    from seqvpr.evaluation.results import evaluation_json, recall_table
+    from seqvpr.evaluation.summary import evaluation_json, recall_table
     from seqvpr.io import atomic_folder
     from seqvpr.evaluation.scoring import match_correspondences
 
@@ -419,7 +419,7 @@ def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, 
     k_values = parse_ks(ks)
     from seqvpr.data.sources import load_pair
     from seqvpr.evaluation.predictions import evaluate_predictions
-    from seqvpr.evaluation.results import evaluation_json, recall_table
+    from seqvpr.evaluation.summary import evaluation_json, recall_table
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
     ref, qry = load_pair(reference, query)

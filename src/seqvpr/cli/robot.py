@@ -44,7 +44,7 @@ def node(**o: Any) -> None:
     from seqvpr.cli.localize import open_localizer
     from seqvpr.localization.localizer import LocalizerSettings
     from seqvpr.ros2.dds import Bus, require_cyclonedds
-    from seqvpr.ros2.frames import camera_type
+    from seqvpr.ros2.camera import camera_type
     from seqvpr.ros2.messages import NAVSATFIX, ODOMETRY
     from seqvpr.ros2.node import POSE_TOPIC, RESET_TOPIC, STATUS_TOPIC, LocalizerNode, NodeSettings
 

@@ -140,7 +140,7 @@ def transform_from_options(o: dict, dim: int):
 def described_data(kind: str, o: dict):
     """The training data of the options, images described as patch-normalised thumbnails; with the whole described
     training pair and the patchnorm config (for the ablation's test split)."""
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.features.patchnorm import PatchNormConfig
     from seqvpr.features.describe import describe_pair
     from seqvpr.training.data import training_data, training_pairs
@@ -319,7 +319,7 @@ Examples:
 def train_jist_command(out_dir, resume, **o) -> None:
     """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
     single images, from the traversals' images (best epoch by validation Recall@K)."""
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.training.data import classification_traversals, training_data, training_pairs
     from seqvpr.training.jist import frame_size, jist_setup, train_jist
     from seqvpr.training.settings import with_recipe
@@ -361,8 +361,8 @@ Example (SeqMatchNet Table 1 on Nordland):
 @bag_topic_options("reference", "query", "val_reference", "val_query", "test_reference", "test_query")
 def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **o) -> None:
     """SeqMatchNet Table 1: loss {single, seqmatch} x mining {single, seqmatch}, plus untransformed descriptors."""
-    from seqvpr.data.groundtruth import ground_truth_within_radius, parse_radius
-    from seqvpr.evaluation.results import recall_rows
+    from seqvpr.data.ground_truth import ground_truth_within_radius, parse_radius
+    from seqvpr.evaluation.summary import recall_rows
     from seqvpr.experiments.ablation import ablation_json, run_ablation, write_ablation
 
     settings = settings_from_options(o)
@@ -415,7 +415,7 @@ then the joint model at L = 3, 5, 10 and with each test window's frames reversed
 def ablate_jist_command(test_frames, variants, out_dir, as_json, **o) -> None:
     """JIST's ablation: joint training against each branch alone, untrained SeqGeM, SeqNet and sequence matching on
     one split and budget, and the joint model's robustness to the window's length and frame order."""
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.data.traversal import check_disjoint, slice_frame_range
     from seqvpr.experiments.jist_ablation import (
         JistSplit, ablation_markdown, robustness_markdown, robustness_rows, run_jist_ablation, write_jist_ablation,

@@ -22,8 +22,8 @@ import numpy as np
 import scipy.io
 
 from seqvpr.arrays import check_regular_file, open_npz
-from seqvpr.data.groundtruth import Radius, parse_radius
-from seqvpr.data.loaders.descriptors import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
+from seqvpr.data.ground_truth import Radius, parse_radius
+from seqvpr.data.loaders.descriptor_files import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError, reading
 

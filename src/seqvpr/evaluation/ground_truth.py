@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprWarning, SettingError
@@ -37,7 +37,7 @@ def resolve_ground_truth(
     """Ground truth from a file, a radius (``25m``, ``2f``), or else the ``[ground_truth]`` table of a description
     file (``dataset.toml``) the reference came from. Both a radius and a file is an error; ``whole`` traversals (no
     ``--frames`` cut) must be the file's size."""
-    from seqvpr.data.groundtruth import parse_radius
+    from seqvpr.data.ground_truth import parse_radius
     from seqvpr.data.sources import ground_truth_spec
 
     if radius and file:

@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.errors import SeqvprError, SettingError
 
 NoPositivePolicy = Literal["exclude", "miss"]

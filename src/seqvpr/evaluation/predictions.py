@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.evaluation.metrics import DEFAULT_KS, Evaluation, NoPositivePolicy, evaluate
 
 if TYPE_CHECKING:

@@ -13,14 +13,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.io import atomic_file_set
 from seqvpr.models.seqmatchnet import TransformConfig
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.models.seqmatchnet import load_seqmatchnet
 from seqvpr.training.state import STATE_JSON
 from seqvpr.training.seqmatchnet import (

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from seqvpr.data.groundtruth import Radius, ground_truth_within_radius, parse_radius
+from seqvpr.data.ground_truth import Radius, ground_truth_within_radius, parse_radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal, parse_frame_range
 from seqvpr.errors import SeqvprError, SeqvprWarning, reading
@@ -58,7 +58,7 @@ from seqvpr.methods import METHODS
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy
 
@@ -387,7 +387,7 @@ def drop_stale_run(out: Path, data) -> None:
 
 def split_records(splits: Splits) -> dict[str, dict[str, Any]]:
     """What a dataset's results rest on: each split's reference and query (source, file digest, frames, content)."""
-    from seqvpr.data.identity import traversal_record
+    from seqvpr.data.traversal_record import traversal_record
 
     pairs = {"train": splits.train, "select": splits.select, "test": splits.test}
     return {name: {"reference": traversal_record(r), "query": traversal_record(q)} for name, (r, q) in pairs.items()}

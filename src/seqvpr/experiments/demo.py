@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from seqvpr.data.groundtruth import GroundTruth, Radius
+from seqvpr.data.ground_truth import GroundTruth, Radius
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.traversal import Traversal
 from seqvpr.evaluation.metrics import Evaluation
@@ -25,8 +25,8 @@ from seqvpr.evaluation.ground_truth import ground_truth
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
 from seqvpr.results import MatchResult
-from seqvpr.matchers.frames import distance_matrix
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.matchers.rows import distance_matrix
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.progress import ProgressFactory
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec

@@ -21,13 +21,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from seqvpr.data.groundtruth import GroundTruth, Radius, ground_truth_within_radius
+from seqvpr.data.ground_truth import GroundTruth, Radius, ground_truth_within_radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.io import atomic_file_set
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.models.configs import JIST_BRANCHES
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.threads import ensure_policy

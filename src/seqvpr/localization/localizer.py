@@ -26,12 +26,12 @@ import torch
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, SettingError, reading
 from seqvpr.io import atomic_write
-from seqvpr.localization.saved import (
+from seqvpr.localization.state import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
     read_calibration_file,
 )
 from seqvpr.maps.files import SavedMap, open_map
-from seqvpr.matchers.frames import frame_row
+from seqvpr.matchers.rows import frame_row
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.progress import LOGGER
 from seqvpr.methods import METHODS, get_method
@@ -332,7 +332,7 @@ def method_matcher(saved: SavedMap, settings: LocalizerSettings):
     """The settings' method as its family's matcher over the map's frames as stored (causal windows; normalised as
     the map is; a SeqMatchNet map's frames already transformed, so plain sequence matching)."""
     from seqvpr.methods import build_matcher
-    from seqvpr.sequences.settings import MatchSettings
+    from seqvpr.sequences.match_settings import MatchSettings
     from seqvpr.sequences.windows import SequenceSpec
 
     method = "matching" if settings.method == "seqmatchnet" else settings.method

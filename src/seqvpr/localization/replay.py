@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from seqvpr.data.geo import utm_to_latlon
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation, evaluate

@@ -33,7 +33,7 @@ from seqvpr.maps.files import (
 )
 from seqvpr.maps.sharding import DEFAULT_OVERLAP, write_sharded_map
 from seqvpr.maps.index import model_record
-from seqvpr.matchers.frames import transformed_by
+from seqvpr.matchers.rows import transformed_by
 from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel
 from seqvpr.features.describe import describe

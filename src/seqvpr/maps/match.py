@@ -18,8 +18,8 @@ from seqvpr.methods import METHODS, build_matcher, check_run
 from seqvpr.models.registry import TrainedModel
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import transformed_by
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import transformed_by
 from seqvpr.progress import ProgressFactory, or_logged
 from seqvpr.threads import ensure_policy
 

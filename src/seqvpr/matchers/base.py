@@ -17,10 +17,10 @@ import numpy as np
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.matchers.frames import frame_row
+from seqvpr.matchers.rows import frame_row
 from seqvpr.progress import ProgressFactory
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 
 if TYPE_CHECKING:
     from seqvpr.matchers.stream import Stepper

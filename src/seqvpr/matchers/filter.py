@@ -11,8 +11,8 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import check_dimensions, kernel_rows, query_rows
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import check_dimensions, kernel_rows, query_rows
 from seqvpr.progress import ProgressFactory
 from seqvpr.sequences.filter import FilterSettings
 
@@ -34,7 +34,7 @@ class FilterMatcher(Matcher):
     def from_method(cls, method: Any, settings: MatchSettings, models: Mapping[str, Any], build: Callable[..., Matcher],
                     progress: ProgressFactory | None = None, **conf: Any) -> FilterMatcher:
         """The filter with ``conf``'s ``filter`` settings and ``seed``, through a SeqMatchNet model's transform."""
-        from seqvpr.matchers.frames import frame_transform
+        from seqvpr.matchers.rows import frame_transform
 
         return cls(settings, conf.get("filter") or FilterSettings(), int(conf.get("seed") or 0),
                    frame_transform(models), progress)
@@ -46,7 +46,7 @@ class FilterMatcher(Matcher):
         return 1
 
     def topk(self, reference: Reference, query: Traversal) -> MatchResult:
-        from seqvpr.matchers.frames import transform_pair
+        from seqvpr.matchers.rows import transform_pair
         from seqvpr.sequences.filter import TopologicalFilter, filter_topk, map_distance_scale
         from seqvpr.sequences.matching import reference_squared_norms
 

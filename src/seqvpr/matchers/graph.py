@@ -11,8 +11,8 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import check_dimensions, query_rows
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import check_dimensions, query_rows
 from seqvpr.progress import ProgressFactory
 
 if TYPE_CHECKING:
@@ -34,7 +34,7 @@ class GraphMatcher(Matcher):
     def from_method(cls, method: Any, settings: MatchSettings, models: Mapping[str, Any], build: Callable[..., Matcher],
                     progress: ProgressFactory | None = None, **conf: Any) -> GraphMatcher:
         """The graph search with ``conf``'s ``steps``, through a SeqMatchNet model's transform."""
-        from seqvpr.matchers.frames import frame_transform
+        from seqvpr.matchers.rows import frame_transform
 
         return cls(settings, tuple(conf.get("steps") or (1, 2)), frame_transform(models), progress)
 
@@ -42,7 +42,7 @@ class GraphMatcher(Matcher):
         return {"steps": list(self.steps)}
 
     def topk(self, reference: Reference, query: Traversal) -> MatchResult:
-        from seqvpr.matchers.frames import transform_pair
+        from seqvpr.matchers.rows import transform_pair
         from seqvpr.sequences.graph import GraphSettings, graph_topk
 
         reference, query = transform_pair(reference, query, self.transform, self.settings.device)

@@ -12,7 +12,7 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.progress import ProgressFactory
 from seqvpr.matchers.sequence import SequenceMatcher
 
@@ -33,7 +33,7 @@ class HierarchicalMatcher(Matcher):
                     progress: ProgressFactory | None = None, **conf: Any) -> HierarchicalMatcher:
         """The ``proposer`` retrieval method of ``conf`` (SeqNet's when a SeqNet model is given, else SeqGeM) with
         the models it takes, its top ``rerank`` N (default 20) re-ranked by the method's sequence search."""
-        from seqvpr.matchers.frames import frame_transform
+        from seqvpr.matchers.rows import frame_transform
         from seqvpr.matchers.sequence import search_of
 
         first = conf.get("proposer") or ("seqnet" if "seqnet" in models else "seqgem")

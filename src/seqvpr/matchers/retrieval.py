@@ -12,8 +12,8 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import check_dimensions, query_rows, whole_rows
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import check_dimensions, query_rows, whole_rows
 from seqvpr.progress import ProgressFactory
 
 
@@ -41,7 +41,7 @@ class RetrievalMatcher(Matcher):
         if not conf.get("rerank"):
             return matcher
         from seqvpr.matchers.hierarchical import HierarchicalMatcher
-        from seqvpr.matchers.frames import frame_transform
+        from seqvpr.matchers.rows import frame_transform
         from seqvpr.matchers.sequence import SequenceMatcher
 
         return HierarchicalMatcher(matcher, SequenceMatcher(settings, transform=frame_transform(models)), conf["rerank"])

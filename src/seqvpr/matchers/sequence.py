@@ -18,8 +18,8 @@ from seqvpr.errors import SeqvprError
 from seqvpr.progress import ProgressFactory
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import (
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import (
     check_dimensions, frame_transform, kernel_rows, query_rows, transform_pair,
 )
 from seqvpr.results import TopK

@@ -23,7 +23,7 @@ from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.matchers.stream import elapsed_ms
 from seqvpr.results import MatchResult, Scored, TopK
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.topk import merge_topks, uniqueness_ratio
 
 

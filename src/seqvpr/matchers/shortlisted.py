@@ -15,8 +15,8 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
 from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
-from seqvpr.sequences.settings import MatchSettings
-from seqvpr.matchers.frames import query_rows
+from seqvpr.sequences.match_settings import MatchSettings
+from seqvpr.matchers.rows import query_rows
 from seqvpr.results import TopK
 
 

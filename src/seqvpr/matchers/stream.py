@@ -21,7 +21,7 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
-from seqvpr.matchers.frames import matcher_rows, query_rows, transformed_reference
+from seqvpr.matchers.rows import matcher_rows, query_rows, transformed_reference
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.results import Scored
 from seqvpr.sequences.topk import best_k, best_of, uniqueness_ratio
@@ -178,7 +178,7 @@ class ShortlistStepper:
 
     def __init__(self, matcher: Any, reference: Reference, neighbours: Any, shortlist: int, history: int = 0,
                  exclusion: int = 10) -> None:
-        from seqvpr.matchers.frames import kernel_rows
+        from seqvpr.matchers.rows import kernel_rows
         from seqvpr.sequences.windows import window_starts
 
         length = matcher.settings.sequence.length

@@ -24,7 +24,7 @@ import numpy as np
 from seqvpr.errors import SeqvprError
 from seqvpr.localization.localizer import Localizer
 from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, SENSOR_DATA, Bus
-from seqvpr.ros2.frames import (
+from seqvpr.ros2.camera import (
     LEVELS, WARN, TimeGaps, Track, camera_image, fix_in_map, pose_of, stamp_seconds, stamp_text, status_of,
 )
 from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, message, outgoing

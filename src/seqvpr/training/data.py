@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from seqvpr.data.groundtruth import Radius
+from seqvpr.data.ground_truth import Radius
 from seqvpr.data.sources import load_pair, load_traversal
 from seqvpr.data.traversal import Traversal, check_disjoint, slice_frame_range
 from seqvpr.errors import SettingError

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from seqvpr.data.groundtruth import GroundTruth, Radius
+from seqvpr.data.ground_truth import GroundTruth, Radius
 from seqvpr.data.traversal import Traversal, frame_positions
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.evaluation.metrics import Evaluation
@@ -38,7 +38,7 @@ from seqvpr.models.jist import (
 )
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec, window_frames
 from seqvpr.training.augment import augment_images
 from seqvpr.training.cosplace import CosFaceHead, assign_classes, cosface_loss, group_members

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from seqvpr.data.groundtruth import GroundTruth, Radius
+from seqvpr.data.ground_truth import GroundTruth, Radius
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.matching import sequence_distance_rows
 from seqvpr.sequences.topk import rank_order

@@ -18,7 +18,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from seqvpr.data.identity import same_data, traversal_record
+from seqvpr.data.traversal_record import same_data, traversal_record
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.identity import check_digest, seal_files
 from seqvpr.io import TEMP_TAG, atomic_folder

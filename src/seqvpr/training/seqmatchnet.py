@@ -17,20 +17,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.models.seqmatchnet import FrameTransform, TransformConfig, load_seqmatchnet, save_seqmatchnet
-from seqvpr.matchers.frames import transform_traversal
+from seqvpr.matchers.rows import transform_traversal
 from seqvpr.matchers.sequence import SequenceMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
 from seqvpr.training.losses import sequence_triplet_loss, window_part
 from seqvpr.training.settings import SeqMatchNetSettings
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
-from seqvpr.training.frames import DescriptorLearner
+from seqvpr.training.descriptor_models import DescriptorLearner
 from seqvpr.training.trainer import (
     EpochRecord,
     Step,

@@ -26,12 +26,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.matchers.retrieval import RetrievalMatcher
 from seqvpr.evaluation.scoring import evaluate_match
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.descriptors import SeqNet
 from seqvpr.sequences.matching import frame_distances
 from seqvpr.sequences.windows import SequenceSpec, window_frames
@@ -39,7 +39,7 @@ from seqvpr.models.seqnet import load_seqnet, save_seqnet
 from seqvpr.training.losses import DEFAULT_MARGIN, euclidean, triplet_hinge
 from seqvpr.training.settings import SeqNetSettings
 from seqvpr.training.mining import DistanceRows, Triplet
-from seqvpr.training.frames import DescriptorLearner
+from seqvpr.training.descriptor_models import DescriptorLearner
 from seqvpr.training.trainer import (
     Step,
     TrainingContext,

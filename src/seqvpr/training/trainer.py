@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from seqvpr import distributed, threads
-from seqvpr.data.groundtruth import ground_truth_within_radius
+from seqvpr.data.ground_truth import ground_truth_within_radius
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.io import check_replaceable
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts

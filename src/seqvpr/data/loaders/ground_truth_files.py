@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from seqvpr.arrays import PICKLE_REFUSAL, check_regular_file, load_mat, load_npy, open_npz
-from seqvpr.data.groundtruth import GroundTruth
+from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.errors import SeqvprError, SettingError, reading
 
 

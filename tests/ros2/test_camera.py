@@ -14,7 +14,7 @@ from PIL import Image
 
 from seqvpr.data.images import raw_pixels, read_image
 from seqvpr.data.loaders.dbstruct import time_gap_segments
-from seqvpr.ros2.frames import (
+from seqvpr.ros2.camera import (
     TimeGaps, Track, camera_image, camera_type, fix_in_map, pose_covariance, pose_of, status_of, status_values,
 )
 from seqvpr.ros2.messages import COMPRESSED, IMAGE, decode, encode, message

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seqvpr.evaluation import localisation_plots, localisation_report
-from seqvpr.evaluation.localisation_report import (
+from seqvpr.evaluation import localization_plots, localization_report
+from seqvpr.evaluation.localization_report import (
     LocalisationTrace, localisation_metric_rows, write_localisation_report,
 )
 
