@@ -233,7 +233,7 @@ def peak_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
-def measure_scale(work: Path, data: Path, n: int, localise: int) -> dict:
+def measure_scale(work: Path, data: Path, n: int, localize: int) -> dict:
     """The real-derived map of N frames: written, indexed (``--index auto``), matched exactly and shortlisted (1,000
     winter queries), and localised exactly and shortlisted (the first ``localise`` of them): seconds, peak RSS so
     far, R@1 (the summer frame within one frame) and agreement with exact."""
@@ -278,8 +278,8 @@ def measure_scale(work: Path, data: Path, n: int, localise: int) -> dict:
                        f"{label}_r1": float(right[top.has_window].mean()),
                        f"{label}_agree": float(np.mean(top.indices[top.has_window, 0] ==
                                                        results["exact"][top.has_window]))})
-    part = query.select(np.arange(localise))
-    part_gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, first + localise)], n)
+    part = query.select(np.arange(localize))
+    part_gt = _truth([np.arange(max(p - 1, 0), min(p + 2, len(summer))) for p in range(first, first + localize)], n)
     exact_top = None
     for label, options in (("localise", {}), ("localise-shortlist", {"shortlist": 5, "history": 20, "nprobe": 8})):
         localizer = Localizer.open(saved, seq_len=LENGTH, **options)
@@ -289,7 +289,7 @@ def measure_scale(work: Path, data: Path, n: int, localise: int) -> dict:
         scores = score_replay(run, part_gt)
         top = run.indices[:, 0]
         exact_top = top if exact_top is None else exact_top
-        record.update({f"{label}_ms": seconds / localise * 1e3, f"{label}_gb": peak_gb(),
+        record.update({f"{label}_ms": seconds / localize * 1e3, f"{label}_gb": peak_gb(),
                        f"{label}_r1": scores.evaluation.recall[1],
                        f"{label}_agree": float(np.mean(top[run.scored] == exact_top[run.scored]))})
     print(record, flush=True)
@@ -359,7 +359,7 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     if args.scale:
         sizes = [int(n) for n in args.sizes.split(",")]
-        counts = [int(c) for c in args.localise.split(",")] * (len(sizes) if "," not in args.localise else 1)
+        counts = [int(c) for c in args.localize.split(",")] * (len(sizes) if "," not in args.localize else 1)
         rows = [measure_scale(args.work, args.data, n, c) for n, c in zip(sizes, counts)]
         text = (f"{cpu_model()}, {torch.get_num_threads()} threads; real-derived maps, D = {DIM}, L = {LENGTH}, "
                 f"top-{K}\n\n{scale_table(rows)}\n")

@@ -40,7 +40,7 @@ def worker(kind: str, work: Path) -> dict:
 
     policy = threads.ensure_policy()  # what every public entry point does first
     started = time.perf_counter()
-    {"describe": _describe, "match": _match, "localise": _localise, "localise-images": _localise_images}[kind](work)
+    {"describe": _describe, "match": _match, "localise": _localize, "localise-images": _localize_images}[kind](work)
     seconds = time.perf_counter() - started
     return {"seconds": seconds, "policy": policy.describe(), "pools": threads.pool_counts()}
 
@@ -67,7 +67,7 @@ def _match(work: Path) -> None:
     SequenceMatcher(MatchSettings(SequenceSpec(length=5), k=20)).topk(reference, query)
 
 
-def _localise(work: Path) -> None:
+def _localize(work: Path) -> None:
     from seqvpr.localization import Localizer
 
     localizer = Localizer.open(work / "map")
@@ -77,7 +77,7 @@ def _localise(work: Path) -> None:
         localizer.update(rows[5000 + i] + noise[i])
 
 
-def _localise_images(work: Path) -> None:
+def _localize_images(work: Path) -> None:
     from seqvpr.localization import Localizer
 
     localizer = Localizer.open(work / "image-map")

@@ -89,7 +89,7 @@ def test_the_cli_refuses_a_bad_variable_in_one_line(monkeypatch, capsys):
     assert code == 2 and err.count("\n") == 1 and "SEQVPR_THREADS" in err
 
 
-POOLS_AFTER_LOCALISING = """
+POOLS_AFTER_LOCALIZING = """
 import json, sys
 import numpy as np
 import faiss, torch  # imported first, at their own defaults
@@ -113,8 +113,8 @@ print(json.dumps({{"open": after_open, "update": pool_counts()}}))
 @pytest.mark.parametrize("apply, env", [("", {"SEQVPR_THREADS": "1"}),
                                         ("from seqvpr.threads import use_threads; use_threads(1)", {}),
                                         ("", {"OMP_NUM_THREADS": "1"})])
-def test_the_policy_survives_the_numba_matchers_build_and_the_localisers_open(tmp_path, apply, env):
-    code = POOLS_AFTER_LOCALISING.format(apply=apply, npy=str(tmp_path / "rows.npy"), folder=str(tmp_path / "map"))
+def test_the_policy_survives_the_numba_matchers_build_and_the_localizers_open(tmp_path, apply, env):
+    code = POOLS_AFTER_LOCALIZING.format(apply=apply, npy=str(tmp_path / "rows.npy"), folder=str(tmp_path / "map"))
     counts = json.loads(fresh_python(code, env))
     assert counts["open"] == {"torch": 1, "numba": 1, "faiss": 1}
     assert counts["update"] == {"torch": 1, "numba": 1, "faiss": 1}

@@ -15,7 +15,7 @@ def route(tmp_path_factory):
     return write_route_files(tmp_path_factory.mktemp("route"), 120, 16, 7)
 
 
-def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, monkeypatch, capsys):
+def test_calibrate_then_localize_reports_the_precision_reached(route, tmp_path, monkeypatch, capsys):
     assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
     common = ("--map", tmp_path / "m", "-q", route / "qry.npz", "--radius", "10m")
     code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--frames", "0:100", "--calibrate",
@@ -37,15 +37,15 @@ def test_calibrate_then_localise_reports_the_precision_reached(route, tmp_path, 
     assert summary["threshold"] == stored["threshold"] and summary["target_precision"] == 0.9
     assert summary["threshold_source"] == calibration_run["threshold_source"]
     assert summary["ground_truth"] == "radius 10m" and summary["query_frames"] is None
-    localised = summary["status"]["localised"]
-    assert summary["localised_correct"] + summary["localised_wrong"] == localised > 0
-    assert summary["precision_of_localised"] == pytest.approx(summary["localised_correct"] / localised)
+    localized = summary["status"]["localised"]
+    assert summary["localised_correct"] + summary["localised_wrong"] == localized > 0
+    assert summary["precision_of_localised"] == pytest.approx(summary["localised_correct"] / localized)
     assert set(summary["latency_ms"]) == {"describe", "distance", "sequence", "total"}
     rows = list(csv.DictReader(open(tmp_path / "o" / "stream.csv")))
     assert len(rows) == 120 and rows[0]["status"] == "warming up" and rows[-1]["correct"] in ("0", "1")
     warming, trusted = rows[0], [r for r in rows if r["status"] == "localised"]
     assert (warming["score"], warming["best_row"], warming["localised_row"], warming["x"]) == ("", "", "", "")
-    assert len(trusted) == localised and all(r["localised_row"] == r["best_row"] != "" and r["x"] for r in trusted)
+    assert len(trusted) == localized and all(r["localised_row"] == r["best_row"] != "" and r["x"] for r in trusted)
     assert all(r["localised_row"] == r["x"] == r["y"] == "" and r["best_row"] != "" for r in rows
                if r["status"] in ("uncertain", "lost"))
     assert trusted[0]["best_frame"] == trusted[0]["best_row"]  # one source, numbered from 0
@@ -97,8 +97,8 @@ def test_the_report_counts_each_status_as_the_summary_does(route, tmp_path, monk
 
     drawn: dict[str, list[str]] = {}
     for name in ("plot_map_view", "plot_over_time"):
-        original = getattr(localisation_report, name)
-        monkeypatch.setattr(localisation_report, name,
+        original = getattr(localization_report, name)
+        monkeypatch.setattr(localization_report, name,
                             lambda *a, _f=original, _n=name: drawn.setdefault(_n, _f(*a)))
     assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
     code, out, err = run_cli(monkeypatch, capsys, "localize", "--map", tmp_path / "m", "-q", route / "qry.npz",

@@ -318,18 +318,18 @@ def test_large_matrix_draws_quickly(tmp_path):
 
 
 @pytest.mark.parametrize("n", [3, 10, 20, 30])
-def test_every_method_gets_its_own_colour(n):
+def test_every_method_gets_its_own_color(n):
     names = [f"method {i}" for i in range(n)]
-    colours = report.method_colours(names)
-    assert list(colours) == names
-    assert len(set(colours.values())) == n
+    colors = report.method_colors(names)
+    assert list(colors) == names
+    assert len(set(colors.values())) == n
 
 
-def test_table_swatches_use_the_method_colours(tmp_path, images):
+def test_table_swatches_use_the_method_colors(tmp_path, images):
     methods = [make_method(f"m{i}", 0.1 * i) for i in range(10)]
     text = full_report(tmp_path / "report", images, methods=methods).read_text(encoding="utf-8")
-    colours = report.method_colours([m.name for m in methods])
-    assert all(f"background:{colours[m.name]}" in text for m in methods)
+    colors = report.method_colors([m.name for m in methods])
+    assert all(f"background:{colors[m.name]}" in text for m in methods)
 
 
 def test_examples_of_two_methods_share_the_query_cell_and_name_the_method(tmp_path, images):
@@ -345,7 +345,7 @@ def test_examples_of_two_methods_share_the_query_cell_and_name_the_method(tmp_pa
     assert page.classes.count("correct") == 2 + 3 and page.classes.count("wrong") == 1
 
 
-def test_distance_views_say_what_their_colours_and_axes_show(tmp_path, images):
+def test_distance_views_say_what_their_colors_and_axes_show(tmp_path, images):
     view = dataclasses.replace(make_view(), distance_label="sequence distance (mean of 5 frame distances)",
                                query_label="query frame (night)")
     text = full_report(tmp_path / "report", images, distance_views=[view]).read_text(encoding="utf-8")

@@ -136,17 +136,17 @@ def test_gem_matches_the_formula_and_learns_p():
 
 
 @given(st.integers(1, 4), st.integers(1, 3), st.integers(0, 2**31 - 1))
-def test_the_patch_norm_layer_is_the_patch_normalised_descriptor(columns, rows, seed):
+def test_the_patch_norm_layer_is_the_patch_normalized_descriptor(columns, rows, seed):
     """On grey images (Nordland's: R = G = B) the thumbnail CNN's first layer, flattened block by block and
     L2-normalised, is ``features.patchnorm``'s descriptor of the same pixels."""
     from seqvpr.features.backbones import PatchNorm2d
     from seqvpr.features.patchnorm import patch_normalize
 
-    grey = np.random.default_rng(seed).integers(0, 256, size=(8 * rows, 8 * columns)).astype(np.float64)
-    images = torch.from_numpy(grey / 255.0).float().expand(1, 3, *grey.shape)
+    gray = np.random.default_rng(seed).integers(0, 256, size=(8 * rows, 8 * columns)).astype(np.float64)
+    images = torch.from_numpy(gray / 255.0).float().expand(1, 3, *gray.shape)
     layer = PatchNorm2d()(images)[0, 0].double().numpy()
     blocks = layer.reshape(rows, 8, columns, 8).swapaxes(1, 2).reshape(-1)
-    np.testing.assert_allclose(blocks / np.linalg.norm(blocks), patch_normalize(grey, 8), atol=2e-5)
+    np.testing.assert_allclose(blocks / np.linalg.norm(blocks), patch_normalize(gray, 8), atol=2e-5)
 
 
 def test_the_thumbnail_cnn_reads_any_whole_patch_size_and_refuses_imagenet():

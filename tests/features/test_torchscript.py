@@ -113,7 +113,7 @@ def test_extract_gives_the_exported_programs_own_descriptors(monkeypatch, capsys
         assert np.allclose(saved["descriptors"], direct(model, images, mean, std), atol=1e-5)
 
 
-def test_the_default_normalisation_is_imagenets_and_none_feeds_pixels_in_0_1(tmp_path, images):
+def test_the_default_normalization_is_imagenets_and_none_feeds_pixels_in_0_1(tmp_path, images):
     model = scripted(tmp_path / "encoder.pt")
     config = descriptor_config(f"torchscript:{tmp_path / 'encoder.pt'}", ExtractorConfig(width=W, height=H))
     assert np.allclose(extract_descriptors(images, config).descriptors, direct(model, images), atol=1e-5)
@@ -178,7 +178,7 @@ def test_an_export_for_another_input_size_is_a_one_line_error(tmp_path, images):
                     images, config)
 
 
-def test_the_cache_is_keyed_by_the_model_file_and_the_normalisation(tmp_path, images):
+def test_the_cache_is_keyed_by_the_model_file_and_the_normalization(tmp_path, images):
     path = tmp_path / "encoder.pt"
     scripted(path)
     config = ExtractorConfig("torchscript", str(path), width=W, height=H, batch_size=3)

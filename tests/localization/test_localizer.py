@@ -126,7 +126,7 @@ def test_lost_is_a_state_and_the_route_is_found_again(route):
     assert any(e.status == "localised" for e in back[10:])
 
 
-def test_bad_frames_are_one_line_and_the_localiser_goes_on(route):
+def test_bad_frames_are_one_line_and_the_localizer_goes_on(route):
     localizer = Localizer.open(open_map(route / "map"))
     query = load_traversal(route / "qry.npz", "query").descriptors
     for row in query[:6]:
@@ -185,7 +185,7 @@ def test_camera_frames_are_described_as_the_map_was(tmp_path):
     assert localizer.update(array).best == localizer.update(tmp_path / "qry" / "000.png").best
 
 
-def test_only_a_localised_estimate_names_a_map_frame_a_position_and_a_name(tmp_path):
+def test_only_a_localized_estimate_names_a_map_frame_a_position_and_a_name(tmp_path):
     rng = np.random.default_rng(3)
     folder = tmp_path / "map_images"
     folder.mkdir()
@@ -202,10 +202,10 @@ def test_only_a_localised_estimate_names_a_map_frame_a_position_and_a_name(tmp_p
     assert statuses == {"warming up", "localised", "uncertain", "lost"}
     for e in estimates:
         if e.status == "localised":
-            assert e.localised and e.index == e.best and e.position == (5.0 * e.index, 1.0)
+            assert e.localized and e.index == e.best and e.position == (5.0 * e.index, 1.0)
             assert e.name.endswith(f"{e.index:03d}.png")
         else:
-            assert not e.localised and (e.index, e.position, e.name, e.latlon) == (None, None, None, None)
+            assert not e.localized and (e.index, e.position, e.name, e.latlon) == (None, None, None, None)
     assert all(e.best is None and np.isnan(e.score) for e in estimates if e.status == "warming up")
     assert all(e.best is not None for e in estimates if e.status in ("uncertain", "lost"))
 
@@ -226,7 +226,7 @@ def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
 
 
 @pytest.mark.slow
-def test_a_localiser_over_a_descriptor_map_imports_only_what_it_runs(route):
+def test_a_localizer_over_a_descriptor_map_imports_only_what_it_runs(route):
     code = f"""
 import sys
 import numpy as np

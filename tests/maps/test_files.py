@@ -22,7 +22,7 @@ def sources(tmp_path_factory):
     return folder / "ref.npz", folder / "qry.npz", load_traversal(folder / "ref.npz", "reference")
 
 
-def test_a_map_holds_the_normalised_frames_memory_mapped_with_their_table(sources, tmp_path):
+def test_a_map_holds_the_normalized_frames_memory_mapped_with_their_table(sources, tmp_path):
     ref, _, reference = sources
     saved = build_map([str(ref)], tmp_path / "m")
     assert isinstance(saved.descriptors, np.memmap) and saved.descriptors.dtype == np.float32

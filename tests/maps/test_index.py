@@ -104,11 +104,11 @@ def test_an_interrupted_index_build_goes_on_from_its_last_save_and_gives_the_sam
 def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align, history, seed):
     rng = np.random.default_rng(seed)
     n_query = 12
-    neighbours = rng.integers(-1, n_reference, size=(n_query, width))
+    neighbors = rng.integers(-1, n_reference, size=(n_query, width))
     segments = np.sort(rng.integers(0, 3, n_query))
     spec = SequenceSpec(length, align)
     starts = window_starts(segments, length, spec.offset, "drop")
-    got = frame_shortlist(neighbours, starts, spec, n_reference, history=history, query_segments=segments)
+    got = frame_shortlist(neighbors, starts, spec, n_reference, history=history, query_segments=segments)
     for i in range(n_query):
         expected = set()
         if starts[i] >= 0:
@@ -116,7 +116,7 @@ def test_frame_shortlist_matches_a_plain_loop(length, width, n_reference, align,
                 frame = starts[i] + k
                 if frame < 0 or segments[frame] != segments[starts[i]]:
                     continue
-                for r in neighbours[frame]:
+                for r in neighbors[frame]:
                     c = r - k + spec.offset
                     if r >= 0 and 0 <= c < n_reference:
                         expected.add(int(c))
@@ -252,23 +252,23 @@ def test_a_pq_index_re_ranks_its_candidates_on_the_maps_rows(tmp_path):
     """A PQ index's codes only approximate distances: its frames are searched REFINE times wider and re-ranked on
     the map's own rows, so with every list probed and every row a candidate the shortlist is the exact nearest
     frames (a brute-force loop), distances included; without the re-ranking PQ alone misses some."""
-    from seqvpr.maps.index import REFINE, IndexNeighbours
+    from seqvpr.maps.index import REFINE, IndexNeighbors
 
     rng = np.random.default_rng(2)
     rows = rng.standard_normal((300, 16)).astype(np.float32)
     np.save(tmp_path / "rows.npy", rows)
     saved = build_map([str(tmp_path / "rows.npy")], tmp_path / "map")
     add_index(saved, parse_index_spec("ivf:4,pq:2"), seed=0)
-    neighbours = IndexNeighbours(open_map(tmp_path / "map"), nprobe=4)
-    assert neighbours.refine == REFINE
+    neighbors = IndexNeighbors(open_map(tmp_path / "map"), nprobe=4)
+    assert neighbors.refine == REFINE
     stored = np.asarray(open_map(tmp_path / "map").descriptors)
     queries = stored[:40] + 0.3 * rng.standard_normal((40, 16)).astype(np.float32)
     width = 300 // REFINE
-    found = neighbours.search(queries, np.zeros(40, np.int64), width)
+    found = neighbors.search(queries, np.zeros(40, np.int64), width)
     for i, query in enumerate(queries):
         exact = np.linalg.norm(stored - query, axis=1)
         expected = np.lexsort((np.arange(len(stored)), exact))[:width]
         np.testing.assert_array_equal(found.indices[i], expected)
         np.testing.assert_allclose(found.distances[i], exact[expected], rtol=1e-6)
-    coded, _ = search_frames(neighbours.index, queries, width)
+    coded, _ = search_frames(neighbors.index, queries, width)
     assert (coded != found.indices).any()

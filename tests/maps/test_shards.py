@@ -148,7 +148,7 @@ def test_two_torchrun_ranks_give_the_single_process_predictions_and_a_failing_ra
     assert not (tmp_path / "bad").exists()
 
 
-def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_one(whole, tmp_path, monkeypatch,
+def test_open_map_opens_a_sharded_map_whole_so_the_localizer_and_map_info_take_one(whole, tmp_path, monkeypatch,
                                                                                    capsys):
     from seqvpr.localization import Localizer
     from seqvpr.localization.replay import replay
@@ -167,7 +167,7 @@ def test_open_map_opens_a_sharded_map_whole_so_the_localiser_and_map_info_take_o
 
 
 @pytest.mark.slow
-def test_a_localiser_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path,
+def test_a_localizer_on_two_torchrun_ranks_over_a_sharded_map_streams_the_single_process_estimates(whole, tmp_path,
                                                                                                    monkeypatch, capsys):
     shard_map(whole / "map", tmp_path / "s", 2, 9)
     common = ["-q", whole / "qry.npz", "--radius", "10m", "-L", "5"]
@@ -252,7 +252,7 @@ def test_shortlisting_a_sharded_map_on_the_command_line_and_two_torchrun_ranks(w
 
 
 @pytest.mark.slow
-def test_a_localiser_shortlisting_a_sharded_map_streams_the_whole_maps_even_past_the_overlap(
+def test_a_localizer_shortlisting_a_sharded_map_streams_the_whole_maps_even_past_the_overlap(
         whole, indexed, tmp_path, monkeypatch, capsys):
     from seqvpr.localization import Localizer
     from seqvpr.localization.replay import replay

@@ -19,7 +19,7 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.maps.files import ShardRecord
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers import Shortlist, assemble
-from seqvpr.matchers.shortlisted import ExactNeighbours
+from seqvpr.matchers.shortlisted import ExactNeighbors
 from seqvpr.matchers.window_matcher import WindowMatcher
 from seqvpr.methods import METHODS, Method, build_matcher
 from seqvpr.sequences.windows import SequenceSpec
@@ -162,7 +162,7 @@ def test_the_toy_matcher_offline_and_a_frame_at_a_time_is_the_plain_loop(toy, le
 def test_the_toy_matcher_shortlisted_is_the_plain_loop_over_the_candidates(toy, length, width, history):
     reference, query = route(5)
     matcher = build_matcher("toy", settings(length))
-    shortlisted = assemble(matcher, reference, Shortlist(lambda: ExactNeighbours(reference.descriptors), width, history))
+    shortlisted = assemble(matcher, reference, Shortlist(lambda: ExactNeighbors(reference.descriptors), width, history))
     top = shortlisted.topk(reference, query).topk
     candidates = shortlist_oracle(reference, query, length, width, history, stream=False)
     assert_rows_equal(top.indices, top.distances, oracle(reference, query, length, 6, candidates))
@@ -188,7 +188,7 @@ def test_the_toy_matcher_shortlisted_and_sharded_is_the_plain_loop_over_the_cand
     reference, query = route(9)
     matcher = build_matcher("toy", settings(4))
     cut = ToyShards.cut(reference, shards, overlap)
-    stack = assemble(matcher, cut, Shortlist(lambda: ExactNeighbours(reference.descriptors), width, history))
+    stack = assemble(matcher, cut, Shortlist(lambda: ExactNeighbors(reference.descriptors), width, history))
     top = stack.topk(cut, query).topk
     candidates = shortlist_oracle(reference, query, 4, width, history, stream=False)
     assert_rows_equal(top.indices, top.distances, oracle(reference, query, 4, 6, candidates))

@@ -115,7 +115,7 @@ def test_model_bad_input_is_one_line():
     raises_one_line("positive integer", JistConfig, seq_length=0)
 
 
-def test_seqgem_normalisation_switch_is_built_saved_and_loaded(tmp_path):
+def test_seqgem_normalization_switch_is_built_saved_and_loaded(tmp_path):
     """``seqgem_normalize=False`` gives upstream's unnormalised SeqGeM, and the folder keeps it."""
     from seqvpr.models.jist import JistConfig, build_jist, load_jist, save_jist
 

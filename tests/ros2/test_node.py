@@ -94,10 +94,10 @@ def test_a_bag_played_into_the_node_equals_seqvpr_localize(drive, dds):
         if r["status"] == "localised" and i > 0:
             expected = np.hypot(*(fix_xy[i] - [float(r["x"]), float(r["y"])]))
             assert abs(float(v["fix_distance_m"]) - expected) <= 1.01, (i, v["fix_distance_m"], expected)
-    localised = [(int(r["localised_row"]), float(r["x"]), float(r["y"])) for r in rows if r["status"] == "localised"]
+    localized = [(int(r["localised_row"]), float(r["x"]), float(r["y"])) for r in rows if r["status"] == "localised"]
     placed = {(p.message.pose.pose.position.x, p.message.pose.pose.position.y) for p in pose_messages}
     assert len(pose_messages) == sum(r["status"] in ("localised", "uncertain") for r in rows)
-    assert all((round(x, 3), round(y, 3)) in {(round(a, 3), round(b, 3)) for a, b in placed} for _, x, y in localised)
+    assert all((round(x, 3), round(y, 3)) in {(round(a, 3), round(b, 3)) for a, b in placed} for _, x, y in localized)
 
 
 def test_sigterm_mid_stream_saves_the_state_and_restore_goes_on_as_uninterrupted(drive, dds, tmp_path):

@@ -40,7 +40,7 @@ def random_windows(seed, n=4, length=5, dim=6):
 
 
 @pytest.mark.parametrize("length", [1, 2, 3, 4, 5])
-def test_smoothing_is_the_normalised_mean(length):
+def test_smoothing_is_the_normalized_mean(length):
     x = random_windows(0, length=length)
     got = smoothing(torch.tensor(x)).numpy()
     for b in range(len(x)):
@@ -71,7 +71,7 @@ def test_delta_odd_length_keeps_a_static_scene_even_length_cancels_it():
 
 
 @pytest.mark.parametrize("length", [1, 3, 4])
-def test_concatenation_normalises_frames_then_the_whole(length):
+def test_concatenation_normalizes_frames_then_the_whole(length):
     x = random_windows(3, length=length)
     got = concatenation(torch.tensor(x)).numpy()
     for b in range(len(x)):

@@ -97,7 +97,7 @@ def test_uniqueness_ratio_is_the_plain_loop_on_any_ranked_list(entries, exclusio
     assert uniqueness_ratio(list(rows), list(values), exclusion) == oracles.uniqueness(rows, values, exclusion)
 
 
-def test_other_place_skips_the_best_ones_neighbours_and_empty_entries():
+def test_other_place_skips_the_best_ones_neighbors_and_empty_entries():
     indices = np.array([[10, 11, 9, 30], [5, -1, 6, 7], [3, 4, 2, 1]])
     distances = np.array([[0.1, 0.2, 0.3, 0.4], [0.1, np.inf, 0.2, 0.3], [0.1, 0.2, 0.3, 0.4]])
     np.testing.assert_array_equal(other_place(indices, distances, 2), [3, -1, -1])

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from seqvpr.errors import SeqvprError
-from seqvpr.training.augment import LUMA, augment_images, colour_jitter, crop_boxes, random_resized_crop, turn_hue
+from seqvpr.training.augment import LUMA, augment_images, color_jitter, crop_boxes, random_resized_crop, turn_hue
 from seqvpr.training.settings import JistTrainSettings
 from tests.helpers import examples
 
@@ -50,14 +50,14 @@ def test_hue_turn_of_zero_and_of_a_full_turn_keep_the_image():
         np.testing.assert_allclose(turn_hue(batch, torch.full((4,), turns)), batch, atol=1e-5)
 
 
-def test_hue_turn_keeps_grey_and_luma():
-    grey_batch = images()[:, :1].expand(-1, 3, -1, -1).clone() * 0.5 + 0.25
-    np.testing.assert_allclose(turn_hue(grey_batch, torch.full((4,), 0.3)), grey_batch, atol=1e-5)
-    colour = images() * 0.4 + 0.3  # away from the clamp
-    turned = turn_hue(colour, torch.full((4,), 0.1))
+def test_hue_turn_keeps_gray_and_luma():
+    gray_batch = images()[:, :1].expand(-1, 3, -1, -1).clone() * 0.5 + 0.25
+    np.testing.assert_allclose(turn_hue(gray_batch, torch.full((4,), 0.3)), gray_batch, atol=1e-5)
+    color = images() * 0.4 + 0.3  # away from the clamp
+    turned = turn_hue(color, torch.full((4,), 0.1))
     luma = torch.tensor(LUMA).view(1, 3, 1, 1)
-    np.testing.assert_allclose((turned * luma).sum(1), (colour * luma).sum(1), atol=1e-4)
-    assert not torch.allclose(turned, colour, atol=1e-3)
+    np.testing.assert_allclose((turned * luma).sum(1), (color * luma).sum(1), atol=1e-4)
+    assert not torch.allclose(turned, color, atol=1e-3)
 
 
 def test_jitter_follows_torchvision_formulas():
@@ -65,13 +65,13 @@ def test_jitter_follows_torchvision_formulas():
     batch = images(2)
     rng = np.random.default_rng(3)
     factors = [rng.uniform(0.5, 1.5, size=2) for _ in range(3)]
-    out = colour_jitter(batch, np.random.default_rng(3), 0.5, 0.0)
+    out = color_jitter(batch, np.random.default_rng(3), 0.5, 0.0)
     for i in range(2):
         x = (batch[i] * factors[0][i]).clamp(0, 1)
-        grey_mean = (x * torch.tensor(LUMA).view(3, 1, 1)).sum(0).mean()
-        x = (factors[1][i] * x + (1 - factors[1][i]) * grey_mean).clamp(0, 1)
-        grey = (x * torch.tensor(LUMA).view(3, 1, 1)).sum(0, keepdim=True)
-        x = (factors[2][i] * x + (1 - factors[2][i]) * grey).clamp(0, 1)
+        gray_mean = (x * torch.tensor(LUMA).view(3, 1, 1)).sum(0).mean()
+        x = (factors[1][i] * x + (1 - factors[1][i]) * gray_mean).clamp(0, 1)
+        gray = (x * torch.tensor(LUMA).view(3, 1, 1)).sum(0, keepdim=True)
+        x = (factors[2][i] * x + (1 - factors[2][i]) * gray).clamp(0, 1)
         np.testing.assert_allclose(out[i], x, atol=1e-6)
 
 

@@ -10,7 +10,7 @@ def _model() -> nn.Module:
     return nn.Sequential(nn.Linear(4, 4), nn.BatchNorm1d(4), nn.ReLU(), nn.Sequential(nn.BatchNorm1d(4)))
 
 
-def test_cuda_models_normalise_with_the_whole_batch_keeping_their_parameters():
+def test_cuda_models_normalize_with_the_whole_batch_keeping_their_parameters():
     model = _model()
     before = {name: id(p) for name, p in model.named_parameters()}
     keys = list(model.state_dict())

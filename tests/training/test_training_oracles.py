@@ -324,7 +324,7 @@ def test_single_mining_uses_centre_frame_distances(problem, picks):
 
 @FEW
 @given(st.integers(1, 12), st.integers(1, 10), st.integers(0, 2**31 - 1))
-def test_identity_transform_is_normalisation(dim, rows, seed):
+def test_identity_transform_is_normalization(dim, rows, seed):
     x = torch.tensor(np.random.default_rng(seed).normal(size=(rows, dim)) * 3.0, dtype=torch.float32)
     model = FrameTransform(TransformConfig(dim, init="identity"), seed=seed % 100)
     with torch.no_grad():
@@ -355,7 +355,7 @@ def test_transform_outputs_have_unit_norm(in_dim, out_dim, hidden, init, seed):
     torch.testing.assert_close(norms[nonzero], torch.ones_like(norms[nonzero]), rtol=0, atol=1e-5)
 
 
-def test_transform_initialisation_is_seeded():
+def test_transform_initialization_is_seeded():
     config = TransformConfig(16, 8, (12,), "reference")
     a, b, c = FrameTransform(config, seed=5), FrameTransform(config, seed=5), FrameTransform(config, seed=6)
     for x, y, z in zip(a.parameters(), b.parameters(), c.parameters()):

@@ -28,7 +28,7 @@ LOCALIZE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Ground truth and sc
 
 
 #: the options that open a localiser (method, map, localiser, device): ``seqvpr localize`` and ``seqvpr node``
-localiser_options = with_options([
+localizer_options = with_options([
     option("Method", "--method", type=click.Choice(["matching", "single", "seqmatchnet", "hmm"]), default=None,
         help="matching: exact causal sequence matching; single: one frame; seqmatchnet: on a map built through it; "
              "hmm: the topological filter (stops, speed changes).  [default: matching, or seqmatchnet with its "
@@ -72,7 +72,7 @@ Examples:
 @option("Input", "-q", "--query", required=True, type=click.Path(),
         help="The query traversal, replayed frame by frame.")
 @option("Input", "--frames", help="Keep query frames START:STOP (e.g. 17:2000).")
-@localiser_options
+@localizer_options
 @option("Ground truth and scoring", "--radius", help="Ground truth: within this distance (e.g. 25m, 2f).")
 @option("Ground truth and scoring", "--ground-truth", "gt_file", type=click.Path(),
         help="Ground truth file (GT .mat, VPR-Bench .npy or a dense matrix).")
@@ -202,7 +202,7 @@ def _summary(o: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
     e = scores.evaluation
     summary.update({"recall": {str(k): v for k, v in e.recall.items()}, "pr_auc": e.pr.auc,
                     "recall_at_100_precision": e.pr.recall_at_100_precision, "queries_evaluated": e.queries_evaluated,
-                    "localised_correct": scores.localised_correct, "localised_wrong": scores.localised_wrong,
+                    "localised_correct": scores.localized_correct, "localised_wrong": scores.localized_wrong,
                     "precision_of_localised": scores.precision, "recall_of_localised": scores.recall,
                     "time_to_correct": [{"frames": f, "seconds": s} for f, s in scores.time_to_correct],
                     "latency_ms": scores.latency})
@@ -232,14 +232,14 @@ def _write_page(folder: Path, summary: dict[str, Any], run, gt, localizer) -> No
     import numpy as np
 
     from seqvpr.evaluation.localization_report import (
-        LocalisationTrace, describe_replay, localisation_metric_rows, write_localisation_report,
+        LocalizationTrace, describe_replay, localization_metric_rows, write_localization_report,
     )
     from seqvpr.localization.replay import STAGES, correct_best
 
     truth = np.array([p[len(p) // 2] if len(p) else -1 for p in (gt.positives_of(i) for i in range(len(run.best)))])
-    trace = LocalisationTrace(run.query.frame_index, run.index, run.best, run.status, run.score, run.latency, STAGES,
+    trace = LocalizationTrace(run.query.frame_index, run.index, run.best, run.status, run.score, run.latency, STAGES,
                               correct_best(run, gt), truth, run.query.timestamps, localizer.saved.frames.positions,
                               run.query.positions)
-    write_localisation_report(folder, title="seqvpr localisation", summary=describe_replay(summary), trace=trace,
+    write_localization_report(folder, title="seqvpr localisation", summary=describe_replay(summary), trace=trace,
                               threshold=run.threshold, threshold_source=run.threshold_source,
-                              metrics=localisation_metric_rows(summary))
+                              metrics=localization_metric_rows(summary))

@@ -11,7 +11,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.help import SectionedCommand, option
-from seqvpr.cli.localize import localiser_options
+from seqvpr.cli.localize import localizer_options
 from seqvpr.cli.options import NONNEGATIVE_FLOAT, OUT_FILE, POSITIVE
 from seqvpr.errors import SeqvprError
 
@@ -25,7 +25,7 @@ Examples:
   seqvpr node --map maps/campus --no-drop --state node.npz      # a replay: every frame; state kept on shutdown
   seqvpr node --map maps/campus --state node.npz --restore      # go on where the last run stopped""")
 @option("Input", "--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
-@localiser_options
+@localizer_options
 @option("Topics", "--topic", "camera", default="/camera/image_raw", show_default=True,
         help="The camera topic: sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8, mono16) or CompressedImage.")
 @option("Topics", "--image-type", type=click.Choice(["raw", "compressed"]),

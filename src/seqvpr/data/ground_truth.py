@@ -143,10 +143,10 @@ def _within_frames(query_frames: np.ndarray, reference_frames: np.ndarray, radiu
 def _within_metres(query_positions: np.ndarray, reference_positions: np.ndarray, radius: float) -> sp.csr_array:
     """CSR of Euclidean distance <= radius between 2-D positions, through a k-d tree."""
     tree = cKDTree(reference_positions)
-    neighbours = tree.query_ball_point(query_positions, r=radius)
-    counts = np.array([len(n) for n in neighbours], dtype=np.int64)
+    neighbors = tree.query_ball_point(query_positions, r=radius)
+    counts = np.array([len(n) for n in neighbors], dtype=np.int64)
     indptr = np.concatenate([[0], np.cumsum(counts)])
-    indices = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours]) if indptr[-1] else np.zeros(0, np.int64)
+    indices = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbors]) if indptr[-1] else np.zeros(0, np.int64)
     matrix = sp.csr_array(
         (np.ones(len(indices), dtype=bool), indices, indptr), shape=(len(query_positions), len(reference_positions))
     )

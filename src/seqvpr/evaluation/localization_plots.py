@@ -16,10 +16,10 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 
-from seqvpr.evaluation.plots import CORRECT_COLOUR, GT_COLOUR, WRONG_COLOUR, new_figure, save_figure
+from seqvpr.evaluation.plots import CORRECT_COLOR, GT_COLOR, WRONG_COLOR, new_figure, save_figure
 
 STATUSES = ("warming up", "localised", "uncertain", "lost")
-MAP_COLOUR = "#9e9e9e"
+MAP_COLOR = "#9e9e9e"
 
 
 @dataclass(frozen=True)
@@ -28,13 +28,13 @@ class Category:
 
     name: str
     status: str
-    colour: str
+    color: str
     marker: str
 
 
 CATEGORIES = (
-    Category("localised, correct", "localised", CORRECT_COLOUR, "o"),
-    Category("localised, wrong", "localised", WRONG_COLOUR, "o"),
+    Category("localised, correct", "localised", CORRECT_COLOR, "o"),
+    Category("localised, wrong", "localised", WRONG_COLOR, "o"),
     Category("localised, no true place (wrong)", "localised", "#7f0000", "o"),
     Category("localised", "localised", "#333333", "o"),
     Category("uncertain", "uncertain", "#ff9f1c", "o"),
@@ -48,13 +48,13 @@ def categories(status: np.ndarray, correct: np.ndarray | None, truth: np.ndarray
     """Each frame's category name: its status, localised split into correct / wrong (``correct``) and no ground
     truth (``truth`` < 0: no true map frame); unsplit without ``correct``."""
     out = np.asarray(status, dtype=object).copy()
-    localised = out == "localised"
+    localized = out == "localised"
     if correct is not None:
         correct = np.asarray(correct, dtype=bool)
-        out[localised & correct] = "localised, correct"
-        out[localised & ~correct] = "localised, wrong"
+        out[localized & correct] = "localised, correct"
+        out[localized & ~correct] = "localised, wrong"
         if truth is not None:
-            out[localised & (np.asarray(truth) < 0)] = "localised, no true place (wrong)"
+            out[localized & (np.asarray(truth) < 0)] = "localised, no true place (wrong)"
     return out
 
 
@@ -77,7 +77,7 @@ def placed_rows(estimate: np.ndarray, best: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class LocalisationTrace:
+class LocalizationTrace:
     """A replay, one entry per query frame: its frame number (and seconds, with timestamps), the map row the
     localiser names (-1: none) and its best one, status, score, latency [n, stages] in ms, whether the best map row
     is correct and a true map row (-1: no ground truth) when known; the map's and the query's positions [.., 2]."""
@@ -111,17 +111,17 @@ class LocalisationTrace:
         return np.asarray(self.frames), "query frame"
 
 
-def plot_map_view(trace: LocalisationTrace, path: Path) -> list[str]:
+def plot_map_view(trace: LocalizationTrace, path: Path) -> list[str]:
     """The map's positions as a grey line, the query's true positions in blue where known, and each estimate at
     its map frame's position coloured by category; returns the colour key's labels (with counts)."""
     assert trace.map_positions is not None
     map_positions = np.asarray(trace.map_positions, dtype=float)[:, :2]
     fig = new_figure(9.5, 7.0)
     ax = fig.add_subplot()
-    ax.plot(map_positions[:, 0], map_positions[:, 1], "-", color=MAP_COLOUR, lw=3, alpha=0.6, label="map", zorder=1)
+    ax.plot(map_positions[:, 0], map_positions[:, 1], "-", color=MAP_COLOR, lw=3, alpha=0.6, label="map", zorder=1)
     if trace.query_positions is not None:
         truth = np.asarray(trace.query_positions, dtype=float)[:, :2]
-        ax.plot(truth[:, 0], truth[:, 1], "-", color=GT_COLOUR, lw=1, label="query, true position", zorder=2)
+        ax.plot(truth[:, 0], truth[:, 1], "-", color=GT_COLOR, lw=1, label="query, true position", zorder=2)
     rows, cats = trace.rows(), trace.categories()
     if trace.query_positions is not None:
         _draw_errors(ax, map_positions, rows, cats, np.asarray(trace.query_positions, dtype=float)[:, :2])
@@ -141,7 +141,7 @@ def _draw_errors(ax: Axes, map_positions: np.ndarray, rows: np.ndarray, cats: np
     wrong = np.flatnonzero((cats == "localised, wrong") & (rows >= 0))
     if len(wrong):
         segments = np.stack([map_positions[rows[wrong]], truth[wrong]], axis=1)
-        ax.add_collection(LineCollection(segments, colors=WRONG_COLOUR, linewidths=0.8, alpha=0.7, zorder=3,
+        ax.add_collection(LineCollection(segments, colors=WRONG_COLOR, linewidths=0.8, alpha=0.7, zorder=3,
                                          label="wrong estimate → true position"))
 
 
@@ -154,7 +154,7 @@ def _draw_categories(ax: Axes, where, rows: np.ndarray, cats: np.ndarray) -> lis
         mask = (cats == name) & (rows >= 0)
         x, y = where(mask) if mask.any() else ([], [])
         label = legend_label(name, count)
-        ax.scatter(x, y, s=14 if c.marker == "x" else 10, c=c.colour, marker=c.marker, linewidths=1 if c.marker == "x"
+        ax.scatter(x, y, s=14 if c.marker == "x" else 10, c=c.color, marker=c.marker, linewidths=1 if c.marker == "x"
                    else 0, label=label, zorder=4 if name == "localised, wrong" else 3)
         labels.append(label)
     return labels
@@ -163,7 +163,7 @@ def _draw_categories(ax: Axes, where, rows: np.ndarray, cats: np.ndarray) -> lis
 # ----------------------------------------------------------------------------------------------- over time
 
 
-def plot_over_time(trace: LocalisationTrace, threshold: float, threshold_source: str, path: Path) -> list[str]:
+def plot_over_time(trace: LocalizationTrace, threshold: float, threshold_source: str, path: Path) -> list[str]:
     """Three panels over the replay: the map frame of each estimate (by category) against the true one, the score
     against the threshold (labelled with where it came from), and the latency per frame; returns the colour key's
     labels (with counts)."""
@@ -172,7 +172,7 @@ def plot_over_time(trace: LocalisationTrace, threshold: float, threshold_source:
     x, x_label = trace.time_axis()
     if trace.truth is not None and (trace.truth >= 0).any():
         has = trace.truth >= 0
-        top.plot(x[has], trace.truth[has], ".", color=GT_COLOUR, ms=2, label="true map frame", zorder=2)
+        top.plot(x[has], trace.truth[has], ".", color=GT_COLOR, ms=2, label="true map frame", zorder=2)
     rows = trace.rows()
     labels = _draw_categories(top, lambda mask: (x[mask], rows[mask]), rows, trace.categories())
     top.set_ylabel("map frame (row of the map)")
@@ -191,7 +191,7 @@ def _score_panel(ax: Axes, x: np.ndarray, score: np.ndarray, threshold: float, s
     """The score per frame and the threshold, labelled with its value and where it came from."""
     ax.plot(x, score, color="#444444", lw=0.8, label="score")
     label = textwrap.fill(f"threshold {threshold:.4g}: {source}", 34)
-    ax.axhline(threshold, color=WRONG_COLOUR, lw=1.0, ls="--", label=label)
+    ax.axhline(threshold, color=WRONG_COLOR, lw=1.0, ls="--", label=label)
     ax.set_ylabel("score (higher: surer)")
 
 
@@ -199,8 +199,8 @@ def _latency_panel(ax: Axes, x: np.ndarray, latency: np.ndarray, stages: Sequenc
     """Total milliseconds per frame, and describing the frame where that took any time."""
     latency = np.asarray(latency, dtype=float)
     names = list(stages)
-    for stage, colour, style in (("describe", "#1f77b4", "--"), ("total", "#222222", "-")):  # total drawn on top
+    for stage, color, style in (("describe", "#1f77b4", "--"), ("total", "#222222", "-")):  # total drawn on top
         if stage in names and (stage == "total" or latency[:, names.index(stage)].any()):
-            ax.plot(x, latency[:, names.index(stage)], style, color=colour, lw=0.9, label=f"{stage} (ms)")
+            ax.plot(x, latency[:, names.index(stage)], style, color=color, lw=0.9, label=f"{stage} (ms)")
     ax.set_ylabel("latency (ms per frame)")
     ax.set_ylim(bottom=0.0)

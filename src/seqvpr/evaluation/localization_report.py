@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any
 
 
-from seqvpr.evaluation.localisation_plots import (  # noqa: F401  (LocalisationTrace re-exported)
-    BY_NAME, LocalisationTrace, category_counts, plot_map_view, plot_over_time,
+from seqvpr.evaluation.localization_plots import (  # noqa: F401  (LocalisationTrace re-exported)
+    BY_NAME, LocalizationTrace, category_counts, plot_map_view, plot_over_time,
 )
 from seqvpr.evaluation.report import page_html, summary_html
 from seqvpr.io import atomic_folder
@@ -37,7 +37,7 @@ METRIC_NAMES = {
 }
 
 
-def localisation_metric_rows(summary: Mapping[str, Any]) -> list[tuple[str, str]]:
+def localization_metric_rows(summary: Mapping[str, Any]) -> list[tuple[str, str]]:
     """A replay summary's measures as (readable name, value) rows: counts, Recall@K, PR, the threshold and what it
     reaches, frames to the first correct localised estimate, latency percentiles."""
     rows = [(METRIC_NAMES[key], _format(summary[key])) for key in list(METRIC_NAMES)[:3] if key in summary]
@@ -79,7 +79,7 @@ def describe_replay(summary: Mapping[str, Any]) -> str:
 def status_table_html(counts: Mapping[str, int]) -> str:
     """Frames per status (localised split by correctness), each with the colour its frames have in the plots."""
     rows = "\n".join(
-        f'<tr><td><span class="swatch" style="background:{BY_NAME[name].colour}"></span>{html.escape(name)}</td>'
+        f'<tr><td><span class="swatch" style="background:{BY_NAME[name].color}"></span>{html.escape(name)}</td>'
         f"<td>{count}</td></tr>" for name, count in counts.items()
     )
     return f'<table class="recall status"><thead><tr><th>Status</th><th>Frames</th></tr></thead>\n{rows}\n</table>'
@@ -98,8 +98,8 @@ STATUS_NOTE = (
 )
 
 
-def write_localisation_report(
-    out_dir: Path, *, title: str, summary: str, trace: LocalisationTrace, threshold: float, threshold_source: str,
+def write_localization_report(
+    out_dir: Path, *, title: str, summary: str, trace: LocalizationTrace, threshold: float, threshold_source: str,
     metrics: Sequence[tuple[str, str]],
 ) -> Path:
     """The localisation page ``out_dir/index.html``: ``summary``, the measures, frames per status, the replay on
@@ -115,7 +115,7 @@ def write_localisation_report(
     return Path(out_dir) / "index.html"
 
 
-def _figure_sections(trace: LocalisationTrace, threshold: float, source: str, folder: Path) -> list[str]:
+def _figure_sections(trace: LocalizationTrace, threshold: float, source: str, folder: Path) -> list[str]:
     """Draw the map view (when the map has positions) and the replay over time into ``folder``; their sections."""
     sections = []
     if trace.map_positions is not None:

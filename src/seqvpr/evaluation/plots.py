@@ -29,10 +29,10 @@ from seqvpr.errors import SeqvprError
 
 DPI = 100
 MAX_DRAWN = 1000  # largest number of rows / columns of a distance matrix that is drawn as is
-CORRECT_COLOUR = "#2ca02c"
-WRONG_COLOUR = "#d62728"
-GT_COLOUR = "#1f9bff"
-NO_WINDOW_COLOUR = "#d9d9d9"
+CORRECT_COLOR = "#2ca02c"
+WRONG_COLOR = "#d62728"
+GT_COLOR = "#1f9bff"
+NO_WINDOW_COLOR = "#d9d9d9"
 LEGEND_COLUMNS = 2  # columns of the method legends below the curves
 
 Extent = tuple[float, float, float, float]
@@ -80,7 +80,7 @@ def check_distance_view(view: DistanceView) -> None:
         raise SeqvprError(f"distance view {view.title!r}: top1 holds a reference outside 0..{d.shape[1] - 1}")
 
 
-def method_colours(names: Sequence[str]) -> dict[str, str]:
+def method_colors(names: Sequence[str]) -> dict[str, str]:
     """One distinct colour per method name, in order, so a method looks the same in the table and every plot:
     tab10 up to 10 methods, tab20 up to 20, else evenly spaced samples of turbo."""
     n = len(names)
@@ -90,7 +90,7 @@ def method_colours(names: Sequence[str]) -> dict[str, str]:
         rgba = [colormaps["tab20"](i) for i in range(n)]
     else:
         rgba = list(colormaps["turbo"](np.linspace(0.0, 1.0, n)))
-    return {name: to_hex(colour) for name, colour in zip(names, rgba)}
+    return {name: to_hex(color) for name, color in zip(names, rgba)}
 
 
 def legend_below(fig: Figure, ax: Axes, n_entries: int) -> None:
@@ -120,7 +120,7 @@ def save_figure(fig: Figure, path: Path) -> None:
 # ----------------------------------------------------------------------------------------------- curves
 
 
-def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
+def plot_recall_at_k(methods: Sequence[MethodResult], colors: dict[str, str], path: Path) -> None:
     """Recall@K against K, one line per method; log-x once K reaches 10 so the small Ks stay readable."""
     fig = new_figure(5.6, 4.2 + legend_height(len(methods)))
     ax = fig.add_subplot()
@@ -131,7 +131,7 @@ def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], p
             continue
         k_max = max(k_max, ks[-1])
         marker = "o" if len(ks) <= 12 else None
-        ax.plot(ks, [m.recall_at_k[k] for k in ks], label=m.name, color=colours[m.name], lw=2, marker=marker, ms=4)
+        ax.plot(ks, [m.recall_at_k[k] for k in ks], label=m.name, color=colors[m.name], lw=2, marker=marker, ms=4)
     if k_max >= 10:
         ax.set_xscale("log")
         ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= k_max]
@@ -148,7 +148,7 @@ def plot_recall_at_k(methods: Sequence[MethodResult], colours: dict[str, str], p
     save_figure(fig, path)
 
 
-def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], path: Path) -> None:
+def plot_pr_curves(methods: Sequence[MethodResult], colors: dict[str, str], path: Path) -> None:
     """Precision against recall of the top-1 match over all distance thresholds, one line per method."""
     fig = new_figure(5.6, 4.2 + legend_height(len(methods)))
     ax = fig.add_subplot()
@@ -157,9 +157,9 @@ def plot_pr_curves(methods: Sequence[MethodResult], colours: dict[str, str], pat
         label = f"{m.name} (AUC {m.pr_auc:.3f})"
         if len(recall):
             # Start at recall 0 with the first precision so the curve reaches the y-axis.
-            ax.plot(np.r_[0.0, recall], np.r_[precision[0], precision], label=label, color=colours[m.name], lw=2)
+            ax.plot(np.r_[0.0, recall], np.r_[precision[0], precision], label=label, color=colors[m.name], lw=2)
         else:
-            ax.plot([], [], label=label, color=colours[m.name], lw=2)
+            ax.plot([], [], label=label, color=colors[m.name], lw=2)
     ax.set_xlim(0.0, 1.0)
     ax.set_ylim(0.0, 1.02)
     ax.set_xlabel("recall")
@@ -196,7 +196,7 @@ def drawable_distances(distances: np.ndarray, steps: tuple[int, int]) -> np.ndar
     return np.where(np.isfinite(small), small, np.nan)
 
 
-def colour_limits(drawn: np.ndarray) -> tuple[float, float]:
+def color_limits(drawn: np.ndarray) -> tuple[float, float]:
     """Robust colour range (1st to 99th percentile of finite values), so a few outliers don't wash it out."""
     finite = drawn[np.isfinite(drawn)]
     if finite.size == 0:
@@ -225,7 +225,7 @@ def plot_distance_view(view: DistanceView, path: Path) -> None:
     handles = _draw_positives(ax, pos_drawn, steps, extent)
     handles += _draw_top1(ax, top1, correct, n_q)
     if (~np.isfinite(distances)).all(axis=1).any():
-        handles.append(Patch(facecolor=NO_WINDOW_COLOUR, edgecolor="#999999", label="no distance"))
+        handles.append(Patch(facecolor=NO_WINDOW_COLOR, edgecolor="#999999", label="no distance"))
 
     ax.set_xlim(-0.5, n_r - 0.5)
     ax.set_ylim(n_q - 0.5, -0.5)
@@ -239,7 +239,7 @@ def plot_distance_view(view: DistanceView, path: Path) -> None:
 def _draw_matrix(fig: Figure, ax: Axes, drawn: np.ndarray, extent: Extent, label: str) -> None:
     """The (block-reduced) distances as an image with a colour bar saying what they are (``label``); undefined cells
     in the 'no distance' grey."""
-    vmin, vmax = colour_limits(drawn)
+    vmin, vmax = color_limits(drawn)
     image = ax.imshow(
         np.ma.masked_invalid(drawn), cmap=_matrix_colormap(), vmin=vmin, vmax=vmax, origin="upper", extent=extent,
         aspect="auto", interpolation="antialiased",
@@ -253,13 +253,13 @@ def _draw_positives(ax: Axes, pos_drawn: np.ndarray, steps: tuple[int, int], ext
         return []
     h, w = pos_drawn.shape
     overlay = np.zeros((h, w, 4), dtype=np.float32)
-    overlay[pos_drawn] = (*_rgb(GT_COLOUR), 0.28)
+    overlay[pos_drawn] = (*_rgb(GT_COLOR), 0.28)
     ax.imshow(overlay, origin="upper", extent=extent, aspect="auto", interpolation="nearest")
     if h > 1 and w > 1:
         xs = np.arange(w) * steps[1] + (steps[1] - 1) / 2
         ys = np.arange(h) * steps[0] + (steps[0] - 1) / 2
-        ax.contour(xs, ys, pos_drawn.astype(np.float32), levels=[0.5], colors=[GT_COLOUR], linewidths=0.8)
-    return [Patch(facecolor=(*_rgb(GT_COLOUR), 0.35), edgecolor=GT_COLOUR, label="ground-truth positives")]
+        ax.contour(xs, ys, pos_drawn.astype(np.float32), levels=[0.5], colors=[GT_COLOR], linewidths=0.8)
+    return [Patch(facecolor=(*_rgb(GT_COLOR), 0.35), edgecolor=GT_COLOR, label="ground-truth positives")]
 
 
 def _draw_top1(ax: Axes, top1: np.ndarray, correct: np.ndarray, n_q: int) -> list[Artist]:
@@ -269,13 +269,13 @@ def _draw_top1(ax: Axes, top1: np.ndarray, correct: np.ndarray, n_q: int) -> lis
     size = float(np.clip(3000.0 / max(n_q, 1), 1.5, 14.0))
     handles: list[Artist] = []
     # Wrong matches are drawn last and larger: they are the few points worth finding.
-    for mask, colour, label, scale in (
-        (has & correct, CORRECT_COLOUR, "top-1 correct", 1.0),
-        (has & ~correct, WRONG_COLOUR, "top-1 wrong", 2.0),
+    for mask, color, label, scale in (
+        (has & correct, CORRECT_COLOR, "top-1 correct", 1.0),
+        (has & ~correct, WRONG_COLOR, "top-1 wrong", 2.0),
     ):
         if mask.any():
-            ax.scatter(top1[mask], rows[mask], s=size * scale, c=colour, marker="o", linewidths=0, zorder=3)
-        handles.append(Line2D([], [], ls="", marker="o", ms=6, color=colour, label=f"{label} ({int(mask.sum())})"))
+            ax.scatter(top1[mask], rows[mask], s=size * scale, c=color, marker="o", linewidths=0, zorder=3)
+        handles.append(Line2D([], [], ls="", marker="o", ms=6, color=color, label=f"{label} ({int(mask.sum())})"))
     return handles
 
 
@@ -289,10 +289,10 @@ def _distance_title(title: str, steps: tuple[int, int]) -> str:
 
 def _matrix_colormap() -> Colormap:
     """Dark = close, light = far, grey where undefined; green/red dots and the blue band stay visible on it."""
-    return colormaps["bone"].with_extremes(bad=NO_WINDOW_COLOUR)
+    return colormaps["bone"].with_extremes(bad=NO_WINDOW_COLOR)
 
 
-def _rgb(hex_colour: str) -> tuple[float, float, float]:
+def _rgb(hex_color: str) -> tuple[float, float, float]:
     """'#rrggbb' as three floats in 0..1."""
-    v = hex_colour.lstrip("#")
+    v = hex_color.lstrip("#")
     return tuple(int(v[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]

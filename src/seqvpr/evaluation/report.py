@@ -18,20 +18,20 @@ from PIL import Image
 
 from seqvpr.errors import SeqvprError
 from seqvpr.evaluation.plots import (  # noqa: F401  (re-exported: tests and callers use them from here)
-    CORRECT_COLOUR,
+    CORRECT_COLOR,
     DPI,
     DistanceView,
     MethodResult,
-    GT_COLOUR,
+    GT_COLOR,
     MAX_DRAWN,
-    NO_WINDOW_COLOUR,
-    WRONG_COLOUR,
+    NO_WINDOW_COLOR,
+    WRONG_COLOR,
     block_reduce,
     block_steps,
     check_distance_view,
-    colour_limits,
+    color_limits,
     drawable_distances,
-    method_colours,
+    method_colors,
     new_figure,
     plot_distance_view,
     plot_pr_curves,
@@ -126,22 +126,22 @@ figcaption { font-size: 0.85em; color: #555; margin-top: 4px; }
 .cell { margin: 0; }
 .cell .frame { border: 4px solid #555; border-radius: 3px; line-height: 0; background: #eee; }
 .cell.query .frame { border-color: #444; border-style: double; border-width: 5px; }
-.cell.correct .frame { border-color: """ + CORRECT_COLOUR + """; }
-.cell.wrong .frame { border-color: """ + WRONG_COLOUR + """; }
+.cell.correct .frame { border-color: """ + CORRECT_COLOR + """; }
+.cell.wrong .frame { border-color: """ + WRONG_COLOR + """; }
 .cell img { width: 100%; height: auto; display: block; }
 .cell .missing { display: block; line-height: 1.3; padding: 28px 6px; text-align: center; color: #777;
                  font-size: 0.8em; }
 .cell figcaption { font-size: 0.8em; line-height: 1.3; margin-top: 3px; word-break: break-word; }
 .cell.query figcaption { font-weight: 600; }
 .cell.method { align-self: center; font-size: 0.85em; font-weight: 600; line-height: 1.3; word-break: break-word; }
-.cell.correct figcaption .mark { color: """ + CORRECT_COLOUR + """; font-weight: 700; }
-.cell.wrong figcaption .mark { color: """ + WRONG_COLOUR + """; font-weight: 700; }
+.cell.correct figcaption .mark { color: """ + CORRECT_COLOR + """; font-weight: 700; }
+.cell.wrong figcaption .mark { color: """ + WRONG_COLOR + """; font-weight: 700; }
 .legend { font-size: 0.9em; color: #444; margin: 0 0 10px; }
 .legend .box { display: inline-block; width: 14px; height: 10px; border: 3px solid; margin: 0 6px 0 14px;
                vertical-align: -2px; }
 .legend .box.query-box { border-color: #444; margin-left: 0; }
-.legend .box.ok-box { border-color: """ + CORRECT_COLOUR + """; }
-.legend .box.bad-box { border-color: """ + WRONG_COLOUR + """; }
+.legend .box.ok-box { border-color: """ + CORRECT_COLOR + """; }
+.legend .box.bad-box { border-color: """ + WRONG_COLOR + """; }
 ul.files { font-family: ui-monospace, Menlo, Consolas, monospace; font-size: 0.9em; }
 ul.files span { font-family: -apple-system, "Segoe UI", Roboto, Arial, sans-serif; color: #555; }
 """
@@ -154,7 +154,7 @@ def format_value(value: float | None) -> str:
     return f"{value:.3f}"
 
 
-def recall_table_html(methods: Sequence[MethodResult], table_ks: Sequence[int], colours: dict[str, str]) -> str:
+def recall_table_html(methods: Sequence[MethodResult], table_ks: Sequence[int], colors: dict[str, str]) -> str:
     """The methods × (R@K…, PR-AUC, R@100%P, frame precision) table, best value of each column in bold."""
     columns = [(f"R@{k}", [m.recall_at_k.get(k) for m in methods]) for k in table_ks]
     columns.append(("PR-AUC", [m.pr_auc for m in methods]))
@@ -168,7 +168,7 @@ def recall_table_html(methods: Sequence[MethodResult], table_ks: Sequence[int], 
             ('<td class="best">' if best[c] == i else "<td>") + f"{format_value(values[i])}</td>"
             for c, (_, values) in enumerate(columns)
         )
-        swatch = f'<span class="swatch" style="background:{colours[m.name]}"></span>'
+        swatch = f'<span class="swatch" style="background:{colors[m.name]}"></span>'
         rows.append(f"<tr><td>{swatch}{html.escape(m.name)}</td>{cells}</tr>")
     return (
         f'<table class="recall"><thead><tr><th>Method</th>{head}</tr></thead>\n'
@@ -196,7 +196,7 @@ def example_cell_html(src: str | None, label: str, kind: str, caption_prefix: st
     )
 
 
-def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | None], colours: dict[str, str]) -> str:
+def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | None], colors: dict[str, str]) -> str:
     """The grid: one row per example, the query first (one cell for the consecutive examples of one query), then
     the method's name when examples name one, then its ranked matches framed green or red."""
     with_method = any(e.method for e in examples)
@@ -206,7 +206,7 @@ def examples_html(examples: Sequence[QueryExample], thumbs: dict[Path, str | Non
         cells.append(_query_cell(group, thumbs))
         for e in group:
             if with_method:
-                cells.append(_method_cell(e.method, colours))
+                cells.append(_method_cell(e.method, colors))
             for rank, (img, label, ok) in enumerate(zip(e.match_images, e.match_labels, e.match_correct), start=1):
                 cells.append(example_cell_html(thumbs[Path(img)], label, "correct" if ok else "wrong", f"#{rank}"))
             cells.extend('<div class="cell"></div>' for _ in range(n_matches - len(e.match_images)))
@@ -237,10 +237,10 @@ def _query_cell(group: Sequence[QueryExample], thumbs: dict[Path, str | None]) -
     return cell if len(group) == 1 else cell.replace("<figure ", f'<figure style="grid-row: span {len(group)}" ', 1)
 
 
-def _method_cell(method: str, colours: dict[str, str]) -> str:
+def _method_cell(method: str, colors: dict[str, str]) -> str:
     """The name of the method whose matches follow in the row, with its colour swatch when it has one."""
-    colour = colours.get(method)
-    swatch = f'<span class="swatch" style="background:{colour}"></span>' if colour else ""
+    color = colors.get(method)
+    swatch = f'<span class="swatch" style="background:{color}"></span>' if color else ""
     return f'<div class="cell method">{swatch}{html.escape(method)}</div>'
 
 
@@ -300,25 +300,25 @@ def build_report(
     example_title: str,
 ) -> None:
     """Write every file of the report into the (empty) ``folder``."""
-    colours = method_colours([m.name for m in methods])
+    colors = method_colors([m.name for m in methods])
     files: list[tuple[str, str]] = [("results.csv", "the numbers of the table, every K")]
     write_results_csv(methods, folder / "results.csv")
     sections = [f"<h1>{html.escape(title)}</h1>", summary_html(summary)]
-    sections += _recall_sections(methods, table_ks, colours)
-    sections += _curve_sections(methods, colours, folder, files)
+    sections += _recall_sections(methods, table_ks, colors)
+    sections += _curve_sections(methods, colors, folder, files)
     sections += _distance_sections(distance_views, folder, files)
-    example_parts, n_thumbs = _example_sections(examples, example_title, folder, colours)
+    example_parts, n_thumbs = _example_sections(examples, example_title, folder, colors)
     sections += example_parts
     sections.append("<h2>Files</h2>")
     sections.append(files_html([("index.html", "this page"), *files], n_thumbs))
     (folder / "index.html").write_text(page_html(title, sections), encoding="utf-8")
 
 
-def _recall_sections(methods: Sequence[MethodResult], table_ks: Sequence[int], colours: dict[str, str]) -> list[str]:
+def _recall_sections(methods: Sequence[MethodResult], table_ks: Sequence[int], colors: dict[str, str]) -> list[str]:
     """The 'Recall' heading, the recall table and the line explaining its columns."""
     return [
         "<h2>Recall</h2>",
-        recall_table_html(methods, table_ks, colours),
+        recall_table_html(methods, table_ks, colors),
         '<p class="legend">R@K: share of queries with a correct place among the K nearest references. '
         "PR-AUC and R@100%P: precision–recall of accepting the top-1 match below a distance threshold. "
         "frames: share of the top-1 matches' per-frame correspondences that fall on a correct place "
@@ -327,13 +327,13 @@ def _recall_sections(methods: Sequence[MethodResult], table_ks: Sequence[int], c
 
 
 def _curve_sections(
-    methods: Sequence[MethodResult], colours: dict[str, str], folder: Path, files: list[tuple[str, str]]
+    methods: Sequence[MethodResult], colors: dict[str, str], folder: Path, files: list[tuple[str, str]]
 ) -> list[str]:
     """Draw the Recall@K and PR plots into ``folder``, listed in ``files``; their section (none without methods)."""
     if not methods:
         return []
-    plot_recall_at_k(methods, colours, folder / "recall_at_k.png")
-    plot_pr_curves(methods, colours, folder / "pr_curves.png")
+    plot_recall_at_k(methods, colors, folder / "recall_at_k.png")
+    plot_pr_curves(methods, colors, folder / "pr_curves.png")
     files += [("recall_at_k.png", "Recall@K curves"), ("pr_curves.png", "precision–recall curves")]
     return [
         "<h2>Curves</h2>",
@@ -365,14 +365,14 @@ def _distance_sections(views: Sequence[DistanceView], folder: Path, files: list[
 
 
 def _example_sections(
-    examples: Sequence[QueryExample], example_title: str, folder: Path, colours: dict[str, str]
+    examples: Sequence[QueryExample], example_title: str, folder: Path, colors: dict[str, str]
 ) -> tuple[list[str], int]:
     """Thumbnail the example images into ``folder``; their section and how many thumbnails were written."""
     if not examples:
         return [], 0
     thumbs = copy_thumbnails(examples, folder / EXAMPLES_DIR)
     n_thumbs = sum(1 for v in thumbs.values() if v)
-    return [f"<h2>{html.escape(example_title or 'Example queries')}</h2>", examples_html(examples, thumbs, colours)], n_thumbs
+    return [f"<h2>{html.escape(example_title or 'Example queries')}</h2>", examples_html(examples, thumbs, colors)], n_thumbs
 
 
 def write_report(

@@ -200,8 +200,8 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
     from seqvpr.results import TopK
 
     spec = SequenceSpec(length)
-    ref_rows, ref_frames = centred_windows(len(reference), spec)
-    qry_rows, qry_frames = centred_windows(len(query), spec)
+    ref_rows, ref_frames = centered_windows(len(reference), spec)
+    qry_rows, qry_frames = centered_windows(len(query), spec)
     qry_frames = reorder_windows(qry_frames, order, seed)
     ref_unit = _unit(reference.descriptors)
     qry_unit = _unit(query.descriptors)
@@ -223,7 +223,7 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
     return scores
 
 
-def centred_windows(n: int, spec: SequenceSpec) -> tuple[np.ndarray, np.ndarray]:
+def centered_windows(n: int, spec: SequenceSpec) -> tuple[np.ndarray, np.ndarray]:
     """The frames with a whole window under ``spec`` (one segment) and each window's frame rows [n_windows, L]."""
     from seqvpr.sequences.windows import window_frames, window_starts
 

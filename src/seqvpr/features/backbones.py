@@ -312,10 +312,10 @@ class PatchNorm2d(nn.Module):
         p = self.patch
         if h % p or w % p:
             raise SeqvprError(f"thumbnail-cnn: image size {w}x{h} is not a whole number of {p}-pixel patches")
-        grey = (images * self.luma.to(images.dtype)).sum(dim=1).view(b, 1, h // p, p, w // p, p)
-        mean = grey.mean(dim=(3, 5), keepdim=True)
-        std = grey.std(dim=(3, 5), keepdim=True, unbiased=False)
-        return ((grey - mean) / (std + self.eps)).view(b, 1, h, w)
+        gray = (images * self.luma.to(images.dtype)).sum(dim=1).view(b, 1, h // p, p, w // p, p)
+        mean = gray.mean(dim=(3, 5), keepdim=True)
+        std = gray.std(dim=(3, 5), keepdim=True, unbiased=False)
+        return ((gray - mean) / (std + self.eps)).view(b, 1, h, w)
 
 
 def _conv_bn_relu(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:

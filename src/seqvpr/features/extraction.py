@@ -105,10 +105,10 @@ class Extractor(nn.Module):
 
     def feature_map(self, images: torch.Tensor) -> torch.Tensor:
         """The map the pooling head reads, for images in [0, 1]."""
-        normalised = (images - self.mean) / self.std
+        normalized = (images - self.mean) / self.std
         if isinstance(self.pooling, NetVLAD):
-            return self.backbone.local_features(normalised)
-        return self.backbone.features(normalised)
+            return self.backbone.local_features(normalized)
+        return self.backbone.features(normalized)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.pooling(self.feature_map(images))

@@ -128,9 +128,17 @@ class Estimate:
     latlon: tuple[float, float] | None = None
 
     @property
-    def localised(self) -> bool:
+    def localized(self) -> bool:
         """Whether the localiser stands behind this estimate (the one word for it: ``localised``)."""
         return self.status == "localised"
+
+    @property
+    def localised(self) -> bool:
+        """Deprecated (kept one release): ``localized``."""
+        import warnings
+
+        warnings.warn("Estimate.localised is deprecated: use Estimate.localized", DeprecationWarning, stacklevel=2)
+        return self.localized
 
 
 class Localizer:
@@ -353,21 +361,21 @@ def _stepper(saved: SavedMap, matcher, settings: LocalizerSettings):
     reference = sharded if sharded is not None and world.size > 1 and not settings.shortlist else saved
     listed = None
     if settings.shortlist:
-        listed = Shortlist(lambda: frame_neighbours(saved if sharded is None else sharded, settings.nprobe, world),
+        listed = Shortlist(lambda: frame_neighbors(saved if sharded is None else sharded, settings.nprobe, world),
                            settings.shortlist, settings.history)
     return assemble(matcher, reference, listed, world).stream(reference, settings.exclusion)
 
 
-def frame_neighbours(reference, nprobe: int, world):
+def frame_neighbors(reference, nprobe: int, world):
     """The map's index (a sharded map's: its shards' merged) as a shortlist's search, which a frame at a time must
     be over frames."""
-    from seqvpr.maps.match import map_neighbours
+    from seqvpr.maps.match import map_neighbors
 
-    neighbours = map_neighbours(reference, nprobe, 0, world)
-    if neighbours.over != "frames":
+    neighbors = map_neighbors(reference, nprobe, 0, world)
+    if neighbors.over != "frames":
         raise SettingError(f"{{shortlist}} needs an index over {reference.folder}'s frames: seqvpr map index "
                           f"{reference.folder} --index SPEC")
-    return neighbours
+    return neighbors
 
 
 def _check_window(saved: SavedMap, settings: LocalizerSettings) -> None:

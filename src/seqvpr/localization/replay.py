@@ -48,7 +48,7 @@ class Replay:
         return self.status != "warming up"
 
     @property
-    def localised(self) -> np.ndarray:
+    def localized(self) -> np.ndarray:
         """The frames whose estimate the localiser stands behind."""
         return self.status == "localised"
 
@@ -113,8 +113,8 @@ class ReplayScores:
     recall: float
     time_to_correct: list[tuple[int | None, float | None]]
     latency: dict[str, dict[str, float]]
-    localised_correct: int
-    localised_wrong: int
+    localized_correct: int
+    localized_wrong: int
 
 
 def score_replay(run: Replay, gt: GroundTruth, ks: Sequence[int] = (1, 5, 10, 20)) -> ReplayScores:
@@ -124,10 +124,10 @@ def score_replay(run: Replay, gt: GroundTruth, ks: Sequence[int] = (1, 5, 10, 20
     evaluation = evaluate(run.indices, ranked, run.scored, gt, ks)
     right = correct_best(run, gt)
     positives = int((run.scored & gt.has_positive()).sum())
-    precision, recall = precision_recall(run.localised, right, positives)
-    correct = int((run.localised & right).sum())
+    precision, recall = precision_recall(run.localized, right, positives)
+    correct = int((run.localized & right).sum())
     return ReplayScores(evaluation, run.threshold, precision, recall, time_to_correct(run, right),
-                        latency_percentiles(run), correct, int(run.localised.sum()) - correct)
+                        latency_percentiles(run), correct, int(run.localized.sum()) - correct)
 
 
 def correct_best(run: Replay, gt: GroundTruth) -> np.ndarray:
@@ -180,13 +180,13 @@ def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.
 
 def _stream_row(run: Replay, reference: Traversal, latlon: np.ndarray | None, right: np.ndarray | None, i: int) -> list:
     stamp = "" if run.query.timestamps is None else f"{run.query.timestamps[i]:.6f}"
-    localised, best = int(run.index[i]), int(run.best[i])
+    localized, best = int(run.index[i]), int(run.best[i])
     row = lambda r: "" if r < 0 else r  # noqa: E731
     source = lambda r: "" if r < 0 else int(reference.frame_index[r])  # noqa: E731
-    where = ["", ""] if localised < 0 or reference.positions is None else \
-        [f"{v:.3f}" for v in reference.positions[localised][:2]]
-    where += ["", ""] if localised < 0 or latlon is None else [f"{v:.8f}" for v in latlon[localised]]
+    where = ["", ""] if localized < 0 or reference.positions is None else \
+        [f"{v:.3f}" for v in reference.positions[localized][:2]]
+    where += ["", ""] if localized < 0 or latlon is None else [f"{v:.8f}" for v in latlon[localized]]
     score = "" if not run.scored[i] else f"{run.score[i]:.6f}"
     ok = "" if right is None or not run.scored[i] else int(right[i])
-    return [i, int(run.query.frame_index[i]), stamp, run.status[i], score, row(localised), source(localised), *where,
+    return [i, int(run.query.frame_index[i]), stamp, run.status[i], score, row(localized), source(localized), *where,
             row(best), source(best), int(run.kept[i]), *(f"{v:.3f}" for v in run.latency[i]), ok]

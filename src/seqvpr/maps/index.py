@@ -433,7 +433,7 @@ def refined(descriptors, frames: np.ndarray, found: np.ndarray, width: int) -> t
     return rows, distances
 
 
-class IndexNeighbours:
+class IndexNeighbors:
     """A saved map's faiss index as a shortlist's ``seqvpr.matchers.shortlisted.Neighbours``: the nearest map
     frames of query frames (an index over frames), or of query windows by the index's own sequence descriptor. A PQ
     index over frames is searched ``REFINE`` times wider and its candidates re-ranked on the map's rows."""

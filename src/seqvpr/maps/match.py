@@ -130,7 +130,7 @@ def match_map(
     chosen = distributed.everywhere(lambda: map_method(described, method, settings, models, rerank), world)
     matcher = method_matcher(described, chosen, settings, index=index, rerank=rerank, nprobe=nprobe,
                              progress=progress, search=search)
-    listed = None if not shortlist else Shortlist(lambda: map_neighbours(reference, nprobe, history, world),
+    listed = None if not shortlist else Shortlist(lambda: map_neighbors(reference, nprobe, history, world),
                                                    shortlist, history)
     stack = distributed.everywhere(lambda: assemble(matcher, reference, listed, world), world)
     frames = distributed.everywhere(lambda: describe_query(query, described, dict(models or {}), settings.device,
@@ -144,28 +144,28 @@ def method_matcher(saved: SavedMap, chosen: MapMethod, settings: MatchSettings, 
     """The family matcher of the chosen method over ``saved`` (or any map described alike, such as its shards): the
     method's own, or a search of each map's own index when it already holds the method's sequence descriptors."""
     if uses_window_index(saved, chosen.method, settings, chosen.models, rerank):
-        from seqvpr.maps.index import IndexNeighbours
+        from seqvpr.maps.index import IndexNeighbors
         from seqvpr.matchers.retrieval import IndexedRetrieval
 
-        matcher = IndexedRetrieval(settings, lambda opened: IndexNeighbours(opened, nprobe))
+        matcher = IndexedRetrieval(settings, lambda opened: IndexNeighbors(opened, nprobe))
         matcher.method = chosen.method
         return matcher
     return build_matcher(chosen.method, settings, chosen.models, index=index, rerank=rerank, progress=progress,
                          **(search or {}))
 
 
-def map_neighbours(reference: SavedMap | ShardedMap, nprobe: int = 16, history: int = 0, ranks: Any = None):
+def map_neighbors(reference: SavedMap | ShardedMap, nprobe: int = 16, history: int = 0, ranks: Any = None):
     """The nearest-neighbour search a shortlist over ``reference`` uses: a map's index, or the shards' indexes
     merged into one (each rank searching its shards)."""
     from seqvpr.matchers.sharded import is_sharded
 
     if is_sharded(reference):
-        from seqvpr.maps.sharded_index import ShardedNeighbours
+        from seqvpr.maps.sharded_index import ShardedNeighbors
 
-        return ShardedNeighbours(reference, ranks, nprobe, history)
-    from seqvpr.maps.index import IndexNeighbours
+        return ShardedNeighbors(reference, ranks, nprobe, history)
+    from seqvpr.maps.index import IndexNeighbors
 
-    return IndexNeighbours(reference, nprobe)
+    return IndexNeighbors(reference, nprobe)
 
 
 def uses_window_index(saved: SavedMap, method: str, settings: MatchSettings, models, rerank: int) -> bool:

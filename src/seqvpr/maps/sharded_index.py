@@ -11,18 +11,18 @@ from seqvpr.matchers.sharded import shard_numbers
 from seqvpr.results import TopK
 
 
-class ShardedNeighbours:
+class ShardedNeighbors:
     """The shards' indexes as one shortlist ``Neighbours``: each rank searches its shards for their nearest owned
     rows, and every rank merges all of them (the whole map's nearest, with flat indexes). Every shard must have an
     index over the same vectors (checked on every rank, so each fails alike)."""
 
     def __init__(self, sharded: ShardedMap, world=None, nprobe: int = 16, history: int = 0) -> None:
         from seqvpr import distributed
-        from seqvpr.maps.index import IndexNeighbours
+        from seqvpr.maps.index import IndexNeighbors
 
         world = world or distributed.current()
         self.over, self.vectors, self.world = shards_index_over(sharded, history), sharded.count, world
-        self.parts = [(sharded.shards[n], IndexNeighbours(sharded.open_shard(n), nprobe))
+        self.parts = [(sharded.shards[n], IndexNeighbors(sharded.open_shard(n), nprobe))
                       for n in shard_numbers(len(sharded.shards), world.rank, world.size)]
 
     def search(self, rows, segments: np.ndarray, width: int) -> TopK:

@@ -16,7 +16,7 @@ from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.sequences.matching import unit_rows
 
-from seqvpr.sequences.settings import MatchSettings
+from seqvpr.sequences.match_settings import MatchSettings
 
 if TYPE_CHECKING:
     from seqvpr.models.seqmatchnet import FrameTransform

@@ -20,7 +20,7 @@ from seqvpr.matchers.rows import query_rows
 from seqvpr.results import TopK
 
 
-class Neighbours(Protocol):
+class Neighbors(Protocol):
     """The nearest reference rows of query rows: ``over`` is what the search holds vectors of (``frames``, or
     ``METHOD:L`` windows, whose search pools the query's windows itself), ``vectors`` how many it holds."""
 
@@ -38,11 +38,11 @@ class Shortlisted(Matcher):
     a query; an index over windows: each window's own S nearest), re-ranked by the matcher's window distance. Only
     a frame-matching matcher re-ranks such candidates, and only over the rows the search holds (no transform)."""
 
-    def __init__(self, matcher: Matcher, neighbours: Neighbours, shortlist: int, history: int = 0) -> None:
+    def __init__(self, matcher: Matcher, neighbors: Neighbors, shortlist: int, history: int = 0) -> None:
         check_shortlistable(matcher)
-        if history and neighbours.over != "frames":
-            raise SettingError(f"{{history}} needs an index over frames; this one is over {neighbours.over}")
-        self.matcher, self.neighbours, self.shortlist, self.history = matcher, neighbours, shortlist, history
+        if history and neighbors.over != "frames":
+            raise SettingError(f"{{history}} needs an index over frames; this one is over {neighbors.over}")
+        self.matcher, self.neighbors, self.shortlist, self.history = matcher, neighbors, shortlist, history
         self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
 
     @property
@@ -50,7 +50,7 @@ class Shortlisted(Matcher):
         return self.matcher.settings
 
     def with_settings(self, settings: MatchSettings) -> Shortlisted:
-        return Shortlisted(self.matcher.with_settings(settings), self.neighbours, self.shortlist, self.history)
+        return Shortlisted(self.matcher.with_settings(settings), self.neighbors, self.shortlist, self.history)
 
     def prepare_frame(self, frame, out=None):
         return self.matcher.prepare_frame(frame, out)
@@ -70,12 +70,12 @@ class Shortlisted(Matcher):
 
         settings = self.settings
         rows = query_rows(query, replace(settings, device="cpu", dtype="float32"))
-        shortlist, history = shortlist_size(self.shortlist, self.history, self.neighbours.vectors, len(query),
+        shortlist, history = shortlist_size(self.shortlist, self.history, self.neighbors.vectors, len(query),
                                             settings)
-        found = self.neighbours.search(rows, query.segment_ids, shortlist)
+        found = self.neighbors.search(rows, query.segment_ids, shortlist)
         spec, segments = settings.sequence, query.segment_ids
         starts = window_starts(segments, spec.length, spec.offset, spec.boundary)
-        if self.neighbours.over == "frames":
+        if self.neighbors.over == "frames":
             candidates = frame_shortlist(found.indices, starts, spec, len(reference), history=history,
                                          query_segments=segments)
         else:
@@ -87,13 +87,13 @@ class Shortlisted(Matcher):
         """The shortlist a frame at a time (``ShortlistStepper``): its cost independent of the reference's size."""
         from seqvpr.matchers.stream import ShortlistStepper
 
-        if self.neighbours.over != "frames":
+        if self.neighbors.over != "frames":
             raise SettingError(f"a {{shortlist}} a frame at a time needs an index over frames; this one is over "
-                              f"{self.neighbours.over}")
+                              f"{self.neighbors.over}")
         from seqvpr.matchers.sharded import is_sharded
 
         whole = reference.as_map() if is_sharded(reference) else reference  # a window's rows, read through its shards
-        return ShortlistStepper(self.matcher, whole, self.neighbours, self.shortlist, self.history, exclusion)
+        return ShortlistStepper(self.matcher, whole, self.neighbors, self.shortlist, self.history, exclusion)
 
 
 def check_shortlistable(matcher: Matcher) -> None:
@@ -121,7 +121,7 @@ def shortlist_size(shortlist: int, history: int, vectors: int, n_query: int, set
     return shortlist, history
 
 
-class ExactNeighbours:
+class ExactNeighbors:
     """Brute-force nearest reference frames (Euclidean, the tie rule's order): an exact stand-in for a flat index."""
 
     over = "frames"

@@ -12,7 +12,7 @@ from typing import Any
 
 from seqvpr.matchers.base import Matcher
 from seqvpr.matchers.sharded import Sharded, is_sharded
-from seqvpr.matchers.shortlisted import Neighbours, Shortlisted, check_shortlistable
+from seqvpr.matchers.shortlisted import Neighbors, Shortlisted, check_shortlistable
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,7 @@ class Shortlist:
     a brute-force search; opened once the matcher is known to take a shortlist), the ``size`` S nearest reference
     frames a query frame and the ``history`` H frames before each window that place candidates too."""
 
-    open: Callable[[], Neighbours]
+    open: Callable[[], Neighbors]
     size: int
     history: int = 0
 

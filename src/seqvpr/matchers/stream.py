@@ -176,16 +176,16 @@ class ShortlistStepper:
     reference rows of a frame), over the window and the ``history`` frames before it carried forward, re-ranked by
     the matcher's window distance; the cost is independent of the reference's size."""
 
-    def __init__(self, matcher: Any, reference: Reference, neighbours: Any, shortlist: int, history: int = 0,
+    def __init__(self, matcher: Any, reference: Reference, neighbors: Any, shortlist: int, history: int = 0,
                  exclusion: int = 10) -> None:
         from seqvpr.matchers.rows import kernel_rows
         from seqvpr.sequences.windows import window_starts
 
         length = matcher.settings.sequence.length
-        self.matcher, self.neighbours, self.length, self.k = matcher, neighbours, length, matcher.settings.k
+        self.matcher, self.neighbors, self.length, self.k = matcher, neighbors, length, matcher.settings.k
         self.rows = kernel_rows(reference, matcher.settings)
         self.exclusion, self.count, self.dim = exclusion, len(reference), reference.dim
-        self.shortlist = min(shortlist, max(neighbours.vectors, 1))  # more finds nothing more
+        self.shortlist = min(shortlist, max(neighbors.vectors, 1))  # more finds nothing more
         self.frames: deque[torch.Tensor] = deque(maxlen=length)
         self.found: deque[np.ndarray] = deque(maxlen=length + history)
         self.window_exists = window_starts(reference.segment_ids, length, length - 1, "drop") >= 0
@@ -196,7 +196,7 @@ class ShortlistStepper:
 
     def push(self, frame: FrameRow) -> Scored | None:
         started = time.perf_counter()
-        self.found.appendleft(self.neighbours.search(frame.row, np.zeros(1, np.int64), self.shortlist).indices[0])
+        self.found.appendleft(self.neighbors.search(frame.row, np.zeros(1, np.int64), self.shortlist).indices[0])
         self.frames.append(frame.vector.clone())  # the frame's buffer is reused
         measured = time.perf_counter()
         if len(self.frames) < self.length:
@@ -227,6 +227,6 @@ class ShortlistStepper:
 def found_candidates(found, count: int) -> np.ndarray:
     """Reference rows ending a candidate window: each neighbour of the frame ``lag`` frames ago (``found[lag]``),
     ``lag`` ahead, once each, inside the reference."""
-    rows = [neighbours[neighbours >= 0] + lag for lag, neighbours in enumerate(found)]
+    rows = [neighbors[neighbors >= 0] + lag for lag, neighbors in enumerate(found)]
     candidates = np.unique(np.concatenate(rows))
     return candidates[candidates < count]

@@ -118,8 +118,8 @@ class FrameEncoder(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Unit-norm frame descriptors [B, out_dim] of images [B, 3, H, W] in [0, 1]."""
         _check_images(images)
-        normalised = (images - self.mean.to(images.dtype)) / self.std.to(images.dtype)
-        local = nn.functional.normalize(self.backbone.features(normalised), dim=1)
+        normalized = (images - self.mean.to(images.dtype)) / self.std.to(images.dtype)
+        local = nn.functional.normalize(self.backbone.features(normalized), dim=1)
         return nn.functional.normalize(self.fc(self.gem(local)), dim=-1)
 
 

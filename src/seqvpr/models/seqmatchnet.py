@@ -31,7 +31,7 @@ class FrameTransform(nn.Module):
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         generator = torch.Generator().manual_seed(seed)
         for layer in self.layers:
-            _initialise(layer, config.init, generator)
+            _initialize(layer, config.init, generator)
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         if frames.shape[-1] != self.config.in_dim:
@@ -46,7 +46,7 @@ class FrameTransform(nn.Module):
         return nn.functional.normalize(x, dim=-1)
 
 
-def _initialise(layer: nn.Linear, init: Init, generator: torch.Generator) -> None:
+def _initialize(layer: nn.Linear, init: Init, generator: torch.Generator) -> None:
     """Seeded initialisation: PyTorch's default for Linear/Conv1d, or identity-like with zero bias."""
     with torch.no_grad():
         if init == "reference":

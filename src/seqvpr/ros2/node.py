@@ -116,8 +116,8 @@ class LocalizerNode:
                      self.settings.camera_type)
         encode(status_of({"state": ""}, 0, "", ZERO_STAMP, "", ""), STATUS)
         if self.track is not None:
-            localised = SimpleNamespace(status="localised", index=0, best=0)
-            encode(pose_of(localised, 0, self.track, ZERO_STAMP, ""), POSE)
+            localized = SimpleNamespace(status="localised", index=0, best=0)
+            encode(pose_of(localized, 0, self.track, ZERO_STAMP, ""), POSE)
         if self.localizer.encoder is not None:
             self.localizer.encoder.encode(Image.new("RGB", (64, 48)))
 

@@ -121,7 +121,7 @@ def _gathered_distances(query: torch.Tensor, reference: torch.Tensor, q_starts, 
 
 
 def frame_shortlist(
-    neighbours: np.ndarray,
+    neighbors: np.ndarray,
     query_starts: np.ndarray,
     spec: SequenceSpec,
     n_reference: int,
@@ -140,15 +140,15 @@ def frame_shortlist(
     """
     starts = np.asarray(query_starts, dtype=np.int64)
     has_window = starts >= 0
-    length, width = spec.length, neighbours.shape[1]
+    length, width = spec.length, neighbors.shape[1]
     positions = np.arange(-history, length)
     frames = np.maximum(starts, 0)[:, None] + positions[None, :]  # [n, H + L]
     usable = frames >= 0
     if history:
-        segments = np.zeros(len(neighbours), np.int64) if query_segments is None else np.asarray(query_segments)
+        segments = np.zeros(len(neighbors), np.int64) if query_segments is None else np.asarray(query_segments)
         own = segments[np.maximum(starts, 0)]
         usable &= segments[np.maximum(frames, 0)] == own[:, None]
-    found = neighbours[np.maximum(frames, 0)]  # [n, H + L, S]
+    found = neighbors[np.maximum(frames, 0)]  # [n, H + L, S]
     shift = spec.offset - positions[None, :, None]
     keep = (found >= 0) & usable[:, :, None]
     candidates = np.where(keep, found + shift, -1).reshape(len(starts), (history + length) * width)

@@ -111,7 +111,7 @@ class Look:
     zenith: tuple[float, float, float]
     horizon: tuple[float, float, float]
     clouds: float
-    cloud_colour: tuple[float, float, float]
+    cloud_color: tuple[float, float, float]
     fog: tuple[float, float, float]
     visibility: float  # metres for fog to take 63 % of a colour
     sky_fog: float  # how much the fog colour covers the sky
@@ -403,7 +403,7 @@ def _lamp_positions(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
 def _panels_from_walls(walls: list[tuple]) -> Panels:
     """Four wall panels per building footprint: the street facade and three side walls, outward-facing."""
     p0, p1, top, tpl, u0, tint, roof = [], [], [], [], [], [], []
-    for start, along, inward, width, depth, height, template, side_template, offset, colour in walls:
+    for start, along, inward, width, depth, height, template, side_template, offset, color in walls:
         a, b = start, start + along * width
         c, d = b + inward * depth, a + inward * depth
         # outward normal of p0->p1 is (dy, -dx) for counter-clockwise corners; order them so
@@ -419,7 +419,7 @@ def _panels_from_walls(walls: list[tuple]) -> Panels:
             top.append(height)
             tpl.append(template if is_front else side_template)
             u0.append(offset if is_front else 0.0)
-            tint.append(colour)
+            tint.append(color)
             roof.append(True)
     p0a, p1a = np.array(p0), np.array(p1)
     edge = p1a - p0a
@@ -445,12 +445,12 @@ def _facade_layout(rng: np.random.Generator) -> tuple[int, float, float]:
     return int(rng.integers(4, 9)), float(rng.uniform(3.6, 4.6)), float(rng.uniform(2.9, 3.5))
 
 
-_WALL_COLOURS = np.array([
+_WALL_COLORS = np.array([
     (0.56, 0.30, 0.22), (0.66, 0.38, 0.27), (0.78, 0.70, 0.55), (0.88, 0.84, 0.74), (0.62, 0.62, 0.60),
     (0.38, 0.38, 0.40), (0.90, 0.89, 0.86), (0.80, 0.60, 0.32), (0.58, 0.68, 0.76), (0.62, 0.72, 0.58),
     (0.47, 0.35, 0.27), (0.82, 0.66, 0.60), (0.70, 0.52, 0.42), (0.52, 0.50, 0.46),
 ], dtype=np.float32)
-_SIGN_COLOURS = np.array([
+_SIGN_COLORS = np.array([
     (0.8, 0.1, 0.1), (0.1, 0.3, 0.75), (0.1, 0.55, 0.2), (0.95, 0.75, 0.1), (0.1, 0.1, 0.1), (0.95, 0.95, 0.95),
     (0.6, 0.15, 0.55), (0.95, 0.45, 0.05), (0.05, 0.55, 0.6),
 ], dtype=np.float32)
@@ -459,7 +459,7 @@ _SNOW = np.array([0.93, 0.94, 0.97], dtype=np.float32)
 
 def _paint_wall(rng: np.random.Generator) -> np.ndarray:
     """A facade's bare wall (float [FACADE_H, FACADE_W, 3]): one colour with grain, brick courses in a third."""
-    wall = _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))] * rng.uniform(0.85, 1.1, 3).astype(np.float32)
+    wall = _WALL_COLORS[rng.integers(len(_WALL_COLORS))] * rng.uniform(0.85, 1.1, 3).astype(np.float32)
     grain = _periodic_noise(rng, FACADE_H, FACADE_W, 1.0) * 0.05 + _periodic_noise(rng, FACADE_H, FACADE_W, 12.0) * 0.06
     rgb = np.clip(wall[None, None, :] * (1.0 + grain[..., None]), 0, 1)
     if rng.random() < 0.35:  # brick courses
@@ -479,7 +479,7 @@ def _paint_facade(rng: np.random.Generator, snow: bool) -> np.ndarray:
     width = bay * rng.uniform(0.38, 0.62)
     win_h = storey * rng.uniform(0.42, 0.6)
     sill = rng.uniform(0.7, 0.95)
-    frame_colour = np.array((0.92, 0.92, 0.9) if rng.random() < 0.6 else (0.2, 0.18, 0.16), np.float32)
+    frame_color = np.array((0.92, 0.92, 0.9) if rng.random() < 0.6 else (0.2, 0.18, 0.16), np.float32)
     mullion = rng.random() < 0.5
     cornices = rng.random() < 0.5
     pilasters = rng.random() < 0.3
@@ -507,7 +507,7 @@ def _paint_facade(rng: np.random.Generator, snow: bool) -> np.ndarray:
     sky_reflection = np.array((0.06, 0.084, 0.12), np.float32)  # brighter towards the top of each window
     glass = np.array((0.1, 0.12, 0.16), np.float32) + (zf / storey)[..., None] * sky_reflection
     pane = np.where(curtained[floor, bay_i][..., None], curtains[floor, bay_i] * 0.8, glass)
-    rgb = np.where(in_frame[..., None], frame_colour, rgb)
+    rgb = np.where(in_frame[..., None], frame_color, rgb)
     rgb = np.where(in_win[..., None], pane, rgb)
     emission = np.where(in_win & lit[floor, bay_i], glow[floor, bay_i], emission)
     if snow:
@@ -524,7 +524,7 @@ def _paint_ground_floor(rng, rgb, emission, z, u, ground, bay, n_bays, snow) -> 
     bay_i = np.minimum((u // bay).astype(np.int64), n_bays - 1)
     door_bay = int(rng.integers(n_bays))
     if rng.random() < 0.6:
-        sign = _SIGN_COLOURS[rng.integers(len(_SIGN_COLOURS))]
+        sign = _SIGN_COLORS[rng.integers(len(_SIGN_COLORS))]
         ink = np.array((0.97, 0.97, 0.95) if sign.mean() < 0.6 else (0.08, 0.08, 0.1), np.float32)
         top_w = ground - 1.0
         display = low & (z > 0.35) & (z < top_w) & (np.abs(uf) < bay / 2 - 0.3)
@@ -546,8 +546,8 @@ def _paint_ground_floor(rng, rgb, emission, z, u, ground, bay, n_bays, snow) -> 
         if rng.random() < 0.4:
             stripes = (u // 0.5 % 2 == 0)
             awning = low & (z > top_w - 0.55) & (z < top_w) & (bay_i != door_bay)
-            colour = _SIGN_COLOURS[rng.integers(len(_SIGN_COLOURS))]
-            rgb = np.where((awning & stripes)[..., None], colour, np.where(awning[..., None], 0.92, rgb))
+            color = _SIGN_COLORS[rng.integers(len(_SIGN_COLORS))]
+            rgb = np.where((awning & stripes)[..., None], color, np.where(awning[..., None], 0.92, rgb))
             emission = np.where(awning, 0.0, emission)
         if snow:
             rgb = np.where((low & (z >= ground - 0.15) & (z < ground))[..., None], _SNOW, rgb)
@@ -566,7 +566,7 @@ def _paint_side_wall(rng: np.random.Generator, snow: bool) -> np.ndarray:
     """A plain side or back wall: one colour, grain, sparse small windows."""
     z = ((np.arange(FACADE_H) + 0.5) / PX_PER_M)[:, None]
     u = ((np.arange(FACADE_W) + 0.5) / PX_PER_M)[None, :]
-    wall = _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))] * np.float32(rng.uniform(0.75, 0.95))
+    wall = _WALL_COLORS[rng.integers(len(_WALL_COLORS))] * np.float32(rng.uniform(0.75, 0.95))
     grain = _periodic_noise(rng, FACADE_H, FACADE_W, 2.0) * 0.05 + _periodic_noise(rng, FACADE_H, FACADE_W, 20.0) * 0.08
     rgb = np.clip(wall[None, None, :] * (1.0 + grain[..., None]), 0, 1)
     cells = rng.random((12, 8)) < 0.18
@@ -844,7 +844,7 @@ def _visible_quads(world: World, cam: _Camera) -> tuple[np.ndarray, ...]:
 
 
 # The per-pixel work runs in numba kernels; a condition's look travels to them as one float vector.
-_L_AMBIENT, _L_SUN, _L_ZENITH, _L_HORIZON, _L_CLOUDS, _L_CLOUD_COLOUR = 0, 3, 4, 7, 10, 11
+_L_AMBIENT, _L_SUN, _L_ZENITH, _L_HORIZON, _L_CLOUDS, _L_CLOUD_COLOR = 0, 3, 4, 7, 10, 11
 _L_FOG, _L_VISIBILITY, _L_SKY_FOG, _L_LAMPS, _L_WINDOWS, _L_HEADLIGHTS = 14, 17, 18, 19, 20, 21
 _L_SNOW, _L_RAIN, _L_DUSK = 22, 23, 24
 
@@ -852,7 +852,7 @@ _L_SNOW, _L_RAIN, _L_DUSK = 22, 23, 24
 def _look_vector(look: Look) -> np.ndarray:
     """A look packed as the float vector the kernels read (layout in the _L_* offsets)."""
     return np.array([
-        *look.ambient, look.sun, *look.zenith, *look.horizon, look.clouds, *look.cloud_colour, *look.fog,
+        *look.ambient, look.sun, *look.zenith, *look.horizon, look.clouds, *look.cloud_color, *look.fog,
         look.visibility, look.sky_fog, look.lamps, look.windows, look.headlights, float(look.snow),
         float(look.rain), look.dusk_glow,
     ], dtype=np.float64)
@@ -990,7 +990,7 @@ def _ground_albedo(gx: float, gy: float, xs, ys, x_table, y_table, noise, lk) ->
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _sky_colour(elevation: float, azimuth: float, clouds, lk) -> tuple:
+def _sky_color(elevation: float, azimuth: float, clouds, lk) -> tuple:
     """Sky colour in a direction: horizon-to-zenith gradient, panorama clouds, a dusk glow in the west."""
     g = min(max(elevation / 0.6109, 0.0), 1.0)  # 35 degrees
     g = g * (2.0 - g)
@@ -1003,9 +1003,9 @@ def _sky_colour(elevation: float, azimuth: float, clouds, lk) -> tuple:
         c = clouds[ri, ci]
         cover = _smooth(0.5, 0.75, c) * lk[_L_CLOUDS]
         lum = 0.85 + 0.3 * (c - 0.5)
-        r = r * (1 - cover) + lk[_L_CLOUD_COLOUR] * lum * cover
-        gg = gg * (1 - cover) + lk[_L_CLOUD_COLOUR + 1] * lum * cover
-        b = b * (1 - cover) + lk[_L_CLOUD_COLOUR + 2] * lum * cover
+        r = r * (1 - cover) + lk[_L_CLOUD_COLOR] * lum * cover
+        gg = gg * (1 - cover) + lk[_L_CLOUD_COLOR + 1] * lum * cover
+        b = b * (1 - cover) + lk[_L_CLOUD_COLOR + 2] * lum * cover
     if lk[_L_DUSK] > 0:
         diff = (azimuth - 4.3633 + math.pi) % (2 * math.pi) - math.pi  # sun set in the west-south-west (250 deg)
         glow = lk[_L_DUSK] * math.exp(-(diff / 0.7) ** 2) * math.exp(-max(elevation, 0.0) / 0.12)
@@ -1022,7 +1022,7 @@ def _sky_panorama(clouds, lk):
     for i in range(rows):
         elevation = math.atan((i + 0.5) * SKY_STEP)
         for j in range(cols):
-            r, g, b = _sky_colour(elevation, (j + 0.5) / cols * 2 * math.pi, clouds, lk)
+            r, g, b = _sky_color(elevation, (j + 0.5) / cols * 2 * math.pi, clouds, lk)
             sky[i, j, 0], sky[i, j, 1], sky[i, j, 2] = r, g, b
     return sky
 
@@ -1057,7 +1057,7 @@ def _raycast_kernel(cx, cy, rays, p0, p1, depth, quad, along):
 
 
 @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-def _shade_pixels(colour, emission, horizon, focal, cx, cy, heading, rays, xc, depth, quad, along,
+def _shade_pixels(color, emission, horizon, focal, cx, cy, heading, rays, xc, depth, quad, along,
                   q_top, q_tpl, q_u0, q_tint, q_sun, q_roof, q_sprite, texels, col0, tw, th,
                   xs, ys, x_table, y_table, noise, light, sky, lk):
     """Every pixel's lit, fogged colour and its emission, column by column: the first opaque quad texel among
@@ -1154,7 +1154,7 @@ def _shade_pixels(colour, emission, horizon, focal, cx, cy, heading, rays, xc, d
                         head = _headlight_at(t, xc[c] * t, 0.0)
                 else:  # the sky panorama, by tangent of the elevation and by azimuth
                     ri = min(int((horizon - r - 0.5) / (focal * norm) / SKY_STEP), sky.shape[0] - 1)
-                    colour[r, c, 0], colour[r, c, 1], colour[r, c, 2] = sky[ri, ci, 0], sky[ri, ci, 1], sky[ri, ci, 2]
+                    color[r, c, 0], color[r, c, 1], color[r, c, 2] = sky[ri, ci, 0], sky[ri, ci, 1], sky[ri, ci, 2]
                     emission[r, c] = 0.0
                     continue
             lr = lk[_L_AMBIENT] * shade + lamps * lamp + headlights * head * 0.95
@@ -1166,14 +1166,14 @@ def _shade_pixels(colour, emission, horizon, focal, cx, cy, heading, rays, xc, d
                 pr += e * (0.55 + 0.6 * ar)
                 pg += e * (0.43 + 0.6 * ag)
                 pb += e * (0.25 + 0.6 * ab)
-            colour[r, c, 0] = pr * fog_keep + lk[_L_FOG] * (1 - fog_keep)
-            colour[r, c, 1] = pg * fog_keep + lk[_L_FOG + 1] * (1 - fog_keep)
-            colour[r, c, 2] = pb * fog_keep + lk[_L_FOG + 2] * (1 - fog_keep)
+            color[r, c, 0] = pr * fog_keep + lk[_L_FOG] * (1 - fog_keep)
+            color[r, c, 1] = pg * fog_keep + lk[_L_FOG + 1] * (1 - fog_keep)
+            color[r, c, 2] = pb * fog_keep + lk[_L_FOG + 2] * (1 - fog_keep)
             emission[r, c] = em * windows * fog_keep
 
 
 @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-def _finish_pixels(colour, glow, factor, noise, oy, ox, sigma, exposure, out):
+def _finish_pixels(color, glow, factor, noise, oy, ox, sigma, exposure, out):
     """Camera output: add the (bilinearly upsampled) glow, exposure, sensor noise; clip and quantise to uint8."""
     height, width = out.shape[0], out.shape[1]
     gh, gw = glow.shape
@@ -1199,9 +1199,9 @@ def _finish_pixels(colour, glow, factor, noise, oy, ox, sigma, exposure, out):
             g = ((glow[y0, x0] * (1 - wx) + glow[y0, x1] * wx) * (1 - wy)
                  + (glow[y1, x0] * (1 - wx) + glow[y1, x1] * wx) * wy) * 0.6
             n = nx[c]
-            v0 = (colour[r, c, 0] + g) * exposure + sigma * noise[ny, n, 0]
-            v1 = (colour[r, c, 1] + g * 0.8) * exposure + sigma * noise[ny, n, 1]
-            v2 = (colour[r, c, 2] + g * 0.55) * exposure + sigma * noise[ny, n, 2]
+            v0 = (color[r, c, 0] + g) * exposure + sigma * noise[ny, n, 0]
+            v1 = (color[r, c, 1] + g * 0.8) * exposure + sigma * noise[ny, n, 1]
+            v2 = (color[r, c, 2] + g * 0.55) * exposure + sigma * noise[ny, n, 2]
             out[r, c, 0] = np.uint8(int(min(max(v0, 0.0), 1.0) * 255.0 + 0.5))
             out[r, c, 1] = np.uint8(int(min(max(v1, 0.0), 1.0) * 255.0 + 0.5))
             out[r, c, 2] = np.uint8(int(min(max(v2, 0.0), 1.0) * 255.0 + 0.5))
@@ -1237,22 +1237,22 @@ def render_frame(world: World, position, heading_deg: float, condition: str, wid
     atlas = world.atlas(look.snow)
     light = world.light_map() if look.lamps > 0 else np.zeros((1, 1), np.float32)
     x_table, y_table = world.line_tables()
-    colour = np.empty((height, width, 3), np.float32)
+    color = np.empty((height, width, 3), np.float32)
     emission = np.empty((height, width), np.float32)
     _shade_pixels(
-        colour, emission, cam.horizon, cam.focal, cx, cy, cam.heading, cam.rays, cam.xc, depth, quad, along,
+        color, emission, cam.horizon, cam.focal, cx, cy, cam.heading, cam.rays, cam.xc, depth, quad, along,
         top, template, u0, tint, sunlit, roofline, sprite, atlas.texels, atlas.col0, atlas.width, atlas.height,
         world.xs, world.ys, x_table, y_table, world.ground_noise(), light, world.sky(condition), lk,
     )
     factor = 4
     glow = _blur(emission, factor) if look.windows > 0 else np.zeros((1, 1), np.float32)
     if look.rain:
-        _rain_streaks(rng, colour)
+        _rain_streaks(rng, color)
     noise = _sensor_noise()
     oy, ox = int(rng.integers(noise.shape[0])), int(rng.integers(noise.shape[1]))
     exposure = 1.0 + float(rng.normal(0.0, 0.03))
     out = np.empty((height, width, 3), np.uint8)
-    _finish_pixels(colour, glow.astype(np.float32), factor, noise, oy, ox, look.noise, exposure, out)
+    _finish_pixels(color, glow.astype(np.float32), factor, noise, oy, ox, look.noise, exposure, out)
     return out
 
 

@@ -27,7 +27,7 @@ def jitter_factors(rng: np.random.Generator, count: int, strength: float) -> tor
     return torch.as_tensor(factors, dtype=torch.float32).view(count, 1, 1, 1)
 
 
-def grey(images: torch.Tensor) -> torch.Tensor:
+def gray(images: torch.Tensor) -> torch.Tensor:
     """Luma [B, 1, H, W] of RGB images [B, 3, H, W]."""
     weights = torch.tensor(LUMA, dtype=images.dtype, device=images.device).view(1, 3, 1, 1)
     return (images * weights).sum(1, keepdim=True)
@@ -50,14 +50,14 @@ def turn_hue(images: torch.Tensor, turns: torch.Tensor) -> torch.Tensor:
     return torch.einsum("ij,bjhw->bihw", torch.linalg.inv(matrix), turned).clamp(0.0, 1.0)
 
 
-def colour_jitter(images: torch.Tensor, rng: np.random.Generator, jitter: float, hue: float) -> torch.Tensor:
+def color_jitter(images: torch.Tensor, rng: np.random.Generator, jitter: float, hue: float) -> torch.Tensor:
     """Brightness, contrast, saturation and hue changed per image, in that order (no change at 0 and 0)."""
     count = len(images)
     if jitter > 0:
         images = (images * jitter_factors(rng, count, jitter).to(images.device, images.dtype)).clamp(0.0, 1.0)
-        mean_grey = grey(images).mean(dim=(1, 2, 3), keepdim=True)
-        images = blend(images, mean_grey, jitter_factors(rng, count, jitter))
-        images = blend(images, grey(images), jitter_factors(rng, count, jitter))
+        mean_gray = gray(images).mean(dim=(1, 2, 3), keepdim=True)
+        images = blend(images, mean_gray, jitter_factors(rng, count, jitter))
+        images = blend(images, gray(images), jitter_factors(rng, count, jitter))
     if hue > 0:
         images = turn_hue(images, torch.as_tensor(rng.uniform(-hue, hue, size=count), dtype=torch.float32))
     return images
@@ -92,4 +92,4 @@ def augment_images(
     images: torch.Tensor, rng: np.random.Generator, jitter: float, hue: float, crop_scale: float
 ) -> torch.Tensor:
     """A random resized crop, then colour jitter, of a batch [B, 3, H, W] in [0, 1] (CosPlace's training views)."""
-    return colour_jitter(random_resized_crop(images, rng, crop_scale), rng, jitter, hue)
+    return color_jitter(random_resized_crop(images, rng, crop_scale), rng, jitter, hue)
