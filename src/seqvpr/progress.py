@@ -37,7 +37,7 @@ def logged_progress(total: int, label: str) -> Callable[[int], None]:
     return line_progress(total, label)
 
 
-def or_logged(progress: ProgressFactory | None) -> ProgressFactory:
+def progress_or_log(progress: ProgressFactory | None) -> ProgressFactory:
     """``progress``, else lines on the logger."""
     return progress if progress is not None else logged_progress
 

@@ -212,14 +212,14 @@ def test_only_a_localized_estimate_names_a_map_frame_a_position_and_a_name(tmp_p
 
 @pytest.mark.parametrize("gate", [0.0, 0.05])
 def test_restatus_gives_what_a_run_at_that_threshold_gives(route, gate):
-    from seqvpr.localization.replay import restatus
+    from seqvpr.localization.replay import at_threshold
 
     saved = open_map(route / "map")
     query = load_traversal(route / "qry.npz", "query")
     query = query.select(np.r_[0:50, 70:120])  # a segment break: the localiser restarts there
     run = replay(Localizer.open(saved, threshold=0.02, lost_after=3, keyframe_distance=gate), query)
     again = replay(Localizer.open(saved, threshold=0.2, lost_after=3, keyframe_distance=gate), query)
-    moved = restatus(run, 0.2, 3, "another")
+    moved = at_threshold(run, 0.2, 3, "another")
     assert len(set(again.status)) >= 3 and moved.threshold == 0.2 and moved.threshold_source == "another"
     np.testing.assert_array_equal(moved.status, again.status)
     np.testing.assert_array_equal(moved.index, again.index)

@@ -28,22 +28,23 @@ Examples:
 @click.option("--out", "out_file", required=True, type=OUT_FILE, help="The .db (its siblings beside it) or .npz.")
 @bag_topic_options("reference", "query")
 @locks_output("out_file")
-def convert(**o: Any) -> None:
+def convert(**options: Any) -> None:
     """Write SOURCE(s) as a .db struct + descriptors + seqBounds + dataset.toml, or as a traversal .npz."""
     from seqvpr.data.sources import load_traversal, save_traversal_npz
     from seqvpr.data.traversal import slice_frame_range
 
-    if o["target"] == "npz":
-        traversal = slice_frame_range(load_traversal(o["reference"], o["role"]), o["frames"])
+    if options["target"] == "npz":
+        traversal = slice_frame_range(load_traversal(options["reference"], options["role"]), options["frames"])
         if traversal.descriptors is None:
-            raise SeqvprError(f"{o['reference']}: images, not descriptors: describe them with seqvpr extract --out FILE.npz")
-        save_traversal_npz(Path(o["out_file"]), traversal)
-        click.echo(f"{o['out_file']}: {len(traversal)} frames, {len(set(traversal.segment_ids.tolist()))} segments")
+            raise SeqvprError(f"{options['reference']}: images, not descriptors: describe them with seqvpr extract --out FILE.npz")
+        save_traversal_npz(Path(options["out_file"]), traversal)
+        click.echo(f"{options['out_file']}: {len(traversal)} frames, {len(set(traversal.segment_ids.tolist()))} segments")
         return
-    if not o["query"] or not o["radius"]:
+    if not options["query"] or not options["radius"]:
         raise SeqvprError("--to dbstruct needs a --query and a --radius (the struct's posDistThr)")
-    written = write_dbstruct_set(Path(o["out_file"]), *(slice_frame_range(load_traversal(o[role], role), o["frames"])
-                                                        for role in ("reference", "query")), o["radius"])
+    written = write_dbstruct_set(Path(options["out_file"]), *(slice_frame_range(load_traversal(options[role], role),
+                                                                                options["frames"])
+                                                        for role in ("reference", "query")), options["radius"])
     click.echo("wrote " + ", ".join(str(p) for p in written))
 
 

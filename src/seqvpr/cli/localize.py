@@ -91,7 +91,7 @@ Examples:
 @option("Output", "--json", "as_json", is_flag=True, help="Print one JSON object instead of the summary.")
 @section("Input", bag_topic_options("query"))
 @locks_output("out_dir")
-def localize(**o: Any) -> None:
+def localize(**options: Any) -> None:
     """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""
     from seqvpr.data.sources import load_traversal
     from seqvpr.data.traversal import slice_frame_range
@@ -99,100 +99,104 @@ def localize(**o: Any) -> None:
     from seqvpr.localization.replay import replay
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
-    k_values = parse_ks(o["ks"])
-    if o["calibrate"] and not (o["radius"] or o["gt_file"]):
+    k_values = parse_ks(options["ks"])
+    if options["calibrate"] and not (options["radius"] or options["gt_file"]):
         raise SeqvprError("--calibrate needs ground truth: give --radius or --ground-truth")
-    if not 0.0 < o["target_precision"] <= 1.0:
-        raise SeqvprError(f"--target-precision must be in (0, 1], got {o['target_precision']}")
-    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("map_dir", "query", "gt_file", "resume_state",
-                                                                     "save_state")] + list(o["model_dirs"]))
+    if not 0.0 < options["target_precision"] <= 1.0:
+        raise SeqvprError(f"--target-precision must be in (0, 1], got {options['target_precision']}")
+    inputs = [options[k] for k in ("map_dir", "query", "gt_file", "resume_state", "save_state")]
+    check_replaceable(Path(options["out_dir"]), RUN_FILE, inputs + list(options["model_dirs"]))
     from seqvpr import distributed
 
-    with distributed.process_group(o["device"]) as world:  # under torchrun over a sharded map: ranks share it
-        localizer = open_localizer(o, max(k_values))
-        query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
-        gt = resolve_ground_truth(localizer.saved.frames, query, o["radius"], o["gt_file"], layout=o["gt_layout"]) \
-            if (o["radius"] or o["gt_file"]) else None
-        if o["resume_state"]:
-            localizer.restore(o["resume_state"])
+    with distributed.process_group(options["device"]) as world:  # under torchrun over a sharded map: ranks share it
+        localizer = open_localizer(options, max(k_values))
+        query = slice_frame_range(load_traversal(options["query"], "query"), options["frames"])
+        gt = resolve_ground_truth(localizer.saved.frames, query, options["radius"], options["gt_file"],
+                                  layout=options["gt_layout"]) \
+            if (options["radius"] or options["gt_file"]) else None
+        if options["resume_state"]:
+            localizer.restore(options["resume_state"])
         run = replay(localizer, query, tqdm_progress(len(query), "localize") if world.is_root else None)
     if not world.is_root:  # rank 0 reports and writes
         return
-    if o["save_state"]:
-        localizer.save_state(o["save_state"])
-    if o["calibrate"]:
-        run = _calibrate(o, localizer, run, gt)
+    if options["save_state"]:
+        localizer.save_state(options["save_state"])
+    if options["calibrate"]:
+        run = _calibrate(options, localizer, run, gt)
     elif localizer.uses_default_threshold:
         warnings.warn(f"threshold {localizer.threshold:g} is {localizer.threshold_source}", SeqvprWarning)
-    _report(o, localizer, run, gt, k_values)
+    _report(options, localizer, run, gt, k_values)
 
 
-def open_localizer(o: dict[str, Any], k: int):
+def open_localizer(options: dict[str, Any], k: int):
     """The localiser the options describe (settings checked before any frame is read)."""
     from seqvpr.localization import Localizer
     from seqvpr.sequences.filter import FilterSettings
 
-    steps = FilterSettings(o["min_step"], o["max_step"], o["floor"], o["sharpness"])
-    return Localizer.open(o["map_dir"], list(o["model_dirs"]) or None, o["device"], method=o["method"],
-                          seq_len=o["seq_len"], k=k, shortlist=o["shortlist"], history=o["history"],
-                          nprobe=o["nprobe"], threshold=o["threshold"], lost_after=o["lost_after"],
-                          exclusion=o["exclusion"], keyframe_distance=o["keyframe_distance"], filter=steps)
+    steps = FilterSettings(options["min_step"], options["max_step"], options["floor"], options["sharpness"])
+    return Localizer.open(options["map_dir"], list(options["model_dirs"]) or None, options["device"],
+                          method=options["method"],
+                          seq_len=options["seq_len"], k=k, shortlist=options["shortlist"], history=options["history"],
+                          nprobe=options["nprobe"], threshold=options["threshold"], lost_after=options["lost_after"],
+                          exclusion=options["exclusion"], keyframe_distance=options["keyframe_distance"], filter=steps)
 
 
-def _calibrate(o: dict[str, Any], localizer, run, gt):
+def _calibrate(options: dict[str, Any], localizer, run, gt):
     """Choose the threshold on this replay, store it in the map's localizer.json with what it was chosen on, and
     return the replay as it goes at that threshold (reported like any run)."""
     from datetime import datetime, timezone
 
     from seqvpr.localization.calibration import find_threshold
     from seqvpr.localization.localizer import calibration_source, store_calibration
-    from seqvpr.localization.replay import correct_best, restatus
+    from seqvpr.localization.replay import correct_best, at_threshold
 
     positives = int((run.scored & gt.has_positive()).sum())
-    found = find_threshold(run.score[run.scored], correct_best(run, gt)[run.scored], o["target_precision"], positives)
-    record = {"threshold": found.threshold, "target_precision": o["target_precision"], "precision": found.precision,
-              "recall": found.recall, "reached": found.reached, "calibration": str(o["query"]),
-              "query_frames": o["frames"], "ground_truth": _truth_text(o), "frames": int(run.scored.sum()),
+    found = find_threshold(run.score[run.scored], correct_best(run, gt)[run.scored], options["target_precision"],
+                           positives)
+    record = {"threshold": found.threshold, "target_precision": options["target_precision"],
+              "precision": found.precision,
+              "recall": found.recall, "reached": found.reached, "calibration": str(options["query"]),
+              "query_frames": options["frames"], "ground_truth": _truth_text(options), "frames": int(run.scored.sum()),
               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    store_calibration(o["map_dir"], localizer.settings, record)
+    store_calibration(options["map_dir"], localizer.settings, record)
     localizer.threshold, localizer.threshold_source = found.threshold, calibration_source(record)
-    if not o["as_json"]:
+    if not options["as_json"]:
         reached = "reached" if found.reached else "NOT reachable on this traversal (the threshold accepts nothing)"
-        click.echo(f"calibrated: threshold {found.threshold:.4f} for precision >= {o['target_precision']}: {reached}; "
-                   f"stored in {Path(o['map_dir']) / 'localizer.json'} for {localizer.settings.key()}\n"
+        click.echo(f"calibrated: threshold {found.threshold:.4f} for precision >= {options['target_precision']}: {reached}; "
+                   f"stored in {Path(options['map_dir']) / 'localizer.json'} for {localizer.settings.key()}\n"
                    "the figures below are on the frames it was chosen on", err=True)
-    return restatus(run, found.threshold, localizer.settings.lost_after, localizer.threshold_source)
+    return at_threshold(run, found.threshold, localizer.settings.lost_after, localizer.threshold_source)
 
 
-def _truth_text(o: dict[str, Any]) -> str | None:
+def _truth_text(options: dict[str, Any]) -> str | None:
     """The ground truth as given: ``radius R`` or the file."""
-    return f"radius {o['radius']}" if o["radius"] else (str(o["gt_file"]) if o["gt_file"] else None)
+    return f"radius {options['radius']}" if options["radius"] else (str(options["gt_file"]) if options["gt_file"] else None)
 
 
-def _report(o: dict[str, Any], localizer, run, gt, k_values) -> None:
+def _report(options: dict[str, Any], localizer, run, gt, k_values) -> None:
     """--out as one folder (``seqvpr.io.atomic_folder``): stream.csv, the report page and run.json last, swapped in
     whole; the summary (or JSON) on stdout."""
     from seqvpr.io import atomic_folder
     from seqvpr.localization.replay import correct_best, score_replay, write_stream
 
     scores = score_replay(run, gt, k_values) if gt is not None else None
-    summary = _summary(o, localizer, run, scores)
-    with atomic_folder(Path(o["out_dir"]), RUN_FILE) as tmp:
+    summary = _summary(options, localizer, run, scores)
+    with atomic_folder(Path(options["out_dir"]), RUN_FILE) as tmp:
         write_stream(tmp / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
         if scores is not None:
             _write_page(tmp / "report", summary, run, gt, localizer)
         (tmp / RUN_FILE).write_text(json.dumps(summary, indent=2))
-    click.echo(json.dumps(summary) if o["as_json"] else _summary_text(summary))
+    click.echo(json.dumps(summary) if options["as_json"] else _summary_text(summary))
 
 
-def _summary(o: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
+def _summary(options: dict[str, Any], localizer, run, scores) -> dict[str, Any]:
     """What the replay did and, with ground truth, how well: everything run.json holds."""
     from seqvpr.localization.localizer import stored_calibration
 
     statuses = {s: int((run.status == s).sum()) for s in ("warming up", "localised", "uncertain", "lost")}
-    calibration = stored_calibration(o["map_dir"], localizer.settings) if o["threshold"] is None else None
-    summary: dict[str, Any] = {"map": o["map_dir"], "query": o["query"], "query_frames": o["frames"],
-                               "ground_truth": _truth_text(o), "frames": len(run.best),
+    calibration = stored_calibration(options["map_dir"], localizer.settings) if options["threshold"] is None else None
+    summary: dict[str, Any] = {"map": options["map_dir"], "query": options["query"], "query_frames": options["frames"],
+                               "ground_truth": _truth_text(options), "frames": len(run.best),
                                "settings": localizer.settings.key(), "threshold": run.threshold,
                                "threshold_source": run.threshold_source, "calibration": calibration,
                                "target_precision": None if calibration is None else calibration["target_precision"],

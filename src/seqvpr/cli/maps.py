@@ -73,7 +73,7 @@ def map_group() -> None:
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,
-          seed: int, device: str, shards: int | None, overlap: int, **o: Any) -> None:
+          seed: int, device: str, shards: int | None, overlap: int, **options: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map (or as
     --shards shard maps)."""
     from seqvpr.io import check_replaceable
@@ -84,7 +84,7 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec or storage fails before any work
     parse_storage(dtype)
     check_replaceable(Path(out_dir), SHARDS_FILE if shards else INFO_FILE)
-    description, extraction = _description(o, device)
+    description, extraction = _description(options, device)
     models = _models(model_dirs, device)
 
     index = (spec, seed, windows, window_method, index_model)
@@ -260,15 +260,15 @@ def _echo_shards(map_dir: str) -> None:
                    f"index {'-' if not index else index['spec'] + ' over ' + index['over']}")
 
 
-def _description(o: dict[str, Any], device: str):
+def _description(options: dict[str, Any], device: str):
     """The FrameDescription of the extraction options, and describe()'s remaining keyword arguments."""
     from seqvpr.maps import FrameDescription
 
-    descriptor, patchnorm, extraction = extraction_settings(o, device)
+    descriptor, patchnorm, extraction = extraction_settings(options, device)
     extractor = extraction.pop("extractor")
     extraction.pop("device")
     source = click.get_current_context().get_parameter_source("image_size")
-    size = None if source in (click.core.ParameterSource.DEFAULT, None) else parse_thumbnail(o["image_size"])
+    size = None if source in (click.core.ParameterSource.DEFAULT, None) else parse_thumbnail(options["image_size"])
     return FrameDescription(descriptor, patchnorm, extractor, size), extraction
 
 

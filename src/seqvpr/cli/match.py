@@ -117,51 +117,53 @@ RETRIEVAL_METHODS = tuple(m.name for m in METHODS.values() if m.family in ("retr
 @option("Output", "--json", "as_json", is_flag=True, help="Print one JSON object on stdout instead of the table.")
 @section("Input", bag_topic_options("reference", "query"))
 @locks_output("out_dir")
-def match(**o: Any) -> None:
+def match(**options: Any) -> None:
     """Match QUERY against REFERENCE with sequences of --seq-len frames; print Recall@K and write predictions."""
-    k_values = _checked_options(o)
-    models, method = _models_and_method(o)
-    settings, search = _settings(o, method, models, k_values)
+    k_values = _checked_options(options)
+    models, method = _models_and_method(options)
+    settings, search = _settings(options, method, models, k_values)
     from seqvpr import distributed
     from seqvpr.api import match as match_reference
     from seqvpr.evaluation.scoring import evaluate_match
 
-    sides = _map_sides(o, settings) if o["map_dir"] else _traversal_sides(o, models, settings)
-    with distributed.process_group(o["device"]) as world:
-        result = match_reference(sides.reference, sides.query, method, models=models, settings=settings,
-                                 shortlist=o["shortlist"], history=o["history"], nprobe=o["nprobe"],
-                                 rerank=o["rerank"], index=o["index_kind"],
-                                 progress=tqdm_progress if world.is_root else None, cache_dir=o["cache_dir"],
-                                 skip_bad=o["skip_bad"], **search)
+    inputs = _map_sides(options, settings) if options["map_dir"] else _traversal_sides(options, models, settings)
+    with distributed.process_group(options["device"]) as world:
+        result = match_reference(inputs.reference, inputs.query, method, models=models, settings=settings,
+                                 shortlist=options["shortlist"], history=options["history"], nprobe=options["nprobe"],
+                                 rerank=options["rerank"], index=options["index_kind"],
+                                 progress=tqdm_progress if world.is_root else None, cache_dir=options["cache_dir"],
+                                 skip_bad=options["skip_bad"], **search)
     if result is None:  # another rank of a sharded match: rank 0 scores and writes
         return
-    evaluation = evaluate_match(result, sides.gt, k_values, o["no_positive"], o["uniqueness"])
-    run = _run_settings({**o, "reference": o["map_dir"] or o["reference"]}, method, models, sides.descriptor,
-                        sides.gt.description, {**settings.as_dict(), **search})
-    run.update(sides.record)
-    if sides.sharded:
+    evaluation = evaluate_match(result, inputs.gt, k_values, options["no_positive"], options["uniqueness"])
+    run = _run_settings({**options, "reference": options["map_dir"] or options["reference"]}, method, models,
+                        inputs.descriptor,
+                        inputs.gt.description, {**settings.as_dict(), **search})
+    run.update(inputs.record)
+    if inputs.sharded:
         run["ranks"] = world.size
-    if o["shortlist"]:
-        run["shortlist"] = _shortlist_record(o, result, sides.gt, sides.index_spec)
-    shown = (result.reference, result.query) if o["map_dir"] else (sides.reference, sides.query)
-    _write_and_print(o, result, sides.gt, evaluation, run, run_label(method, settings.sequence.length, o), shown)
+    if options["shortlist"]:
+        run["shortlist"] = _shortlist_record(options, result, inputs.gt, inputs.index_spec)
+    shown = (result.reference, result.query) if options["map_dir"] else (inputs.reference, inputs.query)
+    _write_and_print(options, result, inputs.gt, evaluation, run, run_label(method, settings.sequence.length, options), shown)
 
 
-def _settings(o: dict[str, Any], method: str, models: dict, k_values: tuple[int, ...]):
+def _settings(options: dict[str, Any], method: str, models: dict, k_values: tuple[int, ...]):
     """The one place the options become the library's settings: the match's (``seqvpr.api.match_settings``: L is
     the method's or its model's when -L is not given) and the method's own search settings."""
     from seqvpr.api import match_settings
     from seqvpr.sequences.windows import parse_steps, parse_velocities
 
-    settings = match_settings(method, models, o["seq_len"], k=_top_k(k_values, o["uniqueness"]), align=o["align"],
-                              boundary=o["boundary"], velocities=parse_velocities(o["velocities"]),
-                              normalize=not o["no_normalize"], dtype=o["dtype"], device=o["device"],
-                              memory_budget=parse_size(o["memory_budget"]))
-    return settings, {"steps": parse_steps(o["steps"]), "contrast_window": o["contrast_window"]}
+    settings = match_settings(method, models, options["seq_len"], k=_top_k(k_values, options["uniqueness"]),
+                              align=options["align"],
+                              boundary=options["boundary"], velocities=parse_velocities(options["velocities"]),
+                              normalize=not options["no_normalize"], dtype=options["dtype"], device=options["device"],
+                              memory_budget=parse_size(options["memory_budget"]))
+    return settings, {"steps": parse_steps(options["steps"]), "contrast_window": options["contrast_window"]}
 
 
 @dataclass(frozen=True)
-class Sides:
+class MatchInputs:
     """What a match reads: the reference as the matcher takes it (a described traversal, a saved or a sharded
     map), the query, their ground truth, the descriptor's name and run.json's entries about the reference."""
 
@@ -174,31 +176,32 @@ class Sides:
     index_spec: str | None = None
 
 
-def _traversal_sides(o: dict[str, Any], models: dict, settings) -> Sides:
+def _traversal_sides(options: dict[str, Any], models: dict, settings) -> MatchInputs:
     """``--reference`` and ``--query`` loaded, cut, checked against L, ground truth resolved, both described."""
     from seqvpr.data.sources import load_pair
     from seqvpr.methods import image_model
     from seqvpr.evaluation.ground_truth import ground_truth_of_kept, resolve_ground_truth
 
     _sharded_reference(None)
-    reference, query = load_pair(o["reference"], o["query"], o["frames"])
-    if o["msls_subtask"]:
-        query = _msls_subtask(o["query"], o["msls_subtask"], o["frames"])
+    reference, query = load_pair(options["reference"], options["query"], options["frames"])
+    if options["msls_subtask"]:
+        query = _msls_subtask(options["query"], options["msls_subtask"], options["frames"])
     _check_length(settings.sequence.length, reference, query)
-    gt = resolve_ground_truth(reference, query, o["radius"], o["gt_file"], o["reference"], whole=not o["frames"],
-                              layout=o["gt_layout"])
+    gt = resolve_ground_truth(reference, query, options["radius"], options["gt_file"], options["reference"],
+                              whole=not options["frames"],
+                              layout=options["gt_layout"])
     has_images = reference.image_paths is not None
     pair = (reference, query)
-    reference, query = _frames(reference, query, models, o)
+    reference, query = _frames(reference, query, models, options)
     gt = ground_truth_of_kept(gt, pair, (reference, query))
     _say_skipped(pair, (reference, query))
     image = image_model(models)
-    descriptor = image.kind if image else o["descriptor"] if has_images else "file"
-    record = {"image_size": list(_image_size(o) or image.image_size)} if image else {}
-    return Sides(reference, query, gt, descriptor, record)
+    descriptor = image.kind if image else options["descriptor"] if has_images else "file"
+    record = {"image_size": list(_image_size(options) or image.image_size)} if image else {}
+    return MatchInputs(reference, query, gt, descriptor, record)
 
 
-def _map_sides(o: dict[str, Any], settings) -> Sides:
+def _map_sides(options: dict[str, Any], settings) -> MatchInputs:
     """``--map`` opened (a sharded one as its shards), the query loaded and cut, checked against L, ground truth
     resolved on the map's frame table; the map describes the query as it described its frames."""
     from seqvpr.data.sources import load_traversal
@@ -206,35 +209,35 @@ def _map_sides(o: dict[str, Any], settings) -> Sides:
     from seqvpr.maps.files import open_map, open_sharded_map
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
-    sharded = _sharded_reference(o["map_dir"])
-    reference = open_sharded_map(o["map_dir"]) if sharded else open_map(o["map_dir"])
+    sharded = _sharded_reference(options["map_dir"])
+    reference = open_sharded_map(options["map_dir"]) if sharded else open_map(options["map_dir"])
     info = reference.open_shard(0).info if sharded else reference.info
-    _check_map_options(o, info.description["descriptor"])
-    query = slice_frame_range(load_traversal(o["query"], "query"), o["frames"])
+    _check_map_options(options, info.description["descriptor"])
+    query = slice_frame_range(load_traversal(options["query"], "query"), options["frames"])
     table = reference.frames
     _check_length(settings.sequence.length, table, query)
-    gt = resolve_ground_truth(table, query, o["radius"], o["gt_file"], layout=o["gt_layout"])
-    record = {"map": o["map_dir"], **({"shards": len(reference.shards)} if sharded else {})}
-    return Sides(reference, query, gt, info.description["descriptor"], record, sharded,
+    gt = resolve_ground_truth(table, query, options["radius"], options["gt_file"], layout=options["gt_layout"])
+    record = {"map": options["map_dir"], **({"shards": len(reference.shards)} if sharded else {})}
+    return MatchInputs(reference, query, gt, info.description["descriptor"], record, sharded,
                  (info.index or {}).get("spec"))
 
 
-def _checked_options(o: dict[str, Any]) -> tuple[int, ...]:
+def _checked_options(options: dict[str, Any]) -> tuple[int, ...]:
     """The options checked before any model or data is read: the K values parsed (returned), --out replaceable (and
     holding none of the inputs), the reference and shortlist options coherent."""
     from seqvpr.io import check_replaceable
 
-    k_values = parse_ks(o["ks"])
-    if o["pca_dim"] < 0:
-        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {o['pca_dim']}")
-    check_replaceable(Path(o["out_dir"]), RUN_FILE, [o[k] for k in ("reference", "query", "map_dir", "gt_file",
-                                                                     "cache_dir")] + list(o["model_dirs"]))
-    if bool(o["map_dir"]) == bool(o["reference"]):
+    k_values = parse_ks(options["ks"])
+    if options["pca_dim"] < 0:
+        raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {options['pca_dim']}")
+    inputs = [options[k] for k in ("reference", "query", "map_dir", "gt_file", "cache_dir")]
+    check_replaceable(Path(options["out_dir"]), RUN_FILE, inputs + list(options["model_dirs"]))
+    if bool(options["map_dir"]) == bool(options["reference"]):
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
-    if o["shortlist"] < 0 or (o["shortlist"] and not o["map_dir"]):
-        raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {o['shortlist']})")
-    if o["history"] < 0 or (o["history"] and not o["shortlist"]):
-        raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {o['history']})")
+    if options["shortlist"] < 0 or (options["shortlist"] and not options["map_dir"]):
+        raise SeqvprError(f"--shortlist S needs S >= 0 and a --map with an index (got {options['shortlist']})")
+    if options["history"] < 0 or (options["history"] and not options["shortlist"]):
+        raise SeqvprError(f"--shortlist-history H needs H >= 0 and a --shortlist (got {options['history']})")
     return k_values
 
 
@@ -262,13 +265,13 @@ def _top_k(k_values: tuple[int, ...], uniqueness: int | None) -> int:
     return max(max(k_values), 2 * uniqueness + 2 if uniqueness is not None else 0)
 
 
-def run_label(method: str, length: int, o: dict[str, Any]) -> str:
+def run_label(method: str, length: int, options: dict[str, Any]) -> str:
     """The table's row label: the method, L, and the re-ranking or shortlist that shaped the result."""
     label = f"{method} L={length}"
-    if o.get("rerank"):
-        label += f" + rerank {o['rerank']}"
-    if o.get("shortlist"):
-        label += f" + shortlist {o['shortlist']}" + (f" (history {o['history']})" if o.get("history") else "")
+    if options.get("rerank"):
+        label += f" + rerank {options['rerank']}"
+    if options.get("shortlist"):
+        label += f" + shortlist {options['shortlist']}" + (f" (history {options['history']})" if options.get("history") else "")
     return label
 
 
@@ -294,88 +297,89 @@ def _sharded_reference(map_dir: str | None) -> bool:
     return sharded
 
 
-def _shortlist_record(o: dict[str, Any], result, gt, index_spec: str) -> dict[str, Any]:
+def _shortlist_record(options: dict[str, Any], result, gt, index_spec: str) -> dict[str, Any]:
     """run.json's shortlist entry (its settings and recall), the recall printed."""
     from seqvpr.maps.match import shortlist_recall
 
-    record = {"per_frame": o["shortlist"], "history": o["history"], "index": index_spec, "nprobe": o["nprobe"],
+    record = {"per_frame": options["shortlist"], "history": options["history"], "index": index_spec,
+              "nprobe": options["nprobe"],
               "recall": shortlist_recall(result, gt)}
     click.echo(f"shortlist: {record['recall']:.3f} of the scored queries have a true place among their candidates",
                err=True)
     return record
 
 
-def _check_map_options(o: dict[str, Any], built: str) -> None:
+def _check_map_options(options: dict[str, Any], built: str) -> None:
     """With --map the map decides how frames are described: a different --descriptor, or --pca-dim, is an error."""
     from click.core import ParameterSource
 
-    if o["pca_dim"]:
+    if options["pca_dim"]:
         raise SeqvprError("--pca-dim does not apply to --map (build the map from whitened descriptors instead)")
     source = click.get_current_context().get_parameter_source("descriptor")
-    if source not in (ParameterSource.DEFAULT, None) and o["descriptor"] != built:
-        raise SeqvprError(f"--descriptor {o['descriptor']} differs from the map's {built} descriptors "
-                          f"({o['map_dir']}): leave it out, the map decides")
+    if source not in (ParameterSource.DEFAULT, None) and options["descriptor"] != built:
+        raise SeqvprError(f"--descriptor {options['descriptor']} differs from the map's {built} descriptors "
+                          f"({options['map_dir']}): leave it out, the map decides")
 
 
-def _models_and_method(o: dict[str, Any]) -> tuple[dict, str]:
+def _models_and_method(options: dict[str, Any]) -> tuple[dict, str]:
     """The --model folders loaded by kind, and the method (--method or the models' own), checked together."""
     from seqvpr.methods import check_run, implied_method
     from seqvpr.models.registry import load_models, model_kinds
 
-    kinds = model_kinds(o["model_dirs"])
-    method = o["method"] or implied_method(kinds)
-    check_run(method, kinds, o["rerank"])  # before any model or data is read (-L: with the settings)
-    if "jist" in kinds and o["pca_dim"]:
+    kinds = model_kinds(options["model_dirs"])
+    method = options["method"] or implied_method(kinds)
+    check_run(method, kinds, options["rerank"])  # before any model or data is read (-L: with the settings)
+    if "jist" in kinds and options["pca_dim"]:
         raise SeqvprError("--pca-dim does not apply to a JIST --model (its SeqGeM pools the encoder's own descriptors)")
-    return load_models(kinds.values(), o["device"]), method
+    return load_models(kinds.values(), options["device"]), method
 
 
-def _frames(reference, query, models: dict, o: dict[str, Any]):
+def _frames(reference, query, models: dict, options: dict[str, Any]):
     """Frame descriptors for the method: the image model's (JIST, CosPlace) or the extraction options', then
     PCA-whitened if asked."""
     from seqvpr.methods import describe_for_models
     from seqvpr.features.describe import describe_pair, whiten_pair
 
-    descriptor, patchnorm, extraction = extraction_settings(o, o["device"])
+    descriptor, patchnorm, extraction = extraction_settings(options, options["device"])
     reference, query = describe_for_models(
         reference, query, models,
-        lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), o["device"],
-        _image_size(o),
+        lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), options["device"],
+        _image_size(options),
     )
-    if not o["pca_dim"]:
+    if not options["pca_dim"]:
         return reference, query
-    reference, query, used = whiten_pair(reference, query, o["pca_dim"])
-    if used < o["pca_dim"]:
+    reference, query, used = whiten_pair(reference, query, options["pca_dim"])
+    if used < options["pca_dim"]:
         click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
     return reference, query
 
 
-def _image_size(o: dict[str, Any]) -> tuple[int, int] | None:
+def _image_size(options: dict[str, Any]) -> tuple[int, int] | None:
     """--image-size when given on the command line (it overrides a model's own image size), else None."""
     from click.core import ParameterSource
 
     source = click.get_current_context().get_parameter_source("image_size")
     if source in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None):
         return None
-    return parse_thumbnail(o["image_size"], "--image-size")
+    return parse_thumbnail(options["image_size"], "--image-size")
 
 
-def _run_settings(o: dict[str, Any], method: str, models: dict, descriptor: str, rule: str, match: dict) -> dict:
+def _run_settings(options: dict[str, Any], method: str, models: dict, descriptor: str, rule: str, match: dict) -> dict:
     """Everything that decided the run, for run.json."""
-    folders = [str(f) for f in o["model_dirs"]]
+    folders = [str(f) for f in options["model_dirs"]]
     kinds = list(models)
     return {
-        "reference": o["reference"], "query": o["query"], "frames": o["frames"], "radius": o["radius"],
-        "ground_truth": o["gt_file"], "ground_truth_rule": rule, "descriptor": descriptor, "method": method,
-        "index": None if METHODS[method].family == "matching" else o["index_kind"], "rerank": o["rerank"],
-        "pooling": o["pooling"], "pca_dim": o["pca_dim"], "no_positive": o["no_positive"],
-        "image_normalization": o["normalize"] if descriptor.startswith("torchscript:") else None,
+        "reference": options["reference"], "query": options["query"], "frames": options["frames"], "radius": options["radius"],
+        "ground_truth": options["gt_file"], "ground_truth_rule": rule, "descriptor": descriptor, "method": method,
+        "index": None if METHODS[method].family == "matching" else options["index_kind"], "rerank": options["rerank"],
+        "pooling": options["pooling"], "pca_dim": options["pca_dim"], "no_positive": options["no_positive"],
+        "image_normalization": options["normalize"] if descriptor.startswith("torchscript:") else None,
         "model": folders[0] if len(folders) == 1 else folders or None,
         "model_kind": kinds[0] if len(kinds) == 1 else kinds or None, **match,
     }
 
 
-def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label: str, pair) -> None:
+def _write_and_print(options: dict[str, Any], result, gt, evaluation, run: dict, label: str, pair) -> None:
     """--out as one folder (``seqvpr.io.atomic_folder``): predictions.csv, correspondences.csv (when the method pairs
     frames) and run.json last, swapped in whole; then the table (or one JSON object) on stdout."""
     from seqvpr.evaluation.predictions import save_correspondences, save_match_predictions
@@ -383,14 +387,14 @@ def _write_and_print(o: dict[str, Any], result, gt, evaluation, run: dict, label
     from seqvpr.io import atomic_folder
     from seqvpr.evaluation.scoring import match_correspondences
 
-    out = Path(o["out_dir"])
+    out = Path(options["out_dir"])
     pairs = match_correspondences(result)
     with atomic_folder(out, RUN_FILE) as tmp:
         save_match_predictions(tmp / "predictions.csv", result, gt)
         if pairs is not None:
             save_correspondences(tmp / "correspondences.csv", result, pairs, gt)
         (tmp / RUN_FILE).write_text(json.dumps(evaluation_json(evaluation, run), indent=2, default=str))
-    if o["as_json"]:
+    if options["as_json"]:
         click.echo(json.dumps(evaluation_json(evaluation, run), default=str))
         return
     click.echo(f"reference: {pair[0]!r}\nquery:     {pair[1]!r}\nground truth: {gt.description}")
@@ -449,16 +453,16 @@ Examples:
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
 @bag_topic_options("images", "cluster_images")
 @locks_output("out_file")
-def extract(images, cluster_images, role, device, out_file, **o: Any) -> None:
+def extract(images, cluster_images, role, device, out_file, **options: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
-    descriptor, patchnorm, extraction = extraction_settings(o, device)
+    descriptor, patchnorm, extraction = extraction_settings(options, device)
     from seqvpr.data.sources import load_traversal, save_traversal_npz
     from seqvpr.features.describe import describe, dropped_frames, netvlad_extractor
 
     traversal = load_traversal(images, role)
     if traversal.image_paths is None:
         raise SeqvprError(f"{images}: holds descriptors, not images; nothing to extract")
-    if descriptor != "patchnorm" and o["pooling"] == "netvlad":
+    if descriptor != "patchnorm" and options["pooling"] == "netvlad":
         source = load_traversal(cluster_images, "reference") if cluster_images else traversal
         if source.image_paths is None:
             raise SeqvprError(f"{cluster_images}: --cluster-images must be a traversal of images")

@@ -353,19 +353,19 @@ extraction_options = with_options([
 ])
 
 
-def extraction_settings(o: dict[str, Any], device: str = "cpu") -> tuple[str, Any, dict[str, Any]]:
+def extraction_settings(options: dict[str, Any], device: str = "cpu") -> tuple[str, Any, dict[str, Any]]:
     """The parsed extraction options: descriptor name, patchnorm config, keyword arguments of ``describe``."""
-    width, height = parse_thumbnail(o["thumbnail"])
-    image_width, image_height = parse_thumbnail(o["image_size"], "--image-size")
+    width, height = parse_thumbnail(options["thumbnail"])
+    image_width, image_height = parse_thumbnail(options["image_size"], "--image-size")
     from seqvpr.features.extraction import ExtractorConfig
     from seqvpr.features.patchnorm import PatchNormConfig
 
-    descriptor = o["descriptor"]
-    backbone, weights, mean, std = _encoder(descriptor, o["weights"], o["normalize"])
-    config = ExtractorConfig(backbone, weights, o["pooling"], image_width, image_height, o["extract_batch"],
-                             o["clusters"], mean, std)
-    return descriptor, PatchNormConfig(width, height, o["patch"]), {
-        "extractor": config, "device": device, "cache_dir": o["cache_dir"], "skip_bad": o["skip_bad"],
+    descriptor = options["descriptor"]
+    backbone, weights, mean, std = _encoder(descriptor, options["weights"], options["normalize"])
+    config = ExtractorConfig(backbone, weights, options["pooling"], image_width, image_height, options["extract_batch"],
+                             options["clusters"], mean, std)
+    return descriptor, PatchNormConfig(width, height, options["patch"]), {
+        "extractor": config, "device": device, "cache_dir": options["cache_dir"], "skip_bad": options["skip_bad"],
     }
 
 

@@ -38,7 +38,7 @@ Examples:
 @option("Output", "--frame-id", default="map", show_default=True, help="The frame_id of the published pose.")
 @option("Output", "--state", type=OUT_FILE, help="Save the localiser's state here on SIGTERM or SIGINT.")
 @option("Localiser", "--restore", is_flag=True, help="Start from the state saved in --state.")
-def node(**o: Any) -> None:
+def node(**options: Any) -> None:
     """Localise a live camera topic: each frame's estimate on /seqvpr/pose (PoseWithCovarianceStamped, not while
     warming up or lost) and /seqvpr/status (DiagnosticArray); /seqvpr/reset (std_msgs/Empty) restarts it."""
     from seqvpr.cli.localize import open_localizer
@@ -49,26 +49,26 @@ def node(**o: Any) -> None:
     from seqvpr.ros2.node import POSE_TOPIC, RESET_TOPIC, STATUS_TOPIC, LocalizerNode, NodeSettings
 
     require_cyclonedds()
-    if o["gps_topic"] and o["odom_topic"]:
+    if options["gps_topic"] and options["odom_topic"]:
         raise SeqvprError("give --gps-topic or --odom-topic, not both")
-    if o["restore"] and not o["state"]:
+    if options["restore"] and not options["state"]:
         raise SeqvprError("--restore starts from the state in --state: give --state PATH")
-    if o["restore"] and not Path(o["state"]).is_file():
-        raise SeqvprError(f"--restore: {o['state']}: no such state file")
-    localizer = open_localizer(o, LocalizerSettings.k)  # the localiser's own top-K: the status shows the best
-    fix_topic = o["gps_topic"] or o["odom_topic"]
-    settings = NodeSettings(o["camera"], camera_type(o["camera"], o["image_type"]), fix_topic,
-                            (NAVSATFIX if o["gps_topic"] else ODOMETRY) if fix_topic else None, o["no_drop"],
-                            o["frame_id"], Path(o["state"]) if o["state"] else None)
-    bus = Bus(o["domain"])
+    if options["restore"] and not Path(options["state"]).is_file():
+        raise SeqvprError(f"--restore: {options['state']}: no such state file")
+    localizer = open_localizer(options, LocalizerSettings.k)  # the localiser's own top-K: the status shows the best
+    fix_topic = options["gps_topic"] or options["odom_topic"]
+    settings = NodeSettings(options["camera"], camera_type(options["camera"], options["image_type"]), fix_topic,
+                            (NAVSATFIX if options["gps_topic"] else ODOMETRY) if fix_topic else None, options["no_drop"],
+                            options["frame_id"], Path(options["state"]) if options["state"] else None)
+    bus = Bus(options["domain"])
     running = LocalizerNode(localizer, bus, settings)
-    if o["restore"]:
+    if options["restore"]:
         running.restore(settings.state)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     policy = "every frame in order" if settings.keep_all else "the newest frame when behind"
-    click.echo(f"seqvpr node: {o['map_dir']} ({localizer.saved.info.count} frames, {localizer.settings.method}); "
+    click.echo(f"seqvpr node: {options['map_dir']} ({localizer.saved.info.count} frames, {localizer.settings.method}); "
                f"listening on {settings.camera} ({settings.camera_type}, {policy}) in domain {bus.domain}; publishing "
                f"{POSE_TOPIC if running.track is not None else '(no pose: the map has no positions)'} and "
                f"{STATUS_TOPIC}; {RESET_TOPIC} restarts", err=True)
@@ -91,7 +91,7 @@ Examples:
 @click.option("--wait", type=NONNEGATIVE_FLOAT, default=2.0, show_default=True,
               help="Seconds to wait for a subscriber to the camera topic before the first frame (0: none).")
 @click.option("--domain", type=DOMAIN, help="DDS domain  [default: $ROS_DOMAIN_ID, else 0].")
-def play(**o: Any) -> None:
+def play(**options: Any) -> None:
     """Publish a bag's camera topic (and position topic) live over DDS at its recorded rate, as ros2 bag play."""
     from seqvpr.cli.progress import tqdm_progress
     from seqvpr.data.loaders.rosbag import BagTopics, is_rosbag
@@ -99,14 +99,15 @@ def play(**o: Any) -> None:
     from seqvpr.ros2.play import play_bag
 
     require_cyclonedds()
-    if not is_rosbag(Path(o["bag"])):
-        raise SeqvprError(f"{o['bag']}: not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
-    if o["gps_topic"] and o["odom_topic"]:
+    if not is_rosbag(Path(options["bag"])):
+        raise SeqvprError(f"{options['bag']}: not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if options["gps_topic"] and options["odom_topic"]:
         raise SeqvprError("give --gps-topic or --odom-topic, not both")
-    topics = BagTopics(o["topic"], o["gps_topic"], o["odom_topic"])
-    played = play_bag(o["bag"], topics, Bus(o["domain"]), o["rate"], o["frames"], o["wait"],
+    topics = BagTopics(options["topic"], options["gps_topic"], options["odom_topic"])
+    played = play_bag(options["bag"], topics, Bus(options["domain"]), options["rate"], options["frames"],
+                      options["wait"],
                       tqdm_progress)
-    heard = "" if played.matched or o["wait"] == 0 else " (no subscriber matched before the first frame)"
+    heard = "" if played.matched or options["wait"] == 0 else " (no subscriber matched before the first frame)"
     click.echo(f"played {played.frames} frames of {played.camera_topic}"
                + (f" and {played.fixes} fixes of {played.position_topic}" if played.position_topic else "")
                + f" in {played.seconds:.1f} s{heard}")

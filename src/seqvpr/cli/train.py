@@ -108,36 +108,36 @@ run_options = with_options([
 ])
 
 
-def settings_from_options(o: dict, kind: type = SeqMatchNetSettings, **model_fields: Any):
+def settings_from_options(options: dict, kind: type = SeqMatchNetSettings, **model_fields: Any):
     """The settings object of ``kind`` (SeqMatchNetSettings or SeqNetSettings) the shared options describe."""
     from seqvpr.sequences.windows import SequenceSpec
 
-    pool = o["negative_pool"]
+    pool = options["negative_pool"]
     try:
         pool_size = None if str(pool).lower() == "all" else int(pool)
     except ValueError:
         raise SeqvprError(f"--negative-pool {pool!r}: expected a number or 'all'") from None
     return kind(
-        sequence=SequenceSpec(o["seq_len"], o["align"], o["boundary"]),
-        margin=o["margin"], negatives=o["negatives"], negative_pool=pool_size, refresh_every=o["refresh_every"],
-        batch_size=o["batch_size"], epochs=o["epochs"], optimizer=o["optimizer"], lr=o["lr"],
-        momentum=o["momentum"], weight_decay=o["weight_decay"], lr_step=o["lr_step"], lr_gamma=o["lr_gamma"],
-        select_k=o["select_k"], ks=parse_ks(o["ks"]), select_untrained=o["select_untrained"], seed=o["seed"],
-        device=o["device"], **model_fields,
+        sequence=SequenceSpec(options["seq_len"], options["align"], options["boundary"]),
+        margin=options["margin"], negatives=options["negatives"], negative_pool=pool_size, refresh_every=options["refresh_every"],
+        batch_size=options["batch_size"], epochs=options["epochs"], optimizer=options["optimizer"], lr=options["lr"],
+        momentum=options["momentum"], weight_decay=options["weight_decay"], lr_step=options["lr_step"], lr_gamma=options["lr_gamma"],
+        select_k=options["select_k"], ks=parse_ks(options["ks"]), select_untrained=options["select_untrained"], seed=options["seed"],
+        device=options["device"], **model_fields,
     )
 
 
-def transform_from_options(o: dict, dim: int):
+def transform_from_options(options: dict, dim: int):
     from seqvpr.models.configs import TransformConfig
 
     try:
-        hidden = tuple(int(h) for h in o["hidden"].split(",") if h.strip())
+        hidden = tuple(int(h) for h in options["hidden"].split(",") if h.strip())
     except ValueError:
-        raise SeqvprError(f"--hidden {o['hidden']!r}: expected comma-separated sizes, e.g. 4096") from None
-    return TransformConfig(dim, o["out_dim"], hidden, o["init"])
+        raise SeqvprError(f"--hidden {options['hidden']!r}: expected comma-separated sizes, e.g. 4096") from None
+    return TransformConfig(dim, options["out_dim"], hidden, options["init"])
 
 
-def described_data(kind: str, o: dict):
+def described_data(kind: str, options: dict):
     """The training data of the options, images described as patch-normalised thumbnails; with the whole described
     training pair and the patchnorm config (for the ablation's test split)."""
     from seqvpr.data.ground_truth import parse_radius
@@ -145,14 +145,14 @@ def described_data(kind: str, o: dict):
     from seqvpr.features.describe import describe_pair
     from seqvpr.training.data import training_data, training_pairs
 
-    width, height = parse_thumbnail(o["thumbnail"])
-    config = PatchNormConfig(width, height, o["patch"])
+    width, height = parse_thumbnail(options["thumbnail"])
+    config = PatchNormConfig(width, height, options["patch"])
     prepare = lambda r, q: describe_pair(r, q, "patchnorm", config, tqdm_progress)  # noqa: E731
     train, validation, whole = training_pairs(
-        o["reference"], o["query"], o["train_frames"], o["val_frames"], prepare, frames=o["frames"],
-        val_reference=o["val_reference"], val_query=o["val_query"],
+        options["reference"], options["query"], options["train_frames"], options["val_frames"], prepare, frames=options["frames"],
+        val_reference=options["val_reference"], val_query=options["val_query"],
     )
-    radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
+    radii = [parse_radius(options[key]) if options[key] else None for key in ("radius", "pos_radius", "neg_radius")]
     return training_data(kind, train, validation, *radii), whole, config
 
 
@@ -186,13 +186,13 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5):
 @run_options
 @bag_topic_options("reference", "query", "val_reference", "val_query")
 @locks_output("out_dir")
-def train_seqmatchnet_command(out_dir, resume, **o) -> None:
+def train_seqmatchnet_command(out_dir, resume, **options) -> None:
     """SeqMatchNet: a per-frame transform trained with a sequence-matching triplet loss and sequence mining."""
     from seqvpr.training.seqmatchnet import train_seqmatchnet
 
-    settings = settings_from_options(o)
-    data, _, _ = described_data("seqmatchnet", o)
-    result = train_seqmatchnet(data, transform_from_options(o, data.dim), settings, out_dir, resume=resume,
+    settings = settings_from_options(options)
+    data, _, _ = described_data("seqmatchnet", options)
+    result = train_seqmatchnet(data, transform_from_options(options, data.dim), settings, out_dir, resume=resume,
                                monitor=TqdmMonitor())
     echo_best(result.best_epoch, result.best_recall, result.folder)
 
@@ -210,13 +210,13 @@ Example (Nordland, summer reference, winter query, +-1 frame, L=5, w=3):
 @run_options
 @bag_topic_options("reference", "query", "val_reference", "val_query")
 @locks_output("out_dir")
-def train_seqnet_command(out_dir, resume, w, out_dim, **o) -> None:
+def train_seqnet_command(out_dir, resume, w, out_dim, **options) -> None:
     """SeqNet: a temporal Conv1d over each window of frame descriptors, one descriptor per sequence, trained with a
     triplet loss and hard negatives mined in its own descriptor space (velocity 1)."""
     from seqvpr.training.seqnet import train_seqnet
 
-    settings = settings_from_options(o, SeqNetSettings, w=w, out_dim=out_dim)
-    data, _, _ = described_data("seqnet", o)
+    settings = settings_from_options(options, SeqNetSettings, w=w, out_dim=out_dim)
+    data, _, _ = described_data("seqnet", options)
     result = train_seqnet(data, settings, out_dir, resume=resume, monitor=TqdmMonitor())
     echo_best(result.best_epoch, result.best_recall, result.folder)
 
@@ -284,19 +284,19 @@ jist_options = with_options([
 ])
 
 
-def jist_values(o: dict) -> dict[str, Any]:
+def jist_values(options: dict) -> dict[str, Any]:
     """The JIST options as the flat table ``training.jist.jist_setup`` takes (the benchmark's ``[jist]`` table);
     None where an option was not given (``training.settings.with_recipe`` fills it)."""
-    width, height = parse_thumbnail(o["image_size"], "--image-size") if o["image_size"] else (None, None)
+    width, height = parse_thumbnail(options["image_size"], "--image-size") if options["image_size"] else (None, None)
     return {
-        "backbone": o["backbone"], "weights": o["weights"], "out_dim": o["out_dim"],
-        "trainable_stages": parse_stages(o["trainable_stages"]), "seq_length": o["seq_len"], "lr": o["lr"],
-        "classifier_lr": o["classifier_lr"], "epochs": o["epochs"], "refreshes": o["refreshes"],
-        "max_iterations": o["max_iterations"], "batch_size": o["batch_size"],
-        "images_per_batch": o["images_per_batch"], "width": width, "height": height, "cell_m": o["cell_size"],
-        "min_images": o["min_images"], "select_k": o["select_k"], "ks": parse_ks(o["ks"]), "device": o["device"],
-        "seed": o["seed"], "select_untrained": o["select_untrained"], "jitter": o["jitter"], "hue": o["hue"],
-        "crop_scale": o["crop_scale"], "seqgem_normalize": o["seqgem_normalize"], "branches": o["branches"],
+        "backbone": options["backbone"], "weights": options["weights"], "out_dim": options["out_dim"],
+        "trainable_stages": parse_stages(options["trainable_stages"]), "seq_length": options["seq_len"], "lr": options["lr"],
+        "classifier_lr": options["classifier_lr"], "epochs": options["epochs"], "refreshes": options["refreshes"],
+        "max_iterations": options["max_iterations"], "batch_size": options["batch_size"],
+        "images_per_batch": options["images_per_batch"], "width": width, "height": height, "cell_m": options["cell_size"],
+        "min_images": options["min_images"], "select_k": options["select_k"], "ks": parse_ks(options["ks"]), "device": options["device"],
+        "seed": options["seed"], "select_untrained": options["select_untrained"], "jitter": options["jitter"], "hue": options["hue"],
+        "crop_scale": options["crop_scale"], "seqgem_normalize": options["seqgem_normalize"], "branches": options["branches"],
     }
 
 
@@ -316,7 +316,7 @@ Examples:
 @run_options
 @bag_topic_options("reference", "query", "val_reference", "val_query", "class_images")
 @locks_output("out_dir")
-def train_jist_command(out_dir, resume, **o) -> None:
+def train_jist_command(out_dir, resume, **options) -> None:
     """JIST: an image encoder and SeqGeM trained jointly on sequence triplets and CosPlace classification of
     single images, from the traversals' images (best epoch by validation Recall@K)."""
     from seqvpr.data.ground_truth import parse_radius
@@ -325,14 +325,16 @@ def train_jist_command(out_dir, resume, **o) -> None:
     from seqvpr.training.settings import with_recipe
 
     train_pair, validation, _ = training_pairs(
-        o["reference"], o["query"], o["train_frames"], o["val_frames"], lambda r, q: (r, q), frames=o["frames"],
-        val_reference=o["val_reference"], val_query=o["val_query"],
+        options["reference"], options["query"], options["train_frames"], options["val_frames"], lambda r, q: (r,
+                                                                                                              q), frames=options["frames"],
+        val_reference=options["val_reference"], val_query=options["val_query"],
     )
-    radii = [parse_radius(o[key]) if o[key] else None for key in ("radius", "pos_radius", "neg_radius")]
-    values = with_recipe(jist_values(o), frame_size(train_pair[0]))
+    radii = [parse_radius(options[key]) if options[key] else None for key in ("radius", "pos_radius", "neg_radius")]
+    values = with_recipe(jist_values(options), frame_size(train_pair[0]))
     config, settings = jist_setup(values)
     data = training_data("jist", train_pair, validation, *radii)
-    classification = classification_traversals(data, o["class_images"], o["train_frames"], o["frames"])
+    classification = classification_traversals(data, options["class_images"], options["train_frames"],
+                                               options["frames"])
     result = train_jist(data, config, settings, out_dir, resume=resume, monitor=TqdmMonitor(),
                         classification=classification)
     echo_best(result.best_epoch, result.best_recall, result.folder)
@@ -359,17 +361,17 @@ Example (SeqMatchNet Table 1 on Nordland):
               help="Folder with one run per variant, ablation.csv and ablation.md.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
 @bag_topic_options("reference", "query", "val_reference", "val_query", "test_reference", "test_query")
-def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **o) -> None:
+def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_radius, out_dir, as_json, **options) -> None:
     """SeqMatchNet Table 1: loss {single, seqmatch} x mining {single, seqmatch}, plus untransformed descriptors."""
     from seqvpr.data.ground_truth import ground_truth_within_radius, parse_radius
     from seqvpr.evaluation.summary import recall_rows
     from seqvpr.experiments.ablation import ablation_json, run_ablation, write_ablation
 
-    settings = settings_from_options(o)
-    data, whole, config = described_data("seqmatchnet", o)
-    test_ref, test_qry = _test_split(o, whole, config, test_frames, test_reference, test_query)
-    gt = ground_truth_within_radius(test_qry, test_ref, parse_radius(test_radius or o["radius"]))
-    rows = run_ablation(data, test_ref, test_qry, gt, transform_from_options(o, data.dim), settings, out_dir,
+    settings = settings_from_options(options)
+    data, whole, config = described_data("seqmatchnet", options)
+    test_ref, test_qry = _test_split(options, whole, config, test_frames, test_reference, test_query)
+    gt = ground_truth_within_radius(test_qry, test_ref, parse_radius(test_radius or options["radius"]))
+    rows = run_ablation(data, test_ref, test_qry, gt, transform_from_options(options, data.dim), settings, out_dir,
                         monitor=lambda name: TqdmMonitor(f"{name} "))
     csv_path, md_path = write_ablation(rows, settings.ks, out_dir)
     if as_json:
@@ -380,7 +382,7 @@ def ablate_seqmatchnet_command(test_frames, test_reference, test_query, test_rad
     click.echo(f"tables: {md_path}, {csv_path}")
 
 
-def _test_split(o: dict, whole, config, test_frames: str, test_reference: str | None, test_query: str | None):
+def _test_split(options: dict, whole, config, test_frames: str, test_reference: str | None, test_query: str | None):
     """The ablation's test pair: from its own sources, or a split of the training traversals disjoint from the
     training and validation frames."""
     from seqvpr.data.sources import load_pair
@@ -388,11 +390,11 @@ def _test_split(o: dict, whole, config, test_frames: str, test_reference: str | 
     from seqvpr.features.describe import describe_pair
 
     if test_reference or test_query:
-        pair = load_pair(test_reference or o["reference"], test_query or o["query"], o["frames"])
+        pair = load_pair(test_reference or options["reference"], test_query or options["query"], options["frames"])
         whole = describe_pair(*pair, "patchnorm", config, tqdm_progress)
     else:
-        check_disjoint(o["train_frames"], test_frames, ("--train-frames", "--test-frames"))
-        check_disjoint(o["val_frames"], test_frames, ("--val-frames", "--test-frames"))
+        check_disjoint(options["train_frames"], test_frames, ("--train-frames", "--test-frames"))
+        check_disjoint(options["val_frames"], test_frames, ("--val-frames", "--test-frames"))
     return tuple(slice_frame_range(t, test_frames, "--test-frames") for t in whole)
 
 
@@ -412,7 +414,7 @@ then the joint model at L = 3, 5, 10 and with each test window's frames reversed
               help="Folder with one run per variant, the starting model, SeqNet's run, ablation.csv and ablation.md.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the tables.")
 @bag_topic_options("reference", "query", "val_reference", "val_query", "class_images")
-def ablate_jist_command(test_frames, variants, out_dir, as_json, **o) -> None:
+def ablate_jist_command(test_frames, variants, out_dir, as_json, **options) -> None:
     """JIST's ablation: joint training against each branch alone, untrained SeqGeM, SeqNet and sequence matching on
     one split and budget, and the joint model's robustness to the window's length and frame order."""
     from seqvpr.data.ground_truth import parse_radius
@@ -424,17 +426,18 @@ def ablate_jist_command(test_frames, variants, out_dir, as_json, **o) -> None:
     from seqvpr.training.jist import frame_size
     from seqvpr.training.settings import with_recipe
 
-    for other, name in ((o["train_frames"], "--train-frames"), (o["val_frames"], "--val-frames")):
+    for other, name in ((options["train_frames"], "--train-frames"), (options["val_frames"], "--val-frames")):
         check_disjoint(other, test_frames, (name, "--test-frames"))
     train, select, whole = training_pairs(
-        o["reference"], o["query"], o["train_frames"], o["val_frames"], lambda r, q: (r, q), frames=o["frames"],
-        val_reference=o["val_reference"], val_query=o["val_query"],
+        options["reference"], options["query"], options["train_frames"], options["val_frames"], lambda r, q: (r,
+                                                                                                              q), frames=options["frames"],
+        val_reference=options["val_reference"], val_query=options["val_query"],
     )
     test = tuple(slice_frame_range(t, test_frames, "--test-frames") for t in whole)
-    radius = parse_radius(o["radius"])
-    values = with_recipe(jist_values(o), frame_size(train[0]))
-    classification = classification_traversals(training_data("jist", train, select, radius), o["class_images"],
-                                               o["train_frames"], o["frames"])
+    radius = parse_radius(options["radius"])
+    values = with_recipe(jist_values(options), frame_size(train[0]))
+    classification = classification_traversals(training_data("jist", train, select, radius), options["class_images"],
+                                               options["train_frames"], options["frames"])
     split = JistSplit(train, select, test, radius)  # type: ignore[arg-type]
     chosen = [v.strip() for v in variants.split(",") if v.strip()]
     rows = run_jist_ablation(split, values, out_dir, classification=classification, variants=chosen,
@@ -447,7 +450,7 @@ def ablate_jist_command(test_frames, variants, out_dir, as_json, **o) -> None:
                                "robustness": [{"windows": c, **{n: e.recall[1] for n, e in s.items()}}
                                               for c, s in robustness]}))
         return
-    click.echo(f"recipe: {values['recipe']}; test frames {test_frames}, radius {radius}, L={o['seq_len']}")
+    click.echo(f"recipe: {values['recipe']}; test frames {test_frames}, radius {radius}, L={options['seq_len']}")
     click.echo(ablation_markdown(rows))
     if robustness:
         click.echo("\n" + robustness_markdown(robustness))

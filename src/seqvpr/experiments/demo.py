@@ -30,7 +30,7 @@ from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.progress import ProgressFactory
 from seqvpr.evaluation.report import DistanceView, MethodResult, QueryExample, write_report
 from seqvpr.sequences.windows import SequenceSpec
-from seqvpr.progress import LOGGER, or_logged
+from seqvpr.progress import LOGGER, progress_or_log
 from seqvpr.threads import ensure_policy
 
 if TYPE_CHECKING:
@@ -214,7 +214,7 @@ def run_demo(
 ) -> DemoResult:
     """Render, describe, match at every L, train and apply SeqMatchNet, and write ``out/report``."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
-    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
+    progress = progress_or_log(progress)  # a Python caller's progress goes to the seqvpr logger
     seconds: dict[str, float] = {}
     clock = time.perf_counter()
 

@@ -83,7 +83,7 @@ def _collect(query: Traversal, estimates: Sequence[Estimate], k: int) -> Replay:
                   np.array([e.kept for e in estimates]), starts)
 
 
-def restatus(run: Replay, threshold: float, lost_after: int, source: str) -> Replay:
+def at_threshold(run: Replay, threshold: float, lost_after: int, source: str) -> Replay:
     """The replay as it would have gone at another threshold (``--calibrate`` reports at the threshold it chose):
     each frame's status from the scores, as the localiser decides it, and the localised frames with it."""
     status, misses, starts = run.status.copy(), 0, set(run.starts.tolist())

@@ -39,7 +39,7 @@ from seqvpr.models.registry import TrainedModel
 from seqvpr.features.describe import describe
 from seqvpr.progress import ProgressFactory
 from seqvpr.sequences.matching import unit_rows
-from seqvpr.progress import or_logged
+from seqvpr.progress import progress_or_log
 from seqvpr.threads import ensure_policy
 
 #: model kinds whose output a map stores: image encoders (the frames) and SeqMatchNet (the transformed frames)
@@ -178,7 +178,7 @@ def described_map(sources: Sequence[str], name: str, description: FrameDescripti
     SeqMatchNet model if given, laid end to end (each source its own segments) and L2-normalised (as matching does)
     unless told not to: the frames, their rows read a chunk at a time, and the map's ``map.json`` record."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
-    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
+    progress = progress_or_log(progress)  # a Python caller's progress goes to the seqvpr logger
     models = dict(models or {})
     unusable = [kind for kind in models if kind not in STORED_KINDS]
     if unusable:

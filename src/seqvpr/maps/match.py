@@ -20,7 +20,7 @@ from seqvpr.matchers.base import Matcher
 from seqvpr.results import MatchResult
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers.rows import transformed_by
-from seqvpr.progress import ProgressFactory, or_logged
+from seqvpr.progress import ProgressFactory, progress_or_log
 from seqvpr.threads import ensure_policy
 
 
@@ -124,7 +124,7 @@ def match_map(
     from seqvpr.matchers.stack import Shortlist, assemble
 
     ensure_policy()  # the one thread policy (seqvpr.threads)
-    progress = or_logged(progress)  # a Python caller's progress goes to the seqvpr logger
+    progress = progress_or_log(progress)  # a Python caller's progress goes to the seqvpr logger
     world = ranks or distributed.current()
     described = reference.open_shard(0) if is_sharded(reference) else reference  # the description its frames share
     chosen = distributed.everywhere(lambda: map_method(described, method, settings, models, rerank), world)
