@@ -86,3 +86,47 @@ def test_equal_distances_rank_the_lower_reference_row_first_whatever_the_candida
         top = rerank(query, reference, shortlist, spec)
         for row in top.indices[1:-1]:  # queries with a window
             assert list(row).index(3) < list(row).index(8)  # as the kernel, and a sharded map's merge, order ties
+
+
+class Rows:
+    """Rows that are neither a tensor nor an array (coded rows, rows read through shards): indexed by row lists."""
+
+    def __init__(self, array: np.ndarray) -> None:
+        self.array, self.shape = array, array.shape
+
+    def __getitem__(self, rows):
+        return self.array[rows]
+
+
+@settings(max_examples=examples(30), deadline=None)
+@given(st.integers(1, 6), st.integers(1, 40), st.integers(0, 2**31 - 1))
+def test_the_candidate_form_is_the_plain_loop_for_every_container_and_batch_size(length, candidates, seed):
+    """``candidate_distances`` (the sequence family's candidate form, what re-ranking and the streaming shortlist
+    score with) against the plain loop; a tensor, an array and any other rows give the same numbers, bit for bit,
+    whether the compiled pass runs serially (few windows) or in parallel (many)."""
+    from seqvpr.sequences import _fused
+    from seqvpr.sequences.rerank import candidate_distances
+    from tests.oracles import window_distance
+
+    rng = np.random.default_rng(seed)
+    query, reference = rng.normal(size=(12, 5)).astype(np.float32), rng.normal(size=(60, 5)).astype(np.float32)
+    q_starts = rng.integers(0, 12 - length + 1, 3)
+    r_starts = np.where(rng.random((3, candidates)) < 0.2, -1, rng.integers(0, 60 - length + 1, (3, candidates)))
+    found = candidate_distances(torch.from_numpy(query), torch.from_numpy(reference), q_starts, r_starts, length)
+    for i, c in np.ndindex(r_starts.shape):
+        if r_starts[i, c] < 0:
+            assert found[i, c] == np.inf
+        else:
+            expected = window_distance(query[q_starts[i]:q_starts[i] + length],
+                                       reference[r_starts[i, c]:r_starts[i, c] + length])
+            assert abs(found[i, c] - expected) < 1e-5
+    for rows in (reference, Rows(reference)):
+        np.testing.assert_array_equal(candidate_distances(torch.from_numpy(query), rows, q_starts, r_starts, length),
+                                      found)
+    serial = _fused.SERIAL_WINDOWS
+    try:
+        _fused.SERIAL_WINDOWS = 0  # every size in parallel
+        parallel = candidate_distances(torch.from_numpy(query), reference, q_starts, r_starts, length)
+    finally:
+        _fused.SERIAL_WINDOWS = serial
+    np.testing.assert_array_equal(parallel, found)

@@ -297,35 +297,53 @@ def topk_update_(rows: np.ndarray, first: int, values: np.ndarray, indices: np.n
     _topk_update(rows, first, values, indices)
 
 
+@njit(cache=True, nogil=True, boundscheck=False)
+def _window_row(query, reference, qs, starts, length, out):
+    """One query window (rows from ``qs``) against its candidate windows (rows from ``starts[c]``; -1: +inf): the mean
+    of order-aligned frame distances, each summed in float64."""
+    for c in range(starts.shape[0]):
+        rs = starts[c]
+        if rs < 0:
+            out[c] = np.inf
+            continue
+        total = 0.0
+        for k in range(length):
+            q = query[qs + k]
+            r = reference[rs + k]
+            squared = 0.0
+            for d in range(q.shape[0]):
+                diff = np.float64(q[d]) - np.float64(r[d])
+                squared += diff * diff
+            total += np.sqrt(max(squared, 1e-12))
+        out[c] = total / length
+
+
 @njit(cache=True, parallel=True, boundscheck=False)
 def _window_distances(query, reference, query_starts, reference_starts, length, out):
     for i in prange(reference_starts.shape[0]):
-        qs = query_starts[i]
-        for c in range(reference_starts.shape[1]):
-            rs = reference_starts[i, c]
-            if rs < 0:
-                out[i, c] = np.inf
-                continue
-            total = 0.0
-            for k in range(length):
-                q = query[qs + k]
-                r = reference[rs + k]
-                squared = 0.0
-                for d in range(q.shape[0]):
-                    diff = np.float64(q[d]) - np.float64(r[d])
-                    squared += diff * diff
-                total += np.sqrt(max(squared, 1e-12))
-            out[i, c] = total / length
+        _window_row(query, reference, query_starts[i], reference_starts[i], length, out[i])
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _window_distances_serial(query, reference, query_starts, reference_starts, length, out):
+    for i in range(reference_starts.shape[0]):
+        _window_row(query, reference, query_starts[i], reference_starts[i], length, out[i])
+
+
+SERIAL_WINDOWS = 4096  # candidate windows below which they are scored in the calling thread: a stream's few hundred
+#                        would otherwise launch a pool whose threads contend with the shortlist's faiss search
 
 
 def window_distances(query: np.ndarray, reference: np.ndarray, query_starts: np.ndarray,
                      reference_starts: np.ndarray, length: int) -> np.ndarray:
     """Sequence distances [n, C] between the query window starting at ``query_starts[i]`` and the reference
     windows starting at ``reference_starts[i, c]`` (-1: none, +inf), read straight from the (possibly
-    memory-mapped) rows: no [n, C, L, D] gather."""
+    memory-mapped) rows: no [n, C, L, D] gather. Few windows are scored serially, many in parallel: the same
+    numbers either way."""
     out = np.empty(reference_starts.shape, dtype=np.float64)
-    _window_distances(query, reference, np.ascontiguousarray(query_starts, dtype=np.int64),
-                      np.ascontiguousarray(reference_starts, dtype=np.int64), length, out)
+    kernel = _window_distances_serial if reference_starts.size < SERIAL_WINDOWS else _window_distances
+    kernel(query, reference, np.ascontiguousarray(query_starts, dtype=np.int64),
+           np.ascontiguousarray(reference_starts, dtype=np.int64), length, out)
     return out
 
 
