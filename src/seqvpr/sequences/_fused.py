@@ -299,8 +299,7 @@ def topk_update_(rows: np.ndarray, first: int, values: np.ndarray, indices: np.n
 
 @njit(cache=True, nogil=True, boundscheck=False)
 def _window_row(query, reference, qs, starts, length, out):
-    """One query window (rows from ``qs``) against its candidate windows (rows from ``starts[c]``; -1: +inf): the mean
-    of order-aligned frame distances, each summed in float64."""
+    """One query window (from ``qs``) against its candidates (from ``starts[c]``; -1: +inf), float64 sums."""
     for c in range(starts.shape[0]):
         rs = starts[c]
         if rs < 0:
@@ -330,16 +329,14 @@ def _window_distances_serial(query, reference, query_starts, reference_starts, l
         _window_row(query, reference, query_starts[i], reference_starts[i], length, out[i])
 
 
-SERIAL_WINDOWS = 4096  # candidate windows below which they are scored in the calling thread: a stream's few hundred
-#                        would otherwise launch a pool whose threads contend with the shortlist's faiss search
+SERIAL_WINDOWS = 4096  # fewer windows are scored in the calling thread (a stream's: no pool contending with faiss)
 
 
 def window_distances(query: np.ndarray, reference: np.ndarray, query_starts: np.ndarray,
                      reference_starts: np.ndarray, length: int) -> np.ndarray:
-    """Sequence distances [n, C] between the query window starting at ``query_starts[i]`` and the reference
-    windows starting at ``reference_starts[i, c]`` (-1: none, +inf), read straight from the (possibly
-    memory-mapped) rows: no [n, C, L, D] gather. Few windows are scored serially, many in parallel: the same
-    numbers either way."""
+    """Sequence distances [n, C] between the query window starting at ``query_starts[i]`` and the reference windows
+    starting at ``reference_starts[i, c]`` (-1: +inf), read straight from the (memory-mapped) rows: no [n, C, L, D]
+    gather. Few windows are scored serially, many in parallel: the same numbers either way."""
     out = np.empty(reference_starts.shape, dtype=np.float64)
     kernel = _window_distances_serial if reference_starts.size < SERIAL_WINDOWS else _window_distances
     kernel(query, reference, np.ascontiguousarray(query_starts, dtype=np.int64),
