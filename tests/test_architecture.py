@@ -224,3 +224,20 @@ def test_functions_and_modules_stay_small():
     big = [str(p.relative_to(SRC)) for p in PACKAGE.rglob("*.py")
            if len(p.read_text().splitlines()) > 500 and p.name != "world.py"]  # the renderer is the exception
     assert big == []
+
+
+def test_modules_of_one_name_are_one_concept_at_two_layers_and_say_so():
+    """Two modules of one name (in different packages) must be the same concept at two layers, and each module's
+    docstring names the other; any other pair is renamed."""
+    by_name: dict[str, list[Path]] = {}
+    for path in PACKAGE.rglob("*.py"):
+        if path.name != "__init__.py":
+            by_name.setdefault(path.name, []).append(path)
+    unexplained = []
+    for paths in by_name.values():
+        for path in paths:
+            docstring = ast.get_docstring(ast.parse(path.read_text())) or ""
+            for other in paths:
+                if other != path and f"``{module_name(other)}``" not in docstring:
+                    unexplained.append(f"{module_name(path)} does not name {module_name(other)}")
+    assert unexplained == []

@@ -1,7 +1,9 @@
 """Progress of long work, one mechanism for the command line and for Python: a progress factory
 ``(total, label) -> update(n)``. The CLI passes its own (a bar on a terminal, else lines); a Python caller who
 passes none gets lines on the ``seqvpr`` logger, silent until logging is turned on
-(``logging.basicConfig(level=logging.INFO)``), as a library should be."""
+(``logging.basicConfig(level=logging.INFO)``), as a library should be.
+
+Same name as ``seqvpr.cli.progress``: progress as the library reports it; the command line's bars there."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""``seqvpr match``, ``seqvpr eval`` and ``seqvpr extract``: parse, call the library, print."""
+"""``seqvpr match``, ``seqvpr eval`` and ``seqvpr extract``: parse, call the library, print.
+
+Same name as ``seqvpr.maps.match``: matching at the command line; matching against a map there."""
 
 from __future__ import annotations
 

@@ -1,5 +1,7 @@
 """Progress on stderr: a tqdm bar on a terminal, else (a log, CI, nohup, ssh) a progress line at least every
-``LINE_SECONDS``; and one summary line per training epoch."""
+``LINE_SECONDS``; and one summary line per training epoch.
+
+Same name as ``seqvpr.progress``: the command line's progress bars; the library's mechanism there."""
 
 from __future__ import annotations
 

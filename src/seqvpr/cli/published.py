@@ -1,4 +1,6 @@
-"""``seqvpr import``: a published checkpoint into a seqvpr model folder. Parse, call the library, print."""
+"""``seqvpr import``: a published checkpoint into a seqvpr model folder. Parse, call the library, print.
+
+Same name as ``seqvpr.models.published``: the import command; reading the checkpoints there."""
 
 from __future__ import annotations
 

@@ -3,6 +3,8 @@
 A ``GroundTruth`` is a boolean sparse matrix laid out [n_query, n_reference] over the rows of two traversals.
 It is built from a radius (metres on positions, or frames on frame indices) or read from a file, and never held
 as a dense n_query x n_reference array.
+
+Same name as ``seqvpr.evaluation.ground_truth``: the ground-truth type and radii; resolving a match's there.
 """
 
 from __future__ import annotations

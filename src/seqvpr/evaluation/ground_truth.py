@@ -1,5 +1,7 @@
 """Ground truth of a match: from a radius, a ground-truth file or a description file's table, for the rows two
-traversals hold (after any frames were cut or left out)."""
+traversals hold (after any frames were cut or left out).
+
+Same name as ``seqvpr.data.ground_truth``: ground truth resolved for a match; the type and radii there."""
 
 from __future__ import annotations
 

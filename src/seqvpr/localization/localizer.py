@@ -26,7 +26,7 @@ import torch
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, SettingError, reading
 from seqvpr.io import atomic_write
-from seqvpr.localization.state import (
+from seqvpr.localization.saved_state import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
     read_calibration_file,
 )

@@ -19,6 +19,8 @@
 ``map.json`` is written last, inside a temporary folder that is renamed to MAP when complete, so a half-built
 map never carries the name. A sharded map (``shards.json`` beside ``shard-000/`` ... maps; ``seqvpr.maps.shards``
 makes and matches them) is read here too, and ``open_map`` opens it as the whole map, rows read through its shards.
+
+Same name as ``seqvpr.models.files``: the same concept (an artifact's folder on disk) for a map; a model's there.
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
 """Matching a query against a saved or a sharded map: the query described as the map's frames were, the models
 checked against the ones the map went through, then the method's matcher stacked for the map (``matchers.assemble``:
 its shards, its index's shortlist) as for any reference (frame matching reads the map chunk by chunk;
-sequence-descriptor methods pool its frames)."""
+sequence-descriptor methods pool its frames).
+
+Same name as ``seqvpr.cli.match``: matching against a map; the command that calls it there."""
 
 from __future__ import annotations
 

@@ -1,6 +1,8 @@
 """The topological filter (an HMM forward pass over reference frames), offline over a whole query or one frame at
 a time: stops and speed changes are its transitions, distances its likelihoods (scale calibrated on the
-reference). Distances in its top-K are 1 - belief mass."""
+reference). Distances in its top-K are 1 - belief mass.
+
+Same name as ``seqvpr.sequences.filter``: the filter as a family's matcher; its algorithm there."""
 
 from __future__ import annotations
 

@@ -1,5 +1,7 @@
 """Graph matching (GISM-style): the cheapest whole path through the frame distances, moving MIN..MAX reference
-frames a query frame, with a hidden node for jumps. It scores whole paths over the whole query: offline only."""
+frames a query frame, with a hidden node for jumps. It scores whole paths over the whole query: offline only.
+
+Same name as ``seqvpr.sequences.graph``: graph matching as a family's matcher; its algorithm there."""
 
 from __future__ import annotations
 

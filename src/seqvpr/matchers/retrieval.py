@@ -1,5 +1,7 @@
 """Retrieval by one sequence descriptor per window (smoothing, Delta, concatenation, SeqGeM, a trained SeqNet or
-JIST's SeqGeM) searched with a faiss index: the compact alternative to frame sequence matching."""
+JIST's SeqGeM) searched with a faiss index: the compact alternative to frame sequence matching.
+
+Same name as ``seqvpr.sequences.retrieval``: retrieval as a family's matcher; the faiss search there."""
 
 from __future__ import annotations
 

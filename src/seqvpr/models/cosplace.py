@@ -7,6 +7,8 @@ conv1, ``backbone.1`` bn1 and ``backbone.4..7`` layer1..layer4; ``aggregation = 
 Linear, L2Norm)``, so ``aggregation.1.p`` is GeM's p and ``aggregation.3.*`` the Linear layer. ``seqvpr_name`` and
 ``upstream_key`` translate between those keys and the ``FrameEncoder``'s names (JIST's files hold the same keys
 under ``model.``).
+
+Same name as ``seqvpr.training.cosplace``: CosPlace at the model layer, its training classes there.
 """
 
 from __future__ import annotations

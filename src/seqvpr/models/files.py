@@ -2,6 +2,8 @@
 to rebuild the module). Files are written to a temporary name and renamed, so a killed run never leaves half a file.
 ``config.json`` is written last and records its version and the weights' digest (``files``): loading checks it, so
 weights and a config from different runs are refused (folders written before the digest was recorded still load).
+
+Same name as ``seqvpr.maps.files``: the same concept (an artifact's folder on disk) for a model; a map's there.
 """
 
 from __future__ import annotations

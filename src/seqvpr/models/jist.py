@@ -5,6 +5,8 @@ Frame descriptor (CosPlace, digest section 3.3): backbone map -> channel-wise L2
 Linear(C -> out_dim) -> L2. Only the chosen backbone stages (``layer4`` by default) and the head are trained; the
 other stages are frozen for real: ``requires_grad`` off and their BatchNorm layers kept in eval mode, so their
 running statistics do not drift as the reference's do (digest section 5, item 14).
+
+Same name as ``seqvpr.training.jist``: JIST's model; its learner there.
 """
 
 from __future__ import annotations

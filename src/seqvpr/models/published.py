@@ -11,6 +11,8 @@ JIST (``JIST_r18_512_seqgem.pth``, ``best_model.pth``: the CosPlace keys under `
 folder with upstream's forward: SeqGeM without final normalisation (searched by exact L2), images at 480 x 640.
 A missing or unexpected key, or a wrong shape, is a one-line error naming it as in the file; the folder records
 the source file and its sha256.
+
+Same name as ``seqvpr.cli.published``: published checkpoints read into models; the import command there.
 """
 
 from __future__ import annotations

@@ -2,6 +2,8 @@
 
 Every frame is transformed independently (no temporal mixing); the sequence structure enters only through the
 loss and the miner, which use the matching kernel's sequence distance.
+
+Same name as ``seqvpr.training.seqmatchnet``: SeqMatchNet's model; its learner there.
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
 """The SeqNet model folder: a ``sequences.descriptors.SeqNet`` (temporal Conv1d sequence descriptor) with its
-input/output sizes, kernel width and sequence length."""
+input/output sizes, kernel width and sequence length.
+
+Same name as ``seqvpr.training.seqnet``: SeqNet's model; its learner there."""
 
 from __future__ import annotations
 

@@ -5,6 +5,8 @@ still, going back a little, going faster than one frame per frame), never across
 that would leave a segment stops at its end), then mixes in a floor so that a kidnapped robot can be found again,
 and weighs each frame by the likelihood ``exp(-(d - min d) / scale)`` of its frame distance. ``scale`` comes from
 the map's own distance quantiles (``distance_scale``). The score is the belief mass near the most likely frame.
+
+Same name as ``seqvpr.matchers.filter``: the filter's algorithm; its matcher there.
 """
 
 from __future__ import annotations

@@ -9,6 +9,8 @@ programming (Viterbi) finds it exactly. Each query frame's candidates are ranked
 of the best whole path through them (forward + backward - own), so the top-1 is the best path's frame and the
 rest of the top-K are the best alternatives. Query segment breaks start new paths. Unlike the window matchers it
 uses the whole query (offline): the online counterpart is the ``hmm`` filter.
+
+Same name as ``seqvpr.matchers.graph``: graph matching's algorithm; its matcher there.
 """
 
 from __future__ import annotations

@@ -2,6 +2,8 @@
 
 Window ids are mapped back to frame rows (``SequenceDescriptors.rows``), so the result plugs into
 ``evaluation.metrics.evaluate`` like the matching kernel's. Distances are Euclidean (not squared).
+
+Same name as ``seqvpr.matchers.retrieval``: retrieval's faiss search; its matcher there.
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ degrees. Classes are spread over ``groups_n * groups_n * groups_l`` groups by ta
 modulo (N, N, L), so two classes of one group are never neighbouring cells with the same sector, nor neighbouring
 sectors of one cell: no visually overlapping classes compete inside one classifier. Each group gets its own
 large-margin cosine (CosFace) classifier over the shared image descriptor.
+
+Same name as ``seqvpr.models.cosplace``: CosPlace at the training layer (its classes of images), the model there.
 """
 
 from __future__ import annotations

@@ -13,6 +13,8 @@ be wider than the negative radius (frames of one class would be negatives of eac
 they use are encoded once (no grad) and pooled into windows with ``model.pool``; the shared ``SequenceMiner`` picks
 the triplets with a kernel over those window descriptors. Validation is the pipeline's:
 ``describe_with_jist`` then SeqGeM retrieval (``RetrievalMatcher``) and Recall@K.
+
+Same name as ``seqvpr.models.jist``: JIST's learner; its model there.
 """
 
 from __future__ import annotations

@@ -6,6 +6,8 @@ model transforms every training frame and the miner ranks all reference windows 
 distance. After each epoch the model is validated on its own split (neither train nor test);
 the best one by Recall@K is kept. Every epoch leaves a complete resumable state, so ``resume=True`` continues a
 killed run to the same weights as an uninterrupted one (deterministic on CPU for a seed).
+
+Same name as ``seqvpr.models.seqmatchnet``: SeqMatchNet's learner; its model there.
 """
 
 from __future__ import annotations

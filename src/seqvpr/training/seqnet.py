@@ -14,6 +14,8 @@ The loop is ``trainer.train_sequence_model``; this module is its SeqNet adapter 
   every (query, positive, negative) of the batch;
 * validation: ``RetrievalMatcher(settings, "seqnet", model)`` (faiss flat index) + ``evaluate_match``;
 * model folder: ``models.seqnet.save_seqnet`` / ``load_seqnet``.
+
+Same name as ``seqvpr.models.seqnet``: SeqNet's learner; its model there.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import pytest
 
 from seqvpr.localization import Localizer
 from seqvpr.localization.localizer import LocalizerSettings, read_calibrations, store_calibration, stored_threshold
-from seqvpr.localization.state import STATE_VERSION
+from seqvpr.localization.saved_state import STATE_VERSION
 from seqvpr.maps import build_map, open_map
 from tests.helpers import raises_one_line, write_route_files
 
