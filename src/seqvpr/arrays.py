@@ -158,14 +158,20 @@ def open_npz(path: str | Path) -> Iterator[NpzArrays]:
 
 
 def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:
-    """The variables of a MATLAB v5 ``.mat`` (scipy's reader runs no code); a MATLAB function handle or class object
-    among them is one line naming it, as seqvpr reads only numbers, text and structs."""
+    """The variables of a MATLAB v5 ``.mat`` (scipy's reader runs no code); a v7.3 file, one scipy cannot read, or a
+    MATLAB function handle or class object among them is one line naming it, as seqvpr reads only numbers, text and
+    structs."""
     import scipy.io
     from scipy.io.matlab import MatlabFunction, MatlabOpaque
 
     path = check_regular_file(path, "a MATLAB .mat file")
-    with open(path, "rb") as handle:
-        contents = scipy.io.loadmat(handle, **options)
+    try:
+        with open(path, "rb") as handle:
+            contents = scipy.io.loadmat(handle, **options)
+    except NotImplementedError:
+        raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
+    except (ValueError, TypeError, OSError) as error:
+        raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
     for name, value in contents.items():
         if isinstance(value, (MatlabFunction, MatlabOpaque)):
             kind = "a function handle" if isinstance(value, MatlabFunction) else "a MATLAB class object"

@@ -72,14 +72,7 @@ def _load_npz(path: Path, var: str | None) -> np.ndarray:
 
 
 def _load_mat(path: Path, var: str | None) -> np.ndarray:
-    try:
-        contents = load_mat(path)
-    except NotImplementedError:
-        raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
-    except SeqvprError:
-        raise
-    except (ValueError, TypeError, OSError) as error:
-        raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
+    contents = load_mat(path)
     arrays = {k: v for k, v in contents.items() if not k.startswith("__")}
     return _pick(arrays, var, path)
 

@@ -88,14 +88,7 @@ def _oriented(matrix: np.ndarray, path: Path, n_query: int | None, n_reference: 
 
 def _load_gt_mat(path: Path) -> GroundTruth:
     """``GT.GThard`` (and optional ``GT.GTsoft``), stored [n_reference, n_query] as in VPR_Tutorial."""
-    try:
-        contents = load_mat(path)
-    except NotImplementedError:
-        raise SeqvprError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save it with -v7") from None
-    except SeqvprError:
-        raise
-    except (ValueError, TypeError, OSError) as error:
-        raise SeqvprError(f"{path}: not a readable MATLAB file ({error})") from None
+    contents = load_mat(path)
     if "GT" not in contents:
         raise SeqvprError(f"{path}: no variable 'GT' (expected a struct with GThard and GTsoft)")
     gt = contents["GT"]
