@@ -133,12 +133,18 @@ def cli_calls(f: Path):
         (("map", "index", f / "map", "--index", "ivf:0"), "--index 'ivf:0': numbers must be at least 1"),
         (("train", "seqmatchnet", "-r", f / "ref.npz", "-q", f / "qry.npz", "--radius", "5m", "--train-frames", "0:100",
           "--val-frames", "100:160", "--negatives", "100000", "--out", f / "o9"), "--negatives must be from 1 to"),
+        (("train", "seqnet", "-r", f / "ref.npz", "-q", f / "qry.npz", "--radius", "5m", "--train-frames", "0:100",
+          "--val-frames", "100:160", "--optimizer", "sgd", "--lr", "1e-3", "-L", "500", "--out", f / "o10"),
+         "(--seq-len) is longer than every segment"),
+        (("eval", f / "predictions.csv", "-r", f / "ref.npz", "-q", f / "qry.npz", "--radius", "5m",
+          "--ground-truth", f / "gt.npy"), "give --radius or --ground-truth, not both"),
+        (("demo", "--frames", "10", "--out", f / "o11"), "--frames must be at least 50"),
     ]
 
 
-@pytest.mark.parametrize("number", range(10))
+@pytest.mark.parametrize("number", range(13))
 def test_a_command_line_users_bad_setting_names_the_flag(route, monkeypatch, capsys, number):
     arguments, message = cli_calls(route)[number]
     code, _, err = run_cli(monkeypatch, capsys, *arguments)
     assert code == 2 and message in err and err.count("seqvpr: error:") == 1, err
-    assert not any((route / f"o{i}").exists() for i in range(1, 10))
+    assert not any((route / f"o{i}").exists() for i in range(1, 12))
