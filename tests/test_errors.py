@@ -90,6 +90,7 @@ def python_calls(f: Path):
         (lambda: seqvpr.match(f / "ref.npz", query, "single", seq_len=5), "method single uses L = 1; leave seq_len"),
         (lambda: seqvpr.match(f / "ref.npz", query, velocities=(-1.0,)), "velocities must be positive numbers"),
         (lambda: seqvpr.match(f / "ref.npz", query, shortlist=4), "shortlist S needs a map with an index"),
+        (lambda: seqvpr.match(f / "map", query, history=3), "history H needs H >= 0 and a shortlist S >= 1"),
         (lambda: seqvpr.match(f / "ref.npz", query, "seqnet"), "method seqnet needs a SeqNet model (models;"),
         (lambda: seqvpr.evaluate(seqvpr.match(f / "ref.npz", query), radius="5m", no_positive="skip"),
          "no_positive must be 'exclude' or 'miss'"),

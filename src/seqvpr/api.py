@@ -109,6 +109,8 @@ def match(
     device = (settings.device if settings else conf.get("device")) or "cpu"
     models = load_models(models, device)
     check_run(method, models, rerank, seq_len)
+    if shortlist < 0 or history < 0 or (history and not shortlist):
+        raise SettingError(f"{{history}} H needs H >= 0 and a {{shortlist}} S >= 1 (got S = {shortlist}, H = {history})")
     settings = settings or match_settings(method, models, seq_len, **conf)
     reference, query = opened_sides(reference, query)
     options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
