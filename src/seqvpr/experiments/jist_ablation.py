@@ -195,9 +195,8 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
                    pool: torch.nn.Module, seed: int = 0) -> dict[str, Evaluation]:
     """JIST's SeqGeM retrieval and sequence matching over the same frames, each query window's frames put in
     ``order`` (``ORDERS``; the reference's windows stay as recorded): Recall@1/5/10 of each."""
-    from seqvpr.results import MatchResult
+    from seqvpr.results import MatchResult, TopK
     from seqvpr.sequences.topk import best_of
-    from seqvpr.results import TopK
 
     spec = SequenceSpec(length)
     ref_rows, ref_frames = centered_windows(len(reference), spec)

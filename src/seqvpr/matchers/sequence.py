@@ -17,12 +17,11 @@ from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
 from seqvpr.progress import ProgressFactory
 from seqvpr.matchers.base import Matcher
-from seqvpr.results import MatchResult
+from seqvpr.results import MatchResult, TopK
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers.rows import (
     check_dimensions, frame_transform, kernel_rows, query_rows, transform_pair,
 )
-from seqvpr.results import TopK
 
 if TYPE_CHECKING:
     from seqvpr.matchers.stream import Stepper

@@ -14,10 +14,9 @@ from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
 from seqvpr.matchers.base import Matcher
-from seqvpr.results import MatchResult
+from seqvpr.results import MatchResult, TopK
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers.rows import query_rows
-from seqvpr.results import TopK
 
 
 class Neighbors(Protocol):

@@ -12,9 +12,8 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.matchers.base import Matcher
-from seqvpr.results import MatchResult
+from seqvpr.results import MatchResult, TopK
 from seqvpr.matchers.rows import check_dimensions, query_rows, kernel_rows
-from seqvpr.results import TopK
 from seqvpr.sequences.windows import window_frames, window_starts
 
 
