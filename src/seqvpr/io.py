@@ -394,3 +394,25 @@ def _lock_holder(lock: Path) -> int | None:
     except (ValueError, OSError):
         return None
     return pid if pid > 0 and pid != os.getpid() and _alive(pid) else None  # another user's live process counts
+
+
+def carry_over(old: Path, new: Path, skip: tuple[str, ...]) -> None:
+    """Everything in ``old`` but ``skip`` (and temporaries) into ``new``, as hard links (copies where the file
+    system has none): files are only ever replaced by renames, never edited, so a link is as good as a copy."""
+    if not old.is_dir():
+        return
+    for entry in old.iterdir():
+        if entry.name in skip or TEMP_TAG in entry.name:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.copytree(entry, new / entry.name, symlinks=True, copy_function=link_or_copy)
+        else:
+            link_or_copy(entry, new / entry.name)
+
+
+def link_or_copy(source: str | Path, target: str | Path) -> None:
+    """``target`` as a hard link to ``source`` (a copy where the file system has no links)."""
+    try:
+        os.link(source, target, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(source, target, follow_symlinks=False)

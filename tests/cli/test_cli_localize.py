@@ -117,3 +117,27 @@ def test_the_report_counts_each_status_as_the_summary_does(route, tmp_path, monk
     assert drawn["plot_map_view"] == drawn["plot_over_time"] == [legend_label(k, v) for k, v in shown.items()]
     assert "the default for matching, not calibrated on this map" in page and "Recall@1" in page and "pr_auc" not in page
     assert "trusted" not in page
+
+
+def test_a_calibration_and_a_users_files_outlive_indexing_the_map(route, tmp_path, monkeypatch, capsys):
+    """``map index`` rebuilds the map folder: the calibration (an index leaves the map's identity as it is) and
+    whatever else a user put there are carried over, so the next ``localize`` still uses the calibrated threshold."""
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "m")[0] == 0
+    common = ("--map", tmp_path / "m", "-q", route / "qry.npz", "--radius", "10m")
+    assert run_cli(monkeypatch, capsys, "localize", *common, "--calibrate", "--target-precision", "0.9",
+                   "--out", tmp_path / "c")[0] == 0
+    (tmp_path / "m" / "notes.txt").write_text("mine")
+    (tmp_path / "m" / "drives").mkdir()
+    (tmp_path / "m" / "drives" / "a.txt").write_text("also mine")
+    calibration = (tmp_path / "m" / "localizer.json").read_text()
+    for spec in ("flat", "hnsw:8"):  # a first index, then another in its place
+        code, _, err = run_cli(monkeypatch, capsys, "map", "index", tmp_path / "m", "--index", spec)
+        assert code == 0, err
+        assert (tmp_path / "m" / "localizer.json").read_text() == calibration
+        assert (tmp_path / "m" / "notes.txt").read_text() == "mine"
+        assert (tmp_path / "m" / "drives" / "a.txt").read_text() == "also mine"
+    code, out, err = run_cli(monkeypatch, capsys, "localize", *common, "--out", tmp_path / "o", "--json")
+    assert code == 0 and "warning" not in err, err
+    assert json.loads(out)["threshold_source"].startswith("calibrated on ")
+    code, out, err = run_cli(monkeypatch, capsys, "map", "check", tmp_path / "m")
+    assert code == 0, err

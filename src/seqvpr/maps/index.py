@@ -18,7 +18,7 @@ import numpy as np
 from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.identity import check_digest, remember_digest, seal_files
-from seqvpr.io import commit_folder, output_lock, temporary_folder
+from seqvpr.io import carry_over, commit_folder, output_lock, temporary_folder
 from seqvpr.maps.files import INFO_FILE, SavedMap, is_plain_name, open_map
 
 INDEX_FILE = "index.faiss"
@@ -288,6 +288,8 @@ def _index_new_version(saved: SavedMap, spec: IndexSpec, seed: int, progress, wi
     tmp = temporary_folder(folder)
     try:
         linked = link_map_files(saved, tmp)
+        # what else the folder holds (a calibration, whose map identity an index leaves as it is; a user's files)
+        carry_over(folder, tmp, (INFO_FILE, INDEX_FILE, ROWS_FILE, *(p.name for p in tmp.iterdir())))
         faiss.write_index(index, str(tmp / INDEX_FILE))
         record["digest"] = seal_files(tmp, [INDEX_FILE])[INDEX_FILE]
         if described is not None:

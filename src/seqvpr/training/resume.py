@@ -12,8 +12,6 @@ links. Resuming checks every recorded digest and the data.
 
 from __future__ import annotations
 
-import os
-import shutil
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from seqvpr.data.traversal_record import same_data, traversal_record
 from seqvpr.errors import SeqvprError, reading
 from seqvpr.identity import check_digest, seal_files
-from seqvpr.io import TEMP_TAG, atomic_folder
+from seqvpr.io import atomic_folder, carry_over
 from seqvpr.models.files import CONFIG_FILE, MODEL_FILE, read_json, read_tensors, save_json, save_tensors
 from seqvpr.training.settings import jsonable
 from seqvpr.training.history import HISTORY_FILE, EpochRecord, record_from_dict, write_history
@@ -90,27 +88,6 @@ def check_state_files(state: dict, out: Path) -> None:
         if ".." in Path(name).parts or Path(name).is_absolute():
             raise SeqvprError(f"{path}: 'files' names {name!r}, not a file of {out}")
         check_digest(out / name, str(digest), str(path))
-
-
-def carry_over(old: Path, new: Path, skip: tuple[str, ...]) -> None:
-    """Everything in ``old`` but ``skip`` (and temporaries) into ``new``, as hard links (copies where the file
-    system has none): files are only ever replaced by renames, never edited, so a link is as good as a copy."""
-    if not old.is_dir():
-        return
-    for entry in old.iterdir():
-        if entry.name in skip or TEMP_TAG in entry.name:
-            continue
-        if entry.is_dir() and not entry.is_symlink():
-            shutil.copytree(entry, new / entry.name, symlinks=True, copy_function=_link_or_copy)
-        else:
-            _link_or_copy(entry, new / entry.name)
-
-
-def _link_or_copy(source: str | Path, target: str | Path) -> None:
-    try:
-        os.link(source, target, follow_symlinks=False)
-    except OSError:
-        shutil.copy2(source, target, follow_symlinks=False)
 
 
 class RunState:
