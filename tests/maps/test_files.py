@@ -278,3 +278,27 @@ def test_a_streamed_build_writes_what_a_whole_one_would(tmp_path_factory, n_sour
         assert np.array_equal(stored, np.clip(np.rint((whole - low) / step), 0, 255).astype(np.uint8))
     else:
         assert stored.shape == (len(whole), 4) and np.abs(saved.descriptors[:] - whole).mean() < 0.5
+
+
+def test_a_users_files_outlive_rebuilding_the_map_and_a_stale_calibration_is_left_out(tmp_path, caplog):
+    """A map built again in its folder keeps what the map did not own (a user's files and folders); the calibration
+    stays with the same map (same identity) and is left out, with a warning, for another one."""
+    import logging
+
+    from seqvpr.maps import build_map
+
+    (tmp_path / "route").mkdir()
+    route = write_route_files(tmp_path / "route", n_frames=80, dim=8, seed=1)
+    build_map([str(route / "ref.npz")], tmp_path / "m")
+    (tmp_path / "m" / "notes.txt").write_text("mine")
+    (tmp_path / "m" / "drives").mkdir()
+    (tmp_path / "m" / "drives" / "a.txt").write_text("also mine")
+    (tmp_path / "m" / "localizer.json").write_text("{}")
+    build_map([str(route / "ref.npz")], tmp_path / "m")  # the same map again
+    assert (tmp_path / "m" / "localizer.json").exists() and (tmp_path / "m" / "notes.txt").read_text() == "mine"
+    with caplog.at_level(logging.WARNING, logger="seqvpr"):
+        build_map([str(route / "qry.npz")], tmp_path / "m")  # another map in its place
+    assert not (tmp_path / "m" / "localizer.json").exists()
+    assert "calibrated for the map this one replaces" in caplog.text
+    assert (tmp_path / "m" / "notes.txt").read_text() == "mine"
+    assert (tmp_path / "m" / "drives" / "a.txt").read_text() == "also mine"

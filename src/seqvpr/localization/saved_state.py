@@ -16,10 +16,10 @@ import numpy as np
 
 from seqvpr.errors import SeqvprError
 from seqvpr.maps.files import MapInfo
+from seqvpr.maps.keep import CALIBRATION_FILE, identity_of
 
 STATE_FORMAT = "seqvpr-localizer-state"
 STATE_VERSION = 2  # 2: sequence matching keeps its last L distance rows (``ring``), not running sums
-CALIBRATION_FILE = "localizer.json"
 CALIBRATION_FORMAT = "seqvpr-localizer"
 CALIBRATION_VERSION = 1
 COUNTERS = ("frame", "misses", "since_reset")
@@ -80,16 +80,6 @@ def check_state_arrays(path: str | Path, arrays: dict[str, np.ndarray], dim: int
             raise SeqvprError(f"{path}: {name} holds NaN or -inf (damaged)")
 
 
-def map_identity_of(folder: str | Path) -> str | None:
-    """The identity ``map.json`` in ``folder`` records (None: none recorded, or no map.json there)."""
-    try:
-        values = json.loads((Path(folder) / "map.json").read_text())
-    except (OSError, ValueError):
-        return None
-    identity = values.get("identity") if isinstance(values, dict) else None
-    return identity if isinstance(identity, str) else None
-
-
 def read_calibration_file(folder: str | Path, replacing: bool = False) -> list[dict[str, Any]]:
     """The calibrations in ``folder``'s ``localizer.json`` (none without one), each checked: one line naming the file
     when it is malformed, of another version, or recorded for another map (``replacing``, as a new calibration is
@@ -106,7 +96,7 @@ def read_calibration_file(folder: str | Path, replacing: bool = False) -> list[d
     if values.get("version", CALIBRATION_VERSION) != CALIBRATION_VERSION:
         raise SeqvprError(f"{path}: localizer.json version {values.get('version')!r} is not known (this seqvpr reads "
                           f"version {CALIBRATION_VERSION})")
-    recorded, ours = values.get("map"), map_identity_of(folder)
+    recorded, ours = values.get("map"), identity_of(Path(folder))
     if recorded and ours and recorded != ours:
         if replacing:
             return []
@@ -137,5 +127,5 @@ def _number(value: Any) -> bool:
 
 def calibration_file(calibrations: list[dict[str, Any]], folder: str | Path) -> dict[str, Any]:
     """What ``localizer.json`` holds: format, version, the map's identity (where it has one), the calibrations."""
-    return {"format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION, "map": map_identity_of(folder),
+    return {"format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION, "map": identity_of(Path(folder)),
             "calibrations": calibrations}

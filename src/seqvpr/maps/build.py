@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +20,8 @@ from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.errors import SeqvprError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
-from seqvpr.io import check_replaceable, commit_folder, temporary_folder
+from seqvpr.io import atomic_folder
+from seqvpr.maps.keep import keep_users_files
 from seqvpr.maps.files import (
     MapSource,
     INFO_FILE,
@@ -272,19 +272,13 @@ class UnitRows:
 
 def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
                       indexed: Callable[[SavedMap], object] | None) -> None:
-    """``write_map``, and ``indexed`` run on the written map before it is committed to ``out`` (as one)."""
-    if indexed is None:
-        write_map(out, frames, info)
-        return
-    check_replaceable(out, INFO_FILE)
-    tmp = temporary_folder(out)
-    try:
+    """``write_map``, and ``indexed`` run on the written map, committed to ``out`` as one; what a map there held
+    that it did not own (a user's files) is carried over (``keep.keep_users_files``)."""
+    with atomic_folder(out, INFO_FILE) as tmp:  # a failed write names out, not the temporary
         write_map(tmp, frames, info)
-        indexed(open_map(tmp))
-        commit_folder(tmp, out, INFO_FILE)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        if indexed is not None:
+            indexed(open_map(tmp))
+        keep_users_files(out, tmp)
 
 
 def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Traversal:

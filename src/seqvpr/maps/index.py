@@ -18,8 +18,9 @@ import numpy as np
 from seqvpr.arrays import load_npy
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.identity import check_digest, remember_digest, seal_files
-from seqvpr.io import carry_over, commit_folder, output_lock, temporary_folder
+from seqvpr.io import commit_folder, output_lock, temporary_folder
 from seqvpr.maps.files import INFO_FILE, SavedMap, is_plain_name, open_map
+from seqvpr.maps.keep import keep_users_files
 
 INDEX_FILE = "index.faiss"
 ADD_BLOCK = 65_536  # map rows added to an index at a time (a memory-mapped map is never read whole)
@@ -288,14 +289,13 @@ def _index_new_version(saved: SavedMap, spec: IndexSpec, seed: int, progress, wi
     tmp = temporary_folder(folder)
     try:
         linked = link_map_files(saved, tmp)
-        # what else the folder holds (a calibration, whose map identity an index leaves as it is; a user's files)
-        carry_over(folder, tmp, (INFO_FILE, INDEX_FILE, ROWS_FILE, *(p.name for p in tmp.iterdir())))
         faiss.write_index(index, str(tmp / INDEX_FILE))
         record["digest"] = seal_files(tmp, [INDEX_FILE])[INDEX_FILE]
         if described is not None:
             np.save(tmp / ROWS_FILE, described.rows)
             record.update(rows_file=ROWS_FILE, rows_digest=seal_files(tmp, [ROWS_FILE])[ROWS_FILE])
         (tmp / INFO_FILE).write_text(json.dumps({**saved.info.to_json(), "index": record}, indent=2))
+        keep_users_files(folder, tmp)  # a calibration (an index leaves the map's identity as it is), a user's files
         commit_folder(tmp, folder, INFO_FILE)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
