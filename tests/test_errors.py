@@ -20,7 +20,7 @@ from tests.helpers import raises_one_line, run_cli, write_route_files
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "seqvpr"
 #: settings a Python caller alone sets (no command takes them): their errors name them as they are
-PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer"}
+PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer", "sources"}
 
 
 def test_a_setting_error_names_settings_as_the_caller_spells_them():

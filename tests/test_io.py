@@ -3,6 +3,7 @@ process gone) is taken over; the lock is released after the work, whatever happe
 
 from __future__ import annotations
 
+import os
 import subprocess
 
 import pytest
@@ -263,3 +264,24 @@ def test_a_signal_dropped_on_its_way_still_stops_the_next_commit(tmp_path):
     with atomic_write(target) as handle:
         handle.write("new")
     assert target.read_text() == "new"
+
+
+def test_an_output_is_none_of_the_inputs_lies_in_none_and_holds_none(tmp_path):
+    """The one rule for outputs (``check_output_apart``): the same path, the same file through a symbolic or hard
+    link, a path inside an input folder, a folder holding an input, and a source text's file are all refused."""
+    from seqvpr.io import check_output_apart
+    from tests.helpers import raises_one_line
+
+    (tmp_path / "in").mkdir()
+    data = tmp_path / "in" / "x.npz"
+    data.write_bytes(b"x")
+    (tmp_path / "link.npz").symlink_to(data)
+    os.link(data, tmp_path / "hard.npz")
+    for output, how in ((data, "is"), (tmp_path / "link.npz", "is"), (tmp_path / "hard.npz", "is"),
+                        (tmp_path / "in" / "y.npz", "lies inside"), (tmp_path / "in" / "sub" / "y", "lies inside"),
+                        (tmp_path, "holds")):
+        raises_one_line(f"{how} the input", check_output_apart, output, [tmp_path / "in"] if how != "is" else [data])
+    raises_one_line("is the input", check_output_apart, data, [f"{data}:descriptors"])
+    raises_one_line("lies inside the input", check_output_apart, tmp_path / "bag" / "out.npz",
+                    [f"{tmp_path / 'bag'}:/camera?gps=/fix"])
+    check_output_apart(tmp_path / "out.npz", [data, None, tmp_path / "in"])  # beside them: fine

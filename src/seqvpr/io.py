@@ -222,6 +222,42 @@ def check_replaceable(path: Path, marker: str | None, keep: Sequence[str | Path 
                           "folder (the output folder is replaced whole)")
 
 
+def check_output_apart(output: str | Path, inputs: Sequence[str | Path | None], what: str = "the output") -> None:
+    """The one rule for what seqvpr writes: an output file or folder is none of the run's ``inputs``, lies inside
+    none of them and holds none of them. Paths are compared once symbolic links are resolved, and a file also by
+    its inode (a hard link is the same file). An input given as a source text (``x.npz:VAR``, ``run.bag:/topic``,
+    ``run.bag?gps=/fix``) counts as its file. One line naming both, before anything is written."""
+    out = Path(output).resolve()
+    for given in inputs:
+        if not given:
+            continue
+        for path in {Path(given), Path(str(given).split("?")[0].split(":")[0] or str(given))}:
+            how = _overlap(out, path.resolve())
+            if how:
+                raise SeqvprError(f"{what} {output} {how} the input {given}: write it elsewhere")
+
+
+def _overlap(out: Path, source: Path) -> str | None:
+    """How an output path meets an input path, in words (None: they are apart)."""
+    if out == source or (out.is_file() and source.exists() and os.path.samefile(out, source)):
+        return "is"
+    if out.is_relative_to(source):
+        return "lies inside"
+    if source.is_relative_to(out):
+        return "holds"
+    if out.is_file() and source.is_dir() and _in_folder(out, source):
+        return "is a file (a hard link) of"
+    return None
+
+
+def _in_folder(output: Path, folder: Path) -> bool:
+    """Whether an existing output file is one of the files of ``folder`` under another name (the same inode)."""
+    found = os.stat(output)
+    with os.scandir(folder) as entries:
+        return any(entry.is_file() and entry.inode() == found.st_ino and entry.stat().st_dev == found.st_dev
+                   for entry in entries)
+
+
 def commit_folder(new: Path, target: Path, marker: str | None = None) -> None:
     """Put a finished temporary folder (``temporary_folder``) in place of ``target`` as ``atomic_folder`` does."""
     check_replaceable(target, marker)

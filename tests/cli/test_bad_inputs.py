@@ -285,3 +285,40 @@ def test_json_with_no_scored_query_is_strict_json(world, tmp_path, monkeypatch, 
     assert code == 0, err
     parsed = json.loads(out, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
     assert parsed["recall"]["1"] is None
+
+
+def test_no_output_lands_on_an_input(tmp_path, monkeypatch, capsys):
+    """Every output a command writes, through a symbolic or hard link too, is refused where it is, lies inside or
+    holds an input of the run (a map folder's files among them): one line, exit 2, the input as it was."""
+    import os
+
+    from seqvpr.localization import Localizer
+    from seqvpr.maps import build_map, open_map
+    from seqvpr.maps.sharding import shard_map
+    from tests.helpers import raises_one_line, write_route_files
+
+    route = write_route_files(tmp_path, n_frames=60, dim=8, seed=2)
+    build_map([str(route / "ref.npz")], tmp_path / "map")
+    os.link(tmp_path / "map" / "descriptors.npy", tmp_path / "rows-link.npy")
+    (tmp_path / "qry-link.npz").symlink_to(route / "qry.npz")
+    before = {p: p.read_bytes() for p in (tmp_path / "map").iterdir() if p.is_file()}
+    query_bytes = (route / "qry.npz").read_bytes()
+    common = ("localize", "--map", tmp_path / "map", "-q", route / "qry.npz", "--out", tmp_path / "run")
+    for arguments, fragment in [
+        ((*common, "--save-state", tmp_path / "map" / "map.json"), "lies inside the input"),
+        ((*common, "--save-state", tmp_path / "rows-link.npy"), "is a file (a hard link) of the input"),
+        ((*common, "--save-state", tmp_path / "qry-link.npz"), "--save-state"),
+        (("convert", "-r", tmp_path / "qry-link.npz", "--to", "npz", "--out", route / "qry.npz"), "is the input"),
+        (("convert", "-r", route / "qry.npz", "--to", "npz", "--out", route / "qry.npz"), "is the input"),
+        (("map", "build", route / "ref.npz", "--out", route), "holds"),
+        (("map", "shard", tmp_path / "map", "--shards", "2", "--out", tmp_path / "map" / "s"), "lies inside"),
+    ]:
+        code, _, err = run_cli(monkeypatch, capsys, *map(str, arguments))
+        assert code == 2 and fragment in err and err.count("\n") == 1, (arguments, err)
+    assert {p: p.read_bytes() for p in (tmp_path / "map").iterdir() if p.is_file()} == before
+    assert (route / "qry.npz").read_bytes() == query_bytes and not (tmp_path / "run").exists()
+    localizer = Localizer.open(open_map(tmp_path / "map"))
+    raises_one_line("the state file", localizer.save_state, tmp_path / "map" / "descriptors.npy")
+    raises_one_line("the map", build_map, str(route / "ref.npz"), route / "ref.npz")
+    raises_one_line("the sharded map", shard_map, tmp_path / "map", tmp_path / "map" / "s", 2)
+    assert build_map(str(route / "ref.npz"), tmp_path / "one").info.count == 60  # one path alone is one source

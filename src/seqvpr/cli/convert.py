@@ -32,6 +32,9 @@ def convert(**options: Any) -> None:
     """Write SOURCE(s) as a .db struct + descriptors + seqBounds + dataset.toml, or as a traversal .npz."""
     from seqvpr.data.sources import load_traversal, save_traversal_npz
     from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.io import check_output_apart
+
+    check_output_apart(options["out_file"], [options["reference"], options["query"]], "--out")
 
     if options["target"] == "npz":
         traversal = slice_frame_range(load_traversal(options["reference"], options["role"]), options["frames"])

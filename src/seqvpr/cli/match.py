@@ -460,6 +460,9 @@ def extract(images, cluster_images, role, device, out_file, **options: Any) -> N
     descriptor, patchnorm, extraction = extraction_settings(options, device)
     from seqvpr.data.sources import load_traversal, save_traversal_npz
     from seqvpr.features.describe import describe, dropped_frames, netvlad_extractor
+    from seqvpr.io import check_output_apart
+
+    check_output_apart(out_file, [images, cluster_images, options["cache_dir"]], "--out")
 
     traversal = load_traversal(images, role)
     if traversal.image_paths is None:

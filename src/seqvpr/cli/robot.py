@@ -56,6 +56,8 @@ def node(**options: Any) -> None:
     if options["restore"] and not Path(options["state"]).is_file():
         raise SeqvprError(f"--restore: {options['state']}: no such state file")
     localizer = open_localizer(options, LocalizerSettings.k)  # the localiser's own top-K: the status shows the best
+    if options["state"]:
+        localizer.check_state_path(options["state"])  # at start, not when the node stops
     fix_topic = options["gps_topic"] or options["odom_topic"]
     settings = NodeSettings(options["camera"], camera_type(options["camera"], options["image_type"]), fix_topic,
                             (NAVSATFIX if options["gps_topic"] else ODOMETRY) if fix_topic else None, options["no_drop"],

@@ -25,7 +25,7 @@ import torch
 
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr.errors import SeqvprError, SettingError, reading
-from seqvpr.io import atomic_write
+from seqvpr.io import atomic_write, check_output_apart
 from seqvpr.localization.saved_state import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
     read_calibration_file,
@@ -268,9 +268,16 @@ class Localizer:
         latlon = utm_to_latlon(frames.positions[row], frames.crs)
         return position, name, None if latlon is None else (float(latlon[0, 0]), float(latlon[0, 1]))
 
+    def check_state_path(self, path: str | Path) -> None:
+        """A state file may not land on what the localiser reads (its map folder and files, its model folders): one
+        line before anything is written (a node checks it at start, not at its last frame)."""
+        check_output_apart(path, [self.saved.folder, *(model.folder for model in self.models.values())],
+                           "the state file")
+
     def save_state(self, path: str | Path, extra: Mapping[str, Any] | None = None) -> None:
         """Everything a restarted robot needs to go on where it stopped (written atomically, ``.npz``); ``extra``
         (JSON values) is what the caller keeps beside it (``restore`` returns it), in the same file."""
+        self.check_state_path(path)
         header = {"format": STATE_FORMAT, "version": STATE_VERSION, "map": map_record(self.saved.info),
                   "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
                   "since_reset": self.since_reset, "extra": dict(extra or {})}

@@ -17,10 +17,10 @@ from seqvpr.arrays import file_mapped, release_pages
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.geo import common_crs
 from seqvpr.data.traversal import Traversal, slice_frame_range
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
-from seqvpr.io import atomic_folder
+from seqvpr.io import atomic_folder, check_output_apart
 from seqvpr.maps.keep import keep_users_files
 from seqvpr.maps.files import (
     MapSource,
@@ -140,6 +140,7 @@ def build_map(
     """Describe every source (``described_map``) and save the frames as one map. ``indexed`` (e.g. ``add_index``)
     runs on the new map before it replaces anything at ``out``, so a failed index leaves the previous map as it
     was."""
+    sources = checked_sources(sources, out, models)
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
     write_indexed_map(Path(out), whole, info, indexed)
@@ -165,9 +166,21 @@ def build_sharded_map(
     """``build_map``, written straight as ``shards`` shard maps overlapping by ``overlap`` frames
     (``shards.write_sharded_map``: never the whole map first); ``indexed`` (e.g. ``index_shards``) runs on them
     before they replace anything at ``out``."""
+    sources = checked_sources(sources, out, models)
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
     return write_sharded_map(out, whole, info, shards, overlap, indexed)
+
+
+def checked_sources(sources: Sequence[str] | str | Path, out: str | Path,
+                    models: Mapping[str, TrainedModel] | None = None) -> list[str]:
+    """The sources as a list (one path given alone is one source, not its characters), none of them and no model
+    folder where the map is written (``io.check_output_apart``): checked before any source is read."""
+    listed = [str(sources)] if isinstance(sources, (str, Path)) else [str(source) for source in sources]
+    if not listed:
+        raise SettingError("{sources}: a map needs at least one source")
+    check_output_apart(out, [*listed, *(model.folder for model in (models or {}).values())], "the map")
+    return listed
 
 
 def described_map(sources: Sequence[str], name: str, description: FrameDescription = FrameDescription(),

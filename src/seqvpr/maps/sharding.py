@@ -15,7 +15,7 @@ import numpy as np
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
 from seqvpr.identity import DigestWriter, combined_identity
-from seqvpr.io import atomic_folder, atomic_write
+from seqvpr.io import atomic_folder, atomic_write, check_output_apart
 from seqvpr.maps.codes import SIDE_FILES, fit_encoder, parse_storage, stored_shape
 from seqvpr.maps.files import (
     DESCRIPTORS_FILE, INFO_FILE, SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, MapInfo, MapSource, ShardedMap,
@@ -42,6 +42,7 @@ def shard_map(source: str | Path, out: str | Path, shards: int, overlap: int = D
     last, inside a temporary folder renamed when complete). A map with an index gives each shard one like it."""
     if overlap < 0:
         raise SettingError(f"{{overlap}} must be 0 or more frames, got {overlap}")
+    check_output_apart(out, [source], "the sharded map")
     saved = open_map(source)
     records = []
     with atomic_folder(out, SHARDS_FILE) as tmp:
