@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
@@ -106,3 +107,17 @@ def test_re_ranking_every_reference_frame_is_the_exhaustive_adaptive_match():
     reranked = adaptive_rerank(q, r, everything, spec, scorer, q_seg, r_seg, k=6)
     np.testing.assert_array_equal(reranked.indices, whole.indices)
     np.testing.assert_allclose(reranked.distances, whole.distances, rtol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["adaptive", "casevpr"])
+def test_a_window_of_one_frame_is_single_image_matching(method):
+    """At L = 1 no frame lies on either side of the anchor: the adaptive search (alone, or re-ranking CaseVPR's
+    shortlist) is the frame distance itself, as single-image matching ranks it (was an IndexError)."""
+    import seqvpr
+    from seqvpr.synthetic.routes import generate_route
+
+    reference, query = generate_route(n_frames=90, dim=8, seed=4)
+    single = seqvpr.match(reference, query, "single", k=5).topk
+    found = seqvpr.match(reference, query, method, seq_len=1, k=5, rerank=90 if method == "casevpr" else 0).topk
+    np.testing.assert_array_equal(found.indices[:, 0], single.indices[:, 0])
+    np.testing.assert_allclose(found.distances[:, 0], single.distances[:, 0], rtol=1e-5)

@@ -116,10 +116,10 @@ def _side_costs(d: np.ndarray, reference: int, anchor: int, scorer: AdaptiveScor
     window end) from each reference frame: what a greedy walk outward from the anchor needs to be optimal."""
     length, n = d.shape
     ks = list(range(0, anchor)) if direction < 0 else list(range(anchor + 1, length))
-    end = ks[0] if direction < 0 else (ks[-1] if ks else anchor)
     costs: dict[int, np.ndarray] = {}
-    if not ks:
+    if not ks:  # no query frame on this side of the anchor (L = 1, or a causal window's end)
         return costs
+    end = ks[0] if direction < 0 else ks[-1]
     current = d[end].astype(np.float64).copy()
     costs[end] = current
     order = ks[1:] if direction < 0 else ks[-2::-1]
