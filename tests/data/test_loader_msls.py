@@ -92,3 +92,16 @@ def test_the_subtask_option_of_match(city, tmp_path, monkeypatch, capsys):
                              "--msls-subtask", "d2n", "--json", "--out", tmp_path / "o")
     assert code == 0, err
     assert json.loads(out)["queries_evaluated"] <= 8 - 2
+
+
+@pytest.mark.parametrize("name", ["raw.csv", "seq_info.csv", "postprocessed.csv", "subtask_index.csv"])
+def test_a_csv_cut_mid_line_is_one_line_naming_it(city, tmp_path, name):
+    """An interrupted download leaves a CSV whose last line lacks fields: one line naming the file and the line, for
+    every file the loader reads (was an AttributeError for raw.csv)."""
+    import shutil
+
+    side = tmp_path / "query"
+    shutil.copytree(city / "query", side)
+    text = (side / name).read_text()
+    (side / name).write_text(text.rstrip("\n")[: text.rstrip("\n").rfind(",")])  # the last field cut off
+    raises_one_line(f"{side / name}: line", load_msls_side, side, "d2n")

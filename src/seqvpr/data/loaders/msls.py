@@ -35,10 +35,20 @@ def read_csv_rows(path: Path) -> list[dict[str, str]]:
         check_regular_file(path, "an MSLS CSV")
     if not path.is_file():
         raise SeqvprError(f"{path}: missing MSLS file")
-    with open(path, newline="") as handle:
-        rows = list(csv.DictReader(handle))
+    try:
+        with open(path, newline="") as handle:
+            reader = csv.DictReader(handle)
+            rows = list(reader)
+            header = reader.fieldnames or []
+    except (csv.Error, UnicodeDecodeError) as error:
+        raise SeqvprError(f"{path}: not a readable CSV ({error})") from None
     if not rows:
         raise SeqvprError(f"{path}: no rows")
+    for number, row in enumerate(rows, start=2):  # line 1 is the header
+        if None in row or any(value is None for value in row.values()):  # more or fewer fields than the header
+            fields = len(header) + len(row.get(None) or []) - sum(value is None for value in row.values())
+            raise SeqvprError(f"{path}: line {number} has {fields} fields, the header {len(header)} (a file cut "
+                              "short, or a stray comma?)")
     return rows
 
 
