@@ -293,3 +293,44 @@ def test_an_unwritable_cache_folder_is_one_line_naming_it(tmp_path, monkeypatch,
     code, _, err = run_cli(monkeypatch, capsys, "map", "build", bag, "--out", tmp_path / "m")
     assert code == 2 and len(err.strip().splitlines()) == 1 and "cache folder" in err and "SEQVPR_CACHE" in err, err
     assert not (tmp_path / "m").exists()
+
+
+def damaged_bags(tmp_path, monkeypatch) -> list:
+    """A bag of each kind damaged as downloads and disks damage them: bad magic, cut short, unparsable or dangling
+    metadata, its data file gone."""
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    images = synthetic_jpegs(tmp_path / "jpg", 6)
+    ros1 = write_bag(tmp_path / "good.bag", images, *fixes(6), ros1=True)
+    ros2 = write_bag(tmp_path / "good2", images, *fixes(6), ros1=False)
+    made = []
+    magic = tmp_path / "magic.bag"
+    magic.write_bytes(b"#NOTABAG V9.9\n" + ros1.read_bytes()[14:])
+    made.append(magic)
+    for fraction in (0.1, 0.5, 0.9):
+        cut = tmp_path / f"cut{fraction}.bag"
+        data = ros1.read_bytes()
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        made.append(cut)
+    for name, text in (("yaml", "rosbag2_bagfile_information: [unclosed\n  : :"), ("keys", "nothing: here\n")):
+        folder = tmp_path / f"bad-{name}"
+        shutil.copytree(ros2, folder)
+        (folder / "metadata.yaml").write_text(text)
+        made.append(folder)
+    gone = tmp_path / "gone"
+    shutil.copytree(ros2, gone)
+    for data in [*gone.glob("*.mcap"), *gone.glob("*.db3")]:
+        data.unlink()
+    made.append(gone)
+    return made
+
+
+def test_a_damaged_bag_is_one_line_wherever_it_is_read(tmp_path, monkeypatch):
+    """Loading (match, extract, map build) and playing a damaged bag read it through one boundary: one line naming
+    the bag, never a rosbags or YAML traceback."""
+    from seqvpr.data.loaders.rosbag import BagTopics
+    from seqvpr.ros2.play import play_bag
+
+    for bag in damaged_bags(tmp_path, monkeypatch):
+        raises_one_line(str(bag), load_traversal, str(bag), "query")
+        raises_one_line(str(bag), play_bag, bag, BagTopics(), None, wait=0)
+    raises_one_line("rate must be from", play_bag, tmp_path / "good.bag", BagTopics(), None, rate=1e-300)

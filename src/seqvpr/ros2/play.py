@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from seqvpr.data.loaders.rosbag import IMAGE_TYPES, BagTopics, position_connection, topic_connection
+from seqvpr.data.loaders.rosbag import IMAGE_TYPES, BagTopics, open_bag, position_connection, topic_connection
 from seqvpr.data.traversal import parse_frame_range
 from seqvpr.errors import SettingError
 from seqvpr.progress import ProgressFactory
@@ -16,6 +16,7 @@ from seqvpr.ros2.dds import EVERY_SAMPLE, Bus, wait_for_match
 from seqvpr.ros2.messages import encode, outgoing
 
 #: seconds of position fixes published before the first camera frame of a ``--frames`` range
+MIN_RATE, MAX_RATE = 1e-3, 1e3  # times the recorded pace: an hour's drive in 3.6 s at most, 1,000 h at least
 FIX_LEAD = 1.0
 #: seconds between a subscriber matching and the first frame
 SETTLE = 0.5
@@ -40,12 +41,10 @@ def play_bag(bag: str | Path, topics: BagTopics, bus: Bus, rate: float = 1.0, fr
     and its position fixes over the same time (from ``FIX_LEAD`` s before the first), at ``rate`` x the recorded
     pace; wait up to ``wait`` s for a subscriber first. Every message goes out reliably; the call returns once
     subscribers acknowledged them."""
-    from rosbags.highlevel import AnyReader
-
-    if not rate > 0:
-        raise SettingError(f"{{rate}} must be a positive number, got {rate}")
+    if not MIN_RATE <= rate <= MAX_RATE:
+        raise SettingError(f"{{rate}} must be from {MIN_RATE:g} to {MAX_RATE:g} times the recorded pace, got {rate}")
     path = Path(bag)
-    with AnyReader([path]) as reader:
+    with open_bag(path) as reader:
         camera = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
         position = position_connection(reader, topics, path)
         times = [t for _, t, _ in reader.messages(connections=[camera])]

@@ -15,10 +15,13 @@ topic and stamp (``run1.bag:/camera/image_raw@1700000000.123456789``), never by 
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -127,28 +130,37 @@ def _log_reading(source: str, camera_topic: str, position_topic: str | None, wit
     LOGGER.info(f"{source}: {without_fix} frames without a position fix within {tolerance:g} s (left out)")
 
 
+@contextlib.contextmanager
+def open_bag(path: Path) -> Iterator[Any]:
+    """``with open_bag(path) as reader:`` rosbags' reader over a bag, the one boundary every bag is read through:
+    what the reader (or the YAML of a ROS 2 bag's metadata) raises on a damaged, truncated or missing bag becomes one
+    line naming it; seqvpr's own errors (a topic that is not there) pass as they are."""
+    from rosbags.highlevel import AnyReader
+
+    try:
+        with AnyReader([path]) as reader:
+            yield reader
+    except SeqvprError:
+        raise
+    except Exception as error:  # rosbags' own errors (ReaderError...), YAML's, and the file system's
+        if isinstance(error, (OSError, ValueError, KeyError, EOFError)) or \
+                type(error).__module__.startswith(("rosbags", "yaml", "ruamel")):
+            detail = " ".join(str(error).split())[:300] or type(error).__name__
+            raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {detail})") from None
+        raise
+
+
 def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | None = None) -> Recording:
     """Every frame of the image topic (stored in ``folder``, by default ``frames_root()``) and every fix of the
     position topic, in stamp order."""
-    from rosbags.highlevel import AnyReader
-
     from seqvpr.cache import writable_folder
 
     folder = writable_folder(frames_root() if folder is None else folder)
-    try:
-        with AnyReader([path]) as reader:
-            image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
-            frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
-            position = position_connection(reader, topics, path)
-            fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
-    except SeqvprError:  # the topics asked for are not there: already one line, naming them
-        raise
-    except (OSError, ValueError, KeyError) as error:
-        raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {error})") from None
-    except Exception as error:  # rosbags' own errors (ReaderError, ...) name the problem
-        if type(error).__module__.startswith("rosbags"):
-            raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {error})") from None
-        raise
+    with open_bag(path) as reader:
+        image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
+        frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
+        position = position_connection(reader, topics, path)
+        fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
     if not frames:
         raise SeqvprError(f"{path}: topic {image.topic} holds no frames")
     frames.sort(key=lambda f: f[0])
