@@ -20,7 +20,7 @@ from tests.helpers import raises_one_line, run_cli, write_route_files
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "seqvpr"
 #: settings a Python caller alone sets (no command takes them): their errors name them as they are
-PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer", "sources"}
+PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer", "sources", "descriptors"}
 
 
 def test_a_setting_error_names_settings_as_the_caller_spells_them():
@@ -104,14 +104,22 @@ def python_calls(f: Path):
         (lambda: Localizer.open(f / "map", history=2), "history H needs a shortlist"),
         (lambda: SeqMatchNetSettings(epochs=-1), "epochs must be >= 0"),
         (lambda: SeqMatchNetSettings(optimizer="rmsprop"), "optimizer must be 'sgd' or 'adam'"),
+        (lambda: seqvpr.match(f / "ref.npz", query, k=2.5), "k (matches kept per query) must be a whole number"),
+        (lambda: seqvpr.match(f / "ref.npz", query, "adaptive", seq_len=5, steps=(0, 10**9)),
+         "steps: expected MIN, MAX with 0 <= MIN <= MAX <= 16"),
+        (lambda: seqvpr.match(f / "ref.npz", query, seq_len=2.0), "seq_len must be a positive integer, got 2.0"),
+        (lambda: seqvpr.match(f / "ref.npz", query, velocities=["fast"]), "velocities must be numbers"),
+        (lambda: seqvpr.Traversal.from_descriptors(np.array(3.0)), "descriptors must be a 2-D array"),
+        (lambda: seqvpr.Traversal.from_descriptors(np.ones((4, 3), int)), "descriptors must be floating point"),
     ]
 
 
 def test_a_python_callers_bad_argument_names_the_argument(route):
     for call, message in python_calls(route):
         text = raises_one_line(message, call)
-        subject = next(word for word in message.replace("(", " ").replace(")", " ").split() if word in FLAGS)
-        assert FLAGS[subject] not in text, text  # the argument the caller passed, never its flag
+        words = message.replace("(", " ").replace(")", " ").replace(":", " ").split()
+        subject = next(word for word in words if word in FLAGS or word in PYTHON_ONLY)
+        assert subject in text and FLAGS.get(subject, "--") not in text, text  # the argument, never its flag
 
 
 def cli_calls(f: Path):
@@ -149,3 +157,23 @@ def test_a_command_line_users_bad_setting_names_the_flag(route, monkeypatch, cap
     code, _, err = run_cli(monkeypatch, capsys, *arguments)
     assert code == 2 and message in err and err.count("seqvpr: error:") == 1, err
     assert not any((route / f"o{i}").exists() for i in range(1, 12))
+
+
+def test_a_python_caller_may_give_settings_and_rows_in_the_forms_the_cli_reads(route):
+    """Velocities as the command line's text, rows as a torch tensor (bfloat16, with gradients) or nested lists: the
+    same match as the canonical forms, not a TypeError from deep inside."""
+    import torch
+
+    reference = seqvpr.load_traversal(str(route / "ref.npz"), "reference")
+    query = seqvpr.load_traversal(str(route / "qry.npz"), "query")
+    expected = seqvpr.match(reference, query, seq_len=3, velocities=(0.8, 0.9, 1.0, 1.1, 1.2)).topk.indices
+    np.testing.assert_array_equal(seqvpr.match(reference, query, seq_len=3, velocities="0.8:1.2:0.1").topk.indices,
+                                  expected)
+    rows = torch.tensor(query.descriptors, requires_grad=True)
+    as_tensor = seqvpr.Traversal.from_descriptors(rows, "q", segment_ids=query.segment_ids)
+    as_lists = seqvpr.Traversal.from_descriptors(query.descriptors.tolist(), "q", segment_ids=query.segment_ids)
+    for other in (as_tensor, as_lists):
+        np.testing.assert_array_equal(seqvpr.match(reference, other, seq_len=3).topk.indices[:, 0],
+                                      seqvpr.match(reference, query, seq_len=3).topk.indices[:, 0])
+    half = seqvpr.Traversal.from_descriptors(rows.to(torch.bfloat16), "q")
+    assert half.descriptors.dtype == np.float32

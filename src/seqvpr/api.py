@@ -70,7 +70,7 @@ def match_settings(method: str, models: Mapping[str, TrainedModel], seq_len: int
 
     chosen = check_run(method, models, 0, seq_len)
     length = seq_len if seq_len is not None else run_length(chosen, models)
-    spec = SequenceSpec(length, align, boundary, tuple(velocities))  # type: ignore[arg-type]
+    spec = SequenceSpec(length, align, boundary, velocities)  # type: ignore[arg-type]  (text, one number or several)
     return MatchSettings(spec, k, normalize, dtype, device, memory_budget)
 
 

@@ -52,6 +52,7 @@ class Traversal:
         _check_length(self, "image_paths", self.image_paths, n)
         _check_length(self, "names", self.names, n)
         if self.descriptors is not None:
+            object.__setattr__(self, "descriptors", descriptor_rows(self.descriptors, self._label()))
             _check_descriptors(self, self.descriptors)
         if self.positions is not None:
             if self.positions.ndim != 2 or self.positions.shape[1] != 2:
@@ -79,7 +80,9 @@ class Traversal:
         timestamps: np.ndarray | None = None,
         source: str = "",
     ) -> Traversal:
-        """A traversal whose frame ``i`` is row ``i`` of ``descriptors`` (one segment unless ids are given)."""
+        """A traversal whose frame ``i`` is row ``i`` of ``descriptors`` (one segment unless ids are given): an array,
+        a torch tensor or nested lists of numbers."""
+        descriptors = descriptor_rows(descriptors, name)
         n = len(descriptors)
         return cls(
             name=name,
@@ -203,6 +206,27 @@ def _check_length(traversal: Traversal, field_name: str, values, n: int) -> None
         raise SeqvprError(f"{traversal._label()}: {field_name} has {len(values)} entries for {n} frames")
 
 
+def descriptor_rows(descriptors, label: str):
+    """Descriptor rows as the matchers read them: a torch tensor (any floating type; a bfloat16 one as float32,
+    gradients dropped) or nested lists become an array; an array, a memory map or coded rows pass as they are;
+    anything that is no [frames, dim] table is one line naming it."""
+    if hasattr(descriptors, "detach") and hasattr(descriptors, "is_floating_point"):  # a torch tensor
+        tensor = descriptors.detach().cpu()
+        if not tensor.is_floating_point():
+            raise SettingError(f"{label}: {{descriptors}} must be floating point, got {tensor.dtype}")
+        descriptors = (tensor.float() if str(tensor.dtype) == "torch.bfloat16" else tensor).numpy()
+    elif isinstance(descriptors, (list, tuple)):
+        try:
+            descriptors = np.asarray(descriptors)
+        except ValueError as error:  # ragged rows
+            raise SettingError(f"{label}: {{descriptors}} must be a [frames, dim] table ({error})") from None
+    shape = getattr(descriptors, "shape", None)
+    if shape is None or len(shape) != 2:
+        raise SettingError(f"{label}: {{descriptors}} must be a 2-D array [frames, dim], got "
+                           f"{'shape ' + str(tuple(shape)) if shape is not None else type(descriptors).__name__}")
+    return descriptors
+
+
 def _check_descriptors(traversal: Traversal, descriptors: np.ndarray) -> None:
     if descriptors.ndim != 2:
         raise SeqvprError(f"{traversal._label()}: descriptors must be a 2-D array [frames, dim], got shape {descriptors.shape}")
@@ -213,7 +237,7 @@ def _check_descriptors(traversal: Traversal, descriptors: np.ndarray) -> None:
     if descriptors.shape[1] == 0:
         raise SeqvprError(f"{traversal._label()}: descriptors have dimension 0")
     if not np.issubdtype(descriptors.dtype, np.floating):
-        raise SeqvprError(f"{traversal._label()}: descriptors must be floating point, got {descriptors.dtype}")
+        raise SettingError(f"{traversal._label()}: {{descriptors}} must be floating point, got {descriptors.dtype}")
     if not isinstance(descriptors, np.ndarray) or file_mapped(descriptors):
         return  # a memory-mapped file's rows were checked a block at a time as they were read: not loaded here
     finite = np.isfinite(descriptors).all(axis=1)

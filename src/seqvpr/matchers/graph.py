@@ -38,7 +38,9 @@ class GraphMatcher(Matcher):
         """The graph search with ``conf``'s ``steps``, through a SeqMatchNet model's transform."""
         from seqvpr.matchers.rows import frame_transform
 
-        return cls(settings, tuple(conf.get("steps") or (1, 2)), frame_transform(models), progress)
+        from seqvpr.sequences.windows import check_steps
+
+        return cls(settings, check_steps(tuple(conf.get("steps") or (1, 2))), frame_transform(models), progress)
 
     def own_settings(self) -> dict[str, Any]:
         return {"steps": list(self.steps)}

@@ -42,8 +42,11 @@ class SequenceSearch:
     contrast_window: int = 10
 
     def __post_init__(self) -> None:
+        from seqvpr.sequences.windows import check_steps
+
         if self.search not in SEARCHES:
             raise SeqvprError(f"sequence search {self.search!r} is not known (choose from: {', '.join(SEARCHES)})")
+        object.__setattr__(self, "steps", check_steps(self.steps))
 
     def scorer(self):
         """The window scorer: None for the kernel's constant velocity, else the search's."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
+
 from seqvpr.sequences.windows import SequenceSpec
 
 
@@ -22,8 +24,8 @@ class MatchSettings:
     def __post_init__(self) -> None:
         from seqvpr.errors import SettingError
 
-        if self.k < 1:
-            raise SettingError(f"{{k}} (matches kept per query) must be at least 1, got {self.k}")
+        if isinstance(self.k, bool) or not isinstance(self.k, (int, np.integer)) or self.k < 1:
+            raise SettingError(f"{{k}} (matches kept per query) must be a whole number at least 1, got {self.k!r}")
 
     def as_dict(self) -> dict:
         return asdict(self)

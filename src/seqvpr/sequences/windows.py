@@ -39,8 +39,9 @@ class SequenceSpec:
     velocities: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
-        if int(self.length) != self.length or self.length < 1:
-            raise SettingError(f"{{seq_len}} must be a positive integer, got {self.length}")
+        if isinstance(self.length, bool) or not isinstance(self.length, (int, np.integer)) or self.length < 1:
+            raise SettingError(f"{{seq_len}} must be a positive integer, got {self.length!r}")
+        object.__setattr__(self, "velocities", velocity_tuple(self.velocities))
         if self.align not in ("centered", "causal"):
             raise SettingError(f"{{align}} must be 'centered' or 'causal', got {self.align!r}")
         if self.boundary not in ("drop", "shift"):
@@ -140,6 +141,20 @@ def parse_velocities(text: str, what: str = "{velocities}") -> tuple[float, ...]
     return velocities
 
 
+def velocity_tuple(velocities) -> tuple[float, ...]:
+    """Velocities as a tuple of numbers: text (``0.8:1.2:0.1``, as ``--velocities`` takes it) parsed, a number alone
+    one velocity, any other sequence of numbers as floats; anything else one line naming them."""
+    if isinstance(velocities, str):
+        return parse_velocities(velocities)
+    if isinstance(velocities, (int, float, np.number)) and not isinstance(velocities, bool):
+        return (float(velocities),)
+    try:
+        values = tuple(float(v) for v in velocities)
+    except (TypeError, ValueError):
+        raise SettingError(f"{{velocities}} must be numbers, got {velocities!r}") from None
+    return values
+
+
 def check_velocities(velocities: tuple[float, ...], what: str = "{velocities}") -> None:
     """One line unless there are at most ``MAX_VELOCITIES`` velocities, each positive and at most ``MAX_VELOCITY``
     (a trajectory count or a slope past these costs passes and windows no match needs)."""
@@ -151,12 +166,25 @@ def check_velocities(velocities: tuple[float, ...], what: str = "{velocities}") 
                           f"got {bad!r}")
 
 
+MAX_STEPS = 16  # reference frames a query frame may move at most (adaptive, graph): a search's cost grows with it
+
+
 def parse_steps(text: str, what: str = "{steps}") -> tuple[int, int]:
     """``MIN:MAX`` reference frames per query frame (adaptive matching): 0 <= MIN <= MAX <= 16."""
     try:
         low, high = (int(x) for x in text.split(":"))
-        if not 0 <= low <= high <= 16:
-            raise ValueError
     except ValueError:
-        raise SettingError(f"{what} {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= 16, e.g. 0:2") from None
-    return low, high
+        raise SettingError(f"{what} {text!r}: expected MIN:MAX with 0 <= MIN <= MAX <= {MAX_STEPS}, e.g. 0:2") from None
+    return check_steps((low, high), f"{what} {text!r}")
+
+
+def check_steps(steps, what: str = "{steps}") -> tuple[int, int]:
+    """Steps (MIN, MAX) as two whole numbers with 0 <= MIN <= MAX <= 16, else one line naming them."""
+    try:
+        low, high = steps
+        ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (low, high))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or not 0 <= low <= high <= MAX_STEPS:
+        raise SettingError(f"{what}: expected MIN, MAX with 0 <= MIN <= MAX <= {MAX_STEPS}, got {steps!r}")
+    return int(low), int(high)
