@@ -134,7 +134,10 @@ def test_bad_frames_are_one_line_and_the_localizer_goes_on(route):
     raises_one_line("holds 16-D frames", localizer.update, np.zeros(8, np.float32))
     raises_one_line("NaN or infinite", localizer.update, np.full(16, np.nan, np.float32))
     raises_one_line("takes a descriptor [D]", localizer.update, np.zeros((4, 4, 3), np.uint8))
-    assert localizer.update(query[6]).frame == 6  # the bad frames left no trace
+    for kind in (np.int64, bool, np.complex64):
+        raises_one_line("must be floating point", localizer.update, query[6].astype(kind))
+    assert localizer.update(query[6].tolist()).frame == 6  # numbers as a list: the frame it is; the bad ones left
+    raises_one_line("threshold must be a finite number", Localizer.open, route / "map", threshold=float("nan"))
     raises_one_line("takes no shortlist", Localizer.open, route / "map", method="hmm", shortlist=5)
     raises_one_line("needs an index over", Localizer.open, route / "map", shortlist=5)
     raises_one_line("not method delta", Localizer.open, route / "map", method="delta")

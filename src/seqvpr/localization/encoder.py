@@ -25,10 +25,14 @@ def rgb_image(frame: Frame) -> Image.Image:
     if isinstance(frame, (str, Path)):
         return read_image(frame, "RGB")
     if isinstance(frame, Image.Image):
+        if 0 in frame.size:
+            raise SeqvprError(f"a camera frame has no pixels (size {frame.size})")
         return to_8bit(frame, "RGB")
     array = np.asarray(frame)
     if array.dtype != np.uint8 or array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] != 3):
         raise SeqvprError(f"a camera frame must be an H x W x 3 uint8 array, got {array.dtype} {array.shape}")
+    if 0 in array.shape[:2]:
+        raise SeqvprError(f"a camera frame has no pixels (shape {array.shape})")
     return Image.fromarray(array).convert("RGB")
 
 

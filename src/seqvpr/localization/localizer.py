@@ -14,6 +14,7 @@ instead of the nearest one, and finds the route again by itself once the frames 
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -81,6 +82,10 @@ class LocalizerSettings:
             raise SettingError(f"a localiser runs {', '.join(online)}, not {{method}} {self.method}")
         if self.shortlist and get_method(self.method).family != "matching":
             raise SettingError(f"{{method}} {self.method} keeps a belief over every map frame: it takes no {{shortlist}}")
+        if self.threshold is not None and not (isinstance(self.threshold, (int, float))
+                                               and math.isfinite(self.threshold)):
+            raise SettingError(f"{{threshold}} must be a finite number (or None: the map's calibration), got "
+                               f"{self.threshold!r}")
         if min(self.seq_len, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
             raise SettingError("localiser settings: {seq_len}, {k} and {lost_after} must be >= 1; {shortlist}, {history} and "
                               "exclusion >= 0")
@@ -220,8 +225,15 @@ class Localizer:
     def _describe(self, frame: Any, out: FrameRow) -> FrameRow:
         """The frame as a map frame, in ``out``: described (images), transformed (SeqMatchNet at match time),
         normalised."""
-        array = np.asarray(frame) if isinstance(frame, (np.ndarray, torch.Tensor)) else None
+        if isinstance(frame, (list, tuple)):  # a descriptor as numbers
+            frame = np.asarray(frame)
+        if isinstance(frame, torch.Tensor):
+            frame = frame.detach().cpu()
+            frame = (frame.float() if frame.dtype == torch.bfloat16 else frame).numpy()
+        array = frame if isinstance(frame, np.ndarray) else None
         is_descriptor = array is not None and array.ndim == 1 and array.dtype != np.uint8
+        if is_descriptor and not np.issubdtype(array.dtype, np.floating):
+            raise SettingError(f"a frame's descriptor must be floating point, got {array.dtype}")
         if is_descriptor:
             vector = array.astype(np.float32, copy=False)
         elif self.encoder is None:
