@@ -21,13 +21,14 @@ def cache_folder(kind: str) -> Path:
     return cache_root() / kind
 
 
-def writable_folder(folder: Path) -> Path:
-    """``folder`` created if absent; one line naming it (and ``$SEQVPR_CACHE``) when it cannot be."""
+def writable_folder(folder: Path, variable: str = "SEQVPR_CACHE") -> Path:
+    """``folder`` created if absent; one line naming it (and ``$variable``, the setting that chose it) when it
+    cannot be."""
     from seqvpr.errors import SeqvprError
 
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise SeqvprError(f"cache folder {folder} cannot be created ({error.strerror}); point $SEQVPR_CACHE at a "
+        raise SeqvprError(f"cache folder {folder} cannot be created ({error.strerror}); point ${variable} at a "
                           "writable folder") from None
     return folder

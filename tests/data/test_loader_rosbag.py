@@ -334,3 +334,11 @@ def test_a_damaged_bag_is_one_line_wherever_it_is_read(tmp_path, monkeypatch):
         raises_one_line(str(bag), load_traversal, str(bag), "query")
         raises_one_line(str(bag), play_bag, bag, BagTopics(), None, wait=0)
     raises_one_line("rate must be from", play_bag, tmp_path / "good.bag", BagTopics(), None, rate=1e-300)
+
+
+def test_a_frames_folder_that_cannot_be_made_names_the_setting_that_chose_it(tmp_path, monkeypatch):
+    images = synthetic_jpegs(tmp_path / "jpg", 3)
+    bag = write_bag(tmp_path / "r.bag", images, *fixes(3), ros1=True)
+    (tmp_path / "a-file").write_text("not a folder")
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "a-file" / "frames"))
+    raises_one_line("point $SEQVPR_BAG_FRAMES at a writable folder", load_traversal, str(bag), "query")

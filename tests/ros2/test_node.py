@@ -192,6 +192,13 @@ def test_a_map_or_model_mismatch_is_one_line_at_start_up(small_map, tmp_path, mo
         assert code == 2 and len(error_lines(err)) == 1 and said in error_lines(err)[0], err
     code, _, err = run_cli(monkeypatch, capsys, "node", "--map", tmp_path / "nowhere")
     assert code == 2 and len(error_lines(err)) == 1 and "nowhere" in err
+    from tests.helpers import write_route_files
+
+    (tmp_path / "route").mkdir()
+    route = write_route_files(tmp_path / "route", n_frames=40, dim=8, seed=1)
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", tmp_path / "descriptors")[0] == 0
+    code, out, err = run_cli(monkeypatch, capsys, "node", "--map", tmp_path / "descriptors", "-L", "3")
+    assert code == 2 and "holds descriptor-file frames" in error_lines(err)[0] and "listening" not in out + err, err
 
 
 def error_lines(err: str) -> list[str]:

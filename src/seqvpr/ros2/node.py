@@ -87,6 +87,9 @@ class LocalizerNode:
     """The localiser on DDS: ``run(stop)`` until ``stop`` is set, then the state saved (when asked)."""
 
     def __init__(self, localizer: Localizer, bus: Bus, settings: NodeSettings) -> None:
+        if localizer.encoder is None:  # at start: no camera frame could ever be described
+            raise SeqvprError(f"{localizer.saved.folder} holds descriptor-file frames, so camera frames cannot be "
+                              "described as its frames: build the map from images (seqvpr map build IMAGES)")
         self.localizer, self.bus, self.settings = localizer, bus, settings
         frames = localizer.saved.frames
         self.track = Track.of(frames.positions, frames.segment_ids, frames.crs)

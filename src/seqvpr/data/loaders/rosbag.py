@@ -155,7 +155,10 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
     position topic, in stamp order."""
     from seqvpr.cache import writable_folder
 
-    folder = writable_folder(frames_root() if folder is None else folder)
+    folder = frames_root() if folder is None else folder
+    chosen = os.environ.get("SEQVPR_BAG_FRAMES", "").strip()
+    folder = writable_folder(folder, "SEQVPR_BAG_FRAMES" if chosen and folder == Path(chosen).expanduser()
+                             else "SEQVPR_CACHE")
     with open_bag(path) as reader:
         image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
         frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
