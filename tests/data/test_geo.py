@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from seqvpr.data.geo import common_crs, latlon_to_utm, parse_crs, utm_to_latlon
+from seqvpr.data.geo import latlon_to_utm, parse_crs, positions_in, utm_to_latlon
 from tests.helpers import raises_one_line
 
 
@@ -29,8 +29,19 @@ def test_local_positions_do_not_go_back_and_bad_ones_are_one_line():
     raises_one_line("map.json: coordinate system 'utm:32X' is not", parse_crs, "utm:32X", "map.json")
     raises_one_line("fixes.csv: row 2, latitude 85 is outside the UTM range", latlon_to_utm, np.array([1.0, 85.0]),
                     np.array([1.0, 1.0]), "fixes.csv")
-    assert common_crs([("a", "utm:1N"), ("b", "utm:1N")]) == "utm:1N" and common_crs([]) is None
-    raises_one_line("a has positions in utm:1N and b in utm:2N", common_crs, [("a", "utm:1N"), ("b", "utm:2N")])
+    raises_one_line("q.npz: positions in local cannot be compared with positions in utm:32N", positions_in,
+                    np.zeros((2, 2)), "local", "utm:32N", "q.npz")
+
+
+def test_positions_in_another_zone_are_the_same_places():
+    """Fixes on both sides of 12 degrees E (the line between zones 32 and 33), each side in the zone of its own
+    first fix: expressed in the other zone they are the places the other zone's own conversion gives."""
+    lat, lon = np.array([48.1, 48.1, 48.1001]), np.array([11.9995, 12.0005, 12.001])
+    in_32, crs_32 = latlon_to_utm(lat, lon, "a")
+    in_33, crs_33 = latlon_to_utm(lat[::-1], lon[::-1], "b")
+    assert (crs_32, crs_33) == ("utm:32N", "utm:33N")
+    np.testing.assert_allclose(positions_in(in_33, crs_33, crs_32, "b")[::-1], in_32, atol=1e-6)
+    assert positions_in(in_32, crs_32, crs_32, "a") is in_32  # one frame already: as it is
 
 
 def test_each_loader_records_the_coordinate_system_of_its_positions(tmp_path):

@@ -168,14 +168,23 @@ def test_a_map_records_its_coordinate_system_and_an_older_map_reads_local(source
     assert build_map([str(tmp_path / "none.npz")], tmp_path / "none").info.crs is None
 
 
-def test_sources_in_different_coordinate_systems_are_one_line(sources, tmp_path):
-    a = Traversal.from_descriptors(np.ones((4, 3)), positions=np.zeros((4, 2)), source="a.npz")
-    b = Traversal.from_descriptors(np.ones((3, 3)), positions=np.zeros((3, 2)), source="b.npz")
+def test_sources_in_two_utm_zones_are_laid_in_the_first_ones_and_a_local_frame_is_one_line(sources, tmp_path):
+    """A map of drives that start on either side of a zone line holds every position in the first source's zone;
+    a local frame beside a UTM one cannot be placed: one line."""
     from dataclasses import replace
 
-    assert concatenate_traversals([replace(a, crs="utm:32N"), replace(b, crs="utm:32N")]).crs == "utm:32N"
-    raises_one_line("a.npz has positions in utm:32N and b.npz in local", concatenate_traversals,
-                    [replace(a, crs="utm:32N"), b])
+    from seqvpr.data.geo import latlon_to_utm
+
+    lat, lon = np.full(4, 48.1), np.array([11.9990, 11.9995, 12.0005, 12.0010])  # across 12 degrees E
+    in_32, crs_32 = latlon_to_utm(lat, lon, "a")
+    in_33, crs_33 = latlon_to_utm(lat[::-1], lon[::-1], "b")
+    a = Traversal.from_descriptors(np.ones((4, 3)), positions=in_32, source="a.npz")
+    b = Traversal.from_descriptors(np.ones((4, 3)), positions=in_33, source="b.npz")
+    whole = concatenate_traversals([replace(a, crs=crs_32), replace(b, crs=crs_33)])
+    assert whole.crs == "utm:32N"
+    np.testing.assert_allclose(whole.positions[4:][::-1], in_32, atol=1e-6)  # the same places, in zone 32
+    raises_one_line("b.npz: positions in local cannot be compared with positions in utm:32N",
+                    concatenate_traversals, [replace(a, crs=crs_32), b])
     raises_one_line("coordinate system 'utm:61N' is not", replace, a, crs="utm:61N")
 
 

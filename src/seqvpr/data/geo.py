@@ -9,7 +9,6 @@ without a zone, odometry), or None (no positions).
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -72,15 +71,21 @@ def utm_to_latlon(positions: np.ndarray, crs: str | None) -> np.ndarray | None:
     return np.column_stack([lat, lon]).astype(np.float64)
 
 
-def common_crs(systems: Iterable[tuple[str, str | None]]) -> str | None:
-    """The one coordinate system of several sources ``(name, crs)`` that all have positions (None when none
-    has); two different ones are a one-line error naming both sources."""
-    first: tuple[str, str] | None = None
-    for name, crs in systems:
-        crs = crs or LOCAL
-        if first is None:
-            first = (name, crs)
-        elif crs != first[1]:
-            raise SeqvprError(f"{first[0]} has positions in {first[1]} and {name} in {crs}: sources of one map "
-                              "need one coordinate system")
-    return None if first is None else first[1]
+def positions_in(positions: np.ndarray, crs: str | None, target: str | None, where: str) -> np.ndarray:
+    """UTM ``positions`` in ``crs`` expressed in ``target``'s zone and hemisphere (through latitude and longitude: a
+    route that crosses a zone line, or a pair whose sides start on either side of one, compares in one planar
+    frame); as they are when the two agree. A local frame and a UTM one cannot be compared: one line naming
+    ``where``."""
+    crs, target = crs or LOCAL, target or LOCAL
+    if crs == target:
+        return positions
+    zone, goal = parse_crs(crs, where), parse_crs(target, where)
+    if zone is None or goal is None:
+        raise SeqvprError(f"{where}: positions in {crs} cannot be compared with positions in {target} (a local "
+                          "frame has no place on the globe): give both sides in one coordinate system")
+    import utm
+
+    latlon = utm_to_latlon(positions, crs)
+    easting, northing, _, _ = utm.from_latlon(latlon[:, 0], latlon[:, 1], force_zone_number=goal[0],
+                                              force_northern=goal[1])
+    return np.column_stack([easting, northing]).astype(np.float64)

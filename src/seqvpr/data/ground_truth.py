@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from seqvpr.data.traversal import Traversal
+from seqvpr.data.geo import positions_in
 from seqvpr.errors import SeqvprError
 
 RadiusUnit = Literal["m", "frames"]
@@ -119,8 +120,10 @@ def ground_truth_within_radius(query: Traversal, reference: Traversal, radius: R
                 f"{traversal.source or traversal.name}: a metric radius ({radius}) needs positions; "
                 "give positions or use a frame radius such as 2f for frame-aligned traversals"
             )
+    query_positions = positions_in(query.positions, query.crs, reference.crs,  # one planar frame for the pair
+                                   f"{query.source or query.name} against {reference.source or reference.name}")
     return GroundTruth(
-        _within_metres(query.positions, reference.positions, radius.value),
+        _within_metres(query_positions, reference.positions, radius.value),
         description=f"within {radius.value:g} m",
     )
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from seqvpr.arrays import file_mapped, release_pages
 from seqvpr.data.sources import load_traversal
-from seqvpr.data.geo import common_crs
+from seqvpr.data.geo import positions_in
 from seqvpr.data.traversal import Traversal, slice_frame_range
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import ExtractorConfig
@@ -315,9 +315,11 @@ def concatenate_traversals(traversals: list[Traversal], name: str = "map") -> Tr
     paths = tuple(p for t in traversals for p in t.image_paths) if images else None
     names = tuple(n for t in traversals for n in t.image_names()) if images else None
     positioned = all(t.positions is not None for t in traversals)
-    crs = common_crs((t.source or t.name, t.crs) for t in traversals) if positioned else None
+    crs = traversals[0].crs if positioned else None  # the first source's frame: the others are expressed in it
+    positions = np.concatenate([positions_in(t.positions, t.crs, crs, t.source or t.name) for t in traversals]) \
+        if positioned else None
     return Traversal(name, np.concatenate([t.frame_index for t in traversals]), np.concatenate(segments),
-                     RowChain([t.descriptors for t in traversals]), paths, column("positions"),
+                     RowChain([t.descriptors for t in traversals]), paths, positions,
                      column("timestamps"), column("headings"), source=name, names=names, crs=crs)
 
 
