@@ -18,10 +18,10 @@ def fixes(n: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compressed: bool = False,
-              odometry: bool = False):
+              odometry: bool = False, statuses=None):
     """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them (the
-    first ``len(lat)`` frames have one); with ``odometry``, also a second camera topic and an Odometry topic
-    (x = 2 m a frame, y = -i)."""
+    first ``len(lat)`` frames have one; ``statuses``: each fix's NavSatStatus, 0 by default, -1 for no fix); with
+    ``odometry``, also a second camera topic and an Odometry topic (x = 2 m a frame, y = -i)."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -58,7 +58,8 @@ def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compres
                          else store.serialize_cdr(message, camera_type))
             if i >= len(lat):
                 continue
-            fix = Fix(header=header(t + 0.1), status=Status(status=0, service=1), latitude=float(lat[i]),
+            status = 0 if statuses is None else int(statuses[i])
+            fix = Fix(header=header(t + 0.1), status=Status(status=status, service=1), latitude=float(lat[i]),
                       longitude=float(lon[i]), altitude=30.0, position_covariance=np.zeros(9),
                       position_covariance_type=0)
             writer.write(gps, int((t + 0.1) * 1e9), store.serialize_ros1(fix, Fix.__msgtype__) if ros1

@@ -342,3 +342,23 @@ def test_a_frames_folder_that_cannot_be_made_names_the_setting_that_chose_it(tmp
     (tmp_path / "a-file").write_text("not a folder")
     monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "a-file" / "frames"))
     raises_one_line("point $SEQVPR_BAG_FRAMES at a writable folder", load_traversal, str(bag), "query")
+
+
+def test_fixes_without_a_fix_or_off_the_globe_are_left_out_and_counted(tmp_path, monkeypatch, caplog):
+    """A NavSatFix whose status says no fix (-1), or whose latitude/longitude are not finite or not on the globe,
+    places no frame: left out with a counted warning, as frames without a fix are (was -73,646 km of easting)."""
+    import logging
+
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    images = synthetic_jpegs(tmp_path / "jpg", 8)
+    lat, lon = fixes(8)
+    lat[5], lon[6] = np.nan, 250.0
+    bag = write_bag(tmp_path / "r.bag", images, lat, lon, ros1=True, statuses=[0, 0, -1, 0, -1, 0, 0, 0])
+    with caplog.at_level(logging.WARNING, logger="seqvpr"):
+        traversal = load_traversal(f"{bag}?tolerance=0.11", "query")
+    assert "4 position fixes left out (1 not finite, 1 not on the globe, 2 status: no fix)" in caplog.text
+    assert len(traversal) == 4 and traversal.frame_index.tolist() == [0, 1, 3, 7]
+    from seqvpr.data.geo import latlon_to_utm
+
+    good, _ = latlon_to_utm(*fixes(8), "fixes")
+    np.testing.assert_allclose(traversal.positions, good[[0, 1, 3, 7]])

@@ -163,11 +163,11 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
         image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
         frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
         position = position_connection(reader, topics, path)
-        fixes = [(_stamp(m), _fix(m)) for m in _messages(reader, position)] if position else []
+        fixes = [(_stamp(m), _fix(m), _fix_fault(m)) for m in _messages(reader, position)] if position else []
     if not frames:
         raise SeqvprError(f"{path}: topic {image.topic} holds no frames")
     frames.sort(key=lambda f: f[0])
-    fixes = [f for f in sorted(fixes, key=lambda f: f[0]) if np.all(np.isfinite(f[1]))]
+    fixes = usable_fixes(sorted(fixes, key=lambda f: f[0]), f"{path}: {position.topic}" if position else str(path))
     metres, crs = _metres(np.array([f[1] for f in fixes]), position, path) if fixes else (None, None)
     return Recording(np.array([f[0] for f in frames]), [f[1] for f in frames], [f[2] for f in frames],
                      np.array([f[0] for f in fixes]) if fixes else None, metres, crs, image.topic,
@@ -219,6 +219,40 @@ def _fix(message) -> np.ndarray:
         return np.array([message.latitude, message.longitude], dtype=np.float64)
     position = message.pose.pose.position
     return np.array([position.x, position.y], dtype=np.float64)
+
+
+EARTH_M = 4.1e7  # an odometry position farther than the Earth's circumference from its origin is no position
+
+
+def _fix_fault(message) -> str | None:
+    """Why a position message is no usable fix (None: it is one): a NavSatFix whose status says no fix, or whose
+    latitude/longitude are not on the globe; an odometry pose that is not finite or beyond the planet."""
+    values = _fix(message)
+    if not np.all(np.isfinite(values)):
+        return "not finite"
+    if hasattr(message, "latitude"):
+        if int(message.status.status) < 0:  # STATUS_NO_FIX
+            return "status: no fix"
+        if not (-90.0 <= values[0] <= 90.0 and -180.0 <= values[1] <= 180.0):
+            return "not on the globe"
+    elif np.abs(values).max() > EARTH_M:
+        return "beyond the planet"
+    return None
+
+
+def usable_fixes(fixes: list[tuple[float, np.ndarray, str | None]], where: str) -> list[tuple[float, np.ndarray]]:
+    """The fixes (stamp, values, fault) without a fault, as (stamp, values); those left out counted by reason in one
+    warning naming ``where`` (a frame then takes the nearest usable fix, or none, as frames without one do)."""
+    faults: dict[str, int] = {}
+    for _, _, fault in fixes:
+        if fault is not None:
+            faults[fault] = faults.get(fault, 0) + 1
+    if faults:
+        from seqvpr.progress import LOGGER
+
+        LOGGER.warning(f"{where}: {sum(faults.values())} position fixes left out ("
+                       + ", ".join(f"{count} {fault}" for fault, count in sorted(faults.items())) + ")")
+    return [(stamp, values) for stamp, values, fault in fixes if fault is None]
 
 
 def _metres(values: np.ndarray, connection, path: Path) -> tuple[np.ndarray, str]:
