@@ -11,6 +11,7 @@ from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.arrays import file_mapped
 from seqvpr.errors import SeqvprError, SettingError
 
+MAX_POSITION_M = 1e8  # metres from any frame's origin: further is beyond the planet (UTM northings reach 1e7)
 GAP_FACTOR = 10.0  # a time step this many times the median one starts a segment (time_gap_segments)
 
 
@@ -57,9 +58,11 @@ class Traversal:
         if self.positions is not None:
             if self.positions.ndim != 2 or self.positions.shape[1] != 2:
                 raise SeqvprError(f"{self._label()}: positions must be [N, 2] (easting, northing) in metres")
-            if not np.isfinite(self.positions).all():
-                bad = int(np.flatnonzero(~np.isfinite(self.positions).all(axis=1))[0])
-                raise SeqvprError(f"{self._label()}: position of frame {int(self.frame_index[bad])} is not finite")
+            sane = np.isfinite(self.positions).all(axis=1) & (np.abs(self.positions) <= MAX_POSITION_M).all(axis=1)
+            if not sane.all():
+                bad = int(np.flatnonzero(~sane)[0])
+                raise SeqvprError(f"{self._label()}: position of frame {int(self.frame_index[bad])} is not finite or "
+                                  f"beyond {MAX_POSITION_M:g} m ({self.positions[bad].tolist()}): not a place")
         _settle_crs(self)
         if self.descriptors is None and self.image_paths is None:
             raise SeqvprError(f"{self._label()}: a traversal needs descriptors or image paths")
