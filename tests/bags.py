@@ -18,10 +18,11 @@ def fixes(n: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compressed: bool = False,
-              odometry: bool = False, statuses=None):
+              odometry: bool = False, statuses=None, zero_stamps: bool = False):
     """Camera frames (raw rgb8 or the JPEG bytes) and NavSatFix fixes 0.1 s apart, as a robot records them (the
     first ``len(lat)`` frames have one; ``statuses``: each fix's NavSatStatus, 0 by default, -1 for no fix); with
-    ``odometry``, also a second camera topic and an Odometry topic (x = 2 m a frame, y = -i)."""
+    ``odometry``, also a second camera topic and an Odometry topic (x = 2 m a frame, y = -i); ``zero_stamps``: every
+    header stamped 0, as a driver without a clock stamps them."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -39,6 +40,7 @@ def write_bag(path, images, lat, lon, ros1: bool, storage: str = "mcap", compres
         writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3)
 
     def header(t):
+        t = 0.0 if zero_stamps else t
         stamp = Time(sec=int(t), nanosec=int(round((t % 1) * 1e9)))
         return (Header(seq=0, stamp=stamp, frame_id="cam") if ros1 else Header(stamp=stamp, frame_id="cam"))
 

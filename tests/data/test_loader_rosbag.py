@@ -362,3 +362,16 @@ def test_fixes_without_a_fix_or_off_the_globe_are_left_out_and_counted(tmp_path,
 
     good, _ = latlon_to_utm(*fixes(8), "fixes")
     np.testing.assert_allclose(traversal.positions, good[[0, 1, 3, 7]])
+
+
+def test_repeated_header_stamps_keep_frame_names_unique_and_are_counted(tmp_path, monkeypatch, caplog):
+    import logging
+
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    images = synthetic_jpegs(tmp_path / "jpg", 4)
+    bag = write_bag(tmp_path / "r.bag", images, *fixes(4), ros1=True, zero_stamps=True)
+    with caplog.at_level(logging.WARNING, logger="seqvpr"):
+        traversal = load_traversal(str(bag), "query")
+    names = traversal.frame_names()
+    assert len(set(names)) == 4 and names[1] == f"{bag}:/camera/image_raw@0.000000000#2"
+    assert "3 camera frames repeat another frame's header stamp" in caplog.text

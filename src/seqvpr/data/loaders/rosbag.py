@@ -111,13 +111,30 @@ def load_rosbag(path: str | Path, topics: BagTopics = BagTopics(), frames_dir: s
     recording = read_recording(path, topics, Path(frames_dir) if frames_dir is not None else frames_root())
     keep, positions = _positions(recording, topics.tolerance, path)
     stamps = recording.stamps[keep]
-    names = tuple(f"{path}:{recording.camera_topic}@{recording.stamp_texts[i]}" for i in keep)
+    names = unique_names([f"{path}:{recording.camera_topic}@{recording.stamp_texts[i]}" for i in keep], path)
     _log_reading(bag_source(path, topics), recording.camera_topic,
                  recording.position_topic if positions is not None else None, len(recording.stamps) - len(keep),
                  topics.tolerance)
     return Traversal(f"{path.stem}{topics.image or ''}".replace("/", "_"), np.asarray(keep, np.int64),
                      time_gap_segments(stamps), None, tuple(recording.files[i] for i in keep), positions, stamps,
                      source=str(path), names=names, crs=recording.crs)
+
+
+def unique_names(names: list[str], path: Path) -> tuple[str, ...]:
+    """Frame names by stamp, kept unique where stamps repeat (a camera driver that stamps 0, or twice alike): the
+    second and later frames of one stamp get ``#2``, ``#3``... in recorded order, and one warning counts them."""
+    seen: dict[str, int] = {}
+    unique = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        unique.append(name if seen[name] == 1 else f"{name}#{seen[name]}")
+    repeated = len(names) - len(seen)
+    if repeated:
+        from seqvpr.progress import LOGGER
+
+        LOGGER.warning(f"{path}: {repeated} camera frames repeat another frame's header stamp (zero or duplicate "
+                       "stamps): named by stamp and #N; their time gaps, and the fixes they take, are not to be trusted")
+    return tuple(unique)
 
 
 def _log_reading(source: str, camera_topic: str, position_topic: str | None, without_fix: int,
