@@ -190,3 +190,30 @@ def test_released_pages_leave_the_process_and_read_back_the_same(tmp_path):
     assert np.array_equal(mapped, values)
     release_pages(values)
     assert np.array_equal(values, np.random.default_rng(0).standard_normal((4096, 1024)).astype(np.float32))
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_mat_files_whose_sizes_lie_are_one_line_before_scipy_reads_them(tmp_path, compressed):
+    """scipy's MAT reader trusts element sizes and dimensions (a lying size crashed the process, a lying dimension
+    took a minute): both are one line first; real files of every class read as before (a sparse matrix's dimensions
+    may exceed its bytes)."""
+    import scipy.io
+    import scipy.sparse
+
+    path = tmp_path / "x.mat"
+    contents = {"a": np.random.default_rng(0).random((6, 4)), "s": {"f": np.eye(3), "g": "text"},
+                "c": np.array([[1.0, 2.0]], dtype=object), "sp": scipy.sparse.csc_matrix(([1.0], ([0], [0])),
+                                                                                        shape=(100000, 100000))}
+    scipy.io.savemat(path, contents, do_compression=compressed)
+    assert sorted(k for k in load_mat(path) if not k.startswith("__")) == ["a", "c", "s", "sp"]
+    if compressed:
+        return
+    data = bytearray(path.read_bytes())
+    lying_size = bytearray(data)
+    lying_size[128 + 12 : 128 + 16] = (2**31).to_bytes(4, "little")  # the first matrix's flags claim 2 GiB
+    path.write_bytes(bytes(lying_size))
+    raises_one_line("claims", load_mat, path)
+    lying_dims = bytearray(data)
+    lying_dims[128 + 28 : 128 + 32] = (10**9).to_bytes(4, "little")  # the first matrix's second dimension
+    path.write_bytes(bytes(lying_dims))
+    raises_one_line("claims dimensions", load_mat, path)

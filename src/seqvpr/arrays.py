@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import os
 import stat
+import tokenize
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -62,16 +63,25 @@ def _size(nbytes: float) -> str:
     return f"{nbytes:.1f} TiB"  # pragma: no cover
 
 
-def _read_header(handle: BinaryIO, label: str) -> tuple[np.dtype, int, int]:
-    """The dtype, element count and header length of the ``.npy`` data behind ``handle``; an object dtype (a pickle)
-    is refused here, before numpy reads any of it."""
+def read_npy_header(handle: BinaryIO, label: str) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype a ``.npy`` header declares (the handle then at the data), read as numpy reads it but
+    never unpickling; a header that is damaged, cut short or of an unknown version is one line naming ``label``."""
     fmt = np.lib.format
     try:
         version = fmt.read_magic(handle)
-        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-        shape, _, dtype = reader(handle) if version in ((1, 0), (2, 0)) else fmt._read_array_header(handle, version)
-    except (ValueError, EOFError, SyntaxError, TypeError) as error:
+        if version not in ((1, 0), (2, 0), (3, 0)):
+            raise ValueError(f"format version {version} is not known")
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0  # 3.0: 2.0 in UTF-8
+        shape, _, dtype = reader(handle)
+    except (ValueError, EOFError, SyntaxError, TypeError, KeyError, OverflowError, tokenize.TokenError) as error:
         raise SeqvprError(f"{label}: not a NumPy .npy array ({' '.join(str(error).split())[:200]})") from None
+    return shape, dtype
+
+
+def _read_header(handle: BinaryIO, label: str) -> tuple[np.dtype, int, int]:
+    """The dtype, element count and header length of the ``.npy`` data behind ``handle``; an object dtype (a pickle)
+    is refused here, before numpy reads any of it."""
+    shape, dtype = read_npy_header(handle, label)
     if dtype.hasobject:
         raise SeqvprError(f"{label}: {PICKLE_REFUSAL}")
     return dtype, int(np.prod(shape, dtype=np.int64)) if shape else 1, handle.tell()
@@ -157,6 +167,76 @@ def open_npz(path: str | Path) -> Iterator[NpzArrays]:
         yield NpzArrays(archive, str(path))
 
 
+MAT_MATRIX, MAT_COMPRESSED = 14, 15  # the MAT v5 element types that hold other elements
+
+
+def check_mat_elements(path: Path) -> None:
+    """A MAT v5 file's elements each fit the element (or file) that holds them, compressed ones included: scipy's
+    reader trusts the sizes and can crash the process on a file whose sizes lie, so a lie is one line here first.
+    Files of other versions (v4, v7.3) are left to the reader's own errors."""
+    data = path.read_bytes()
+    if len(data) < 128 or data[126:128] not in (b"IM", b"MI") or data[124:126] not in (b"\x00\x01", b"\x01\x00"):
+        return
+    order = "<" if data[126:128] == b"IM" else ">"
+    _check_elements(data, 128, len(data), order, path, 0)
+
+
+def _check_elements(data: bytes, start: int, end: int, order: str, path: Path, depth: int) -> None:
+    """Every element tag in ``data[start:end]`` and what it declares fit there; matrices and compressed elements
+    checked inside (small elements: four bytes of data in the tag's second half)."""
+    import struct
+    import zlib
+
+    if depth > 32:
+        raise SeqvprError(f"{path}: MATLAB elements nested more than 32 deep (a damaged file)")
+    at = start
+    while at + 8 <= end:
+        kind, size = struct.unpack_from(order + "II", data, at)
+        if kind >> 16:  # small element: its size in the upper half, its data in the tag
+            at += 8
+            continue
+        if size > end - at - 8:
+            raise SeqvprError(f"{path}: a MATLAB element at byte {at} claims {size} bytes, {end - at - 8} remain "
+                              "(a damaged or truncated file)")
+        if kind == MAT_COMPRESSED:
+            try:
+                inner = zlib.decompressobj().decompress(data[at + 8 : at + 8 + size], memory_cap())
+            except zlib.error as error:
+                raise SeqvprError(f"{path}: a compressed MATLAB element at byte {at} is damaged ({error})") from None
+            _check_elements(inner, 0, len(inner), order, path, depth + 1)
+        elif kind == MAT_MATRIX:
+            _check_matrix_size(data, at + 8, at + 8 + size, order, path)
+            _check_elements(data, at + 8, at + 8 + size, order, path, depth + 1)
+        at += 8 + size + (0 if kind == MAT_COMPRESSED else -size % 8)
+
+
+MAT_SPARSE = 5  # a sparse matrix's dimensions may exceed its bytes; every other class takes a byte an element at least
+
+
+def _check_matrix_size(data: bytes, start: int, end: int, order: str, path: Path) -> None:
+    """A matrix's dimensions (its second element) fit its bytes: no more elements than bytes (a sparse matrix
+    excepted), none negative; scipy would otherwise walk millions of absent elements."""
+    import struct
+
+    elements, at = [], start
+    while at + 8 <= end and len(elements) < 2:
+        kind, size = struct.unpack_from(order + "II", data, at)
+        small = kind >> 16
+        body = (at + 4, at + 4 + small) if small else (at + 8, at + 8 + size)
+        elements.append(data[body[0] : min(body[1], end)])
+        at += 8 if small else 8 + size + (-size % 8)
+    if len(elements) < 2 or len(elements[0]) < 4 or len(elements[1]) % 4:
+        return  # an empty matrix, or too damaged to say: the reader says what it finds
+    matrix_class = struct.unpack_from(order + "I", elements[0])[0] & 0xFF
+    dims = struct.unpack(order + f"{len(elements[1]) // 4}i", elements[1])
+    count = 1
+    for dim in dims:
+        count *= dim
+    if min(dims, default=0) < 0 or (matrix_class != MAT_SPARSE and count > end - start):
+        raise SeqvprError(f"{path}: a MATLAB matrix at byte {start - 8} claims dimensions {list(dims)} in {end - start} "
+                          "bytes (a damaged file)")
+
+
 def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:
     """The variables of a MATLAB v5 ``.mat`` (scipy's reader runs no code); a v7.3 file, one scipy cannot read, or a
     MATLAB function handle or class object among them is one line naming it, as seqvpr reads only numbers, text and
@@ -165,6 +245,7 @@ def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:
     from scipy.io.matlab import MatlabFunction, MatlabOpaque
 
     path = check_regular_file(path, "a MATLAB .mat file")
+    check_mat_elements(path)
     try:
         with open(path, "rb") as handle:
             contents = scipy.io.loadmat(handle, **options)

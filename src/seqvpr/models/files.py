@@ -47,6 +47,8 @@ def read_json(path: Path) -> dict[str, Any]:
         raise SeqvprError(f"{path}: no such file") from None
     except json.JSONDecodeError as error:
         raise SeqvprError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
+    except UnicodeDecodeError as error:
+        raise SeqvprError(f"{path}: not valid JSON (not UTF-8 text at byte {error.start})") from None
 
 
 def read_tensors(path: Path) -> dict[str, torch.Tensor]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqvpr.arrays import check_regular_file
+from seqvpr.arrays import check_regular_file, read_npy_header
 from seqvpr.errors import SeqvprError
 
 _MULTIARRAY = ("numpy.core.multiarray", "numpy._core.multiarray")
@@ -40,13 +40,8 @@ def read_object_rows(path: str | Path) -> list[tuple[int, np.ndarray]]:
     """The ``[query index, [reference indices]]`` rows of a VPR-Bench object-array ``.npy``, read without
     unpickling; a file that is not that is one line saying how to convert it."""
     path = check_regular_file(path, "a ground-truth file")
-    fmt = np.lib.format
     with open(path, "rb") as handle:
-        try:
-            version = fmt.read_magic(handle)
-            shape, _, dtype = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(handle)
-        except (ValueError, EOFError, SyntaxError, TypeError) as error:
-            raise SeqvprError(f"{path}: not a NumPy .npy array ({error})") from None
+        shape, dtype = read_npy_header(handle, str(path))
         payload = handle.read()
     if not dtype.hasobject or len(shape) != 2 or shape[1] != 2:
         raise SeqvprError(f"{path}: expected VPR-Bench rows [query_index, [reference indices]], got {dtype} {shape}")
