@@ -212,8 +212,8 @@ def test_mat_files_whose_sizes_lie_are_one_line_before_scipy_reads_them(tmp_path
     lying_size = bytearray(data)
     lying_size[128 + 12 : 128 + 16] = (2**31).to_bytes(4, "little")  # the first matrix's flags claim 2 GiB
     path.write_bytes(bytes(lying_size))
-    raises_one_line("claims", load_mat, path)
+    raises_one_line("a MATLAB element at byte", load_mat, path)
     lying_dims = bytearray(data)
-    lying_dims[128 + 28 : 128 + 32] = (10**9).to_bytes(4, "little")  # the first matrix's second dimension
+    lying_dims[128 + 36 : 128 + 40] = (10**6).to_bytes(4, "little")  # the first matrix's second dimension
     path.write_bytes(bytes(lying_dims))
-    raises_one_line("claims dimensions", load_mat, path)
+    raises_one_line("does not hold its", load_mat, path)

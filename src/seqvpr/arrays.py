@@ -189,15 +189,13 @@ def _check_elements(data: bytes, start: int, end: int, order: str, path: Path, d
 
     if depth > 32:
         raise SeqvprError(f"{path}: MATLAB elements nested more than 32 deep (a damaged file)")
+    _mat_elements(data, start, end, order, path)  # every tag known and fitting, before any is read inside
     at = start
     while at + 8 <= end:
         kind, size = struct.unpack_from(order + "II", data, at)
         if kind >> 16:  # small element: its size in the upper half, its data in the tag
             at += 8
             continue
-        if size > end - at - 8:
-            raise SeqvprError(f"{path}: a MATLAB element at byte {at} claims {size} bytes, {end - at - 8} remain "
-                              "(a damaged or truncated file)")
         if kind == MAT_COMPRESSED:
             try:
                 inner = zlib.decompressobj().decompress(data[at + 8 : at + 8 + size], memory_cap())
@@ -210,31 +208,59 @@ def _check_elements(data: bytes, start: int, end: int, order: str, path: Path, d
         at += 8 + size + (0 if kind == MAT_COMPRESSED else -size % 8)
 
 
-MAT_SPARSE = 5  # a sparse matrix's dimensions may exceed its bytes; every other class takes a byte an element at least
+MAT_TYPE_BYTES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 9: 8, 12: 8, 13: 8, 14: 1, 15: 1, 16: 1, 17: 2, 18: 4}
+MAT_CELL, MAT_STRUCT, MAT_CHAR, MAT_SPARSE = 1, 2, 4, 5
+MAT_NUMERIC = range(6, 16)  # double, single, int8 ... uint64 (a logical array is uint8)
+
+
+def _mat_elements(data: bytes, start: int, end: int, order: str, path: Path) -> list[tuple[int, bytes]]:
+    """The elements in ``data[start:end]`` as (type, data), each checked to be of a known type and to fit."""
+    import struct
+
+    found, at = [], start
+    while at + 8 <= end:
+        kind, size = struct.unpack_from(order + "II", data, at)
+        small = kind >> 16
+        kind = kind & 0xFFFF if small else kind
+        if kind not in MAT_TYPE_BYTES or (small and small > 4) or (not small and size > end - at - 8):
+            raise SeqvprError(f"{path}: a MATLAB element at byte {at} is damaged (type {kind}, "
+                              f"{small or size} bytes, {end - at - 8} remain)")
+        found.append((kind, data[at + 4 : at + 4 + small] if small else data[at + 8 : at + 8 + size]))
+        at += 8 if small else 8 + size + (0 if kind == MAT_COMPRESSED else -size % 8)
+    return found
 
 
 def _check_matrix_size(data: bytes, start: int, end: int, order: str, path: Path) -> None:
-    """A matrix's dimensions (its second element) fit its bytes: no more elements than bytes (a sparse matrix
-    excepted), none negative; scipy would otherwise walk millions of absent elements."""
+    """A matrix's parts agree with its dimensions: a numeric or character array's data holds exactly its elements,
+    a cell or struct holds as many matrices as it has elements (times fields); scipy trusts them and otherwise reads
+    past the data or crashes."""
     import struct
 
-    elements, at = [], start
-    while at + 8 <= end and len(elements) < 2:
-        kind, size = struct.unpack_from(order + "II", data, at)
-        small = kind >> 16
-        body = (at + 4, at + 4 + small) if small else (at + 8, at + 8 + size)
-        elements.append(data[body[0] : min(body[1], end)])
-        at += 8 if small else 8 + size + (-size % 8)
-    if len(elements) < 2 or len(elements[0]) < 4 or len(elements[1]) % 4:
-        return  # an empty matrix, or too damaged to say: the reader says what it finds
-    matrix_class = struct.unpack_from(order + "I", elements[0])[0] & 0xFF
-    dims = struct.unpack(order + f"{len(elements[1]) // 4}i", elements[1])
-    count = 1
-    for dim in dims:
-        count *= dim
-    if min(dims, default=0) < 0 or (matrix_class != MAT_SPARSE and count > end - start):
-        raise SeqvprError(f"{path}: a MATLAB matrix at byte {start - 8} claims dimensions {list(dims)} in {end - start} "
-                          "bytes (a damaged file)")
+    parts = _mat_elements(data, start, end, order, path)
+    if len(parts) < 3 or len(parts[0][1]) < 4 or len(parts[1][1]) % 4:
+        return  # an empty matrix: nothing to check
+    flags = struct.unpack_from(order + "I", parts[0][1])[0]
+    matrix_class, complex_part = flags & 0xFF, bool(flags & 0x800)
+    dims = struct.unpack(order + f"{len(parts[1][1]) // 4}i", parts[1][1])
+    count = int(np.prod(dims, dtype=object)) if dims else 0
+    where = f"{path}: a MATLAB matrix at byte {start - 8} with dimensions {list(dims)}"
+    if min(dims, default=0) < 0:
+        raise SeqvprError(f"{where} is damaged (a negative dimension)")
+    if matrix_class in MAT_NUMERIC or matrix_class == MAT_CHAR:
+        values = parts[3:]
+        expected = 2 if complex_part else 1
+        if count and (len(values) != expected or any(kind != 16 and len(body) != count * MAT_TYPE_BYTES[kind]
+                                                     for kind, body in values)):
+            raise SeqvprError(f"{where} does not hold its {count} elements (a damaged file)")
+    elif matrix_class == MAT_CELL:
+        if len(parts) - 3 != count:
+            raise SeqvprError(f"{where} holds {len(parts) - 3} cells, not {count} (a damaged file)")
+    elif matrix_class == MAT_STRUCT and len(parts) >= 5:
+        name_length = struct.unpack_from(order + "i", parts[3][1])[0] if len(parts[3][1]) >= 4 else 0
+        fields = len(parts[4][1]) // name_length if name_length > 0 else -1
+        if fields < 0 or len(parts) - 5 != count * fields:
+            raise SeqvprError(f"{where} does not hold its {count} structs of {max(fields, 0)} fields (a damaged "
+                              "file)")
 
 
 def load_mat(path: str | Path, **options: Any) -> dict[str, Any]:

@@ -167,3 +167,32 @@ def test_a_localizer_state_and_calibration(tmp_path):
         {"format": "seqvpr-localizer", "version": 1, "map": saved.info.identity, "calibrations": []}))
     valid = (tmp_path / "map" / "localizer.json").read_bytes()
     check_loader(tmp_path / "map", "localizer.json", valid, lambda path: Localizer.open(saved, seq_len=3), seed=1)
+
+
+def test_a_dbstruct(tmp_path, route):
+    from seqvpr.data.loaders.dbstruct import write_dbstruct
+
+    reference, query = route[0].select(np.arange(10)), route[1].select(np.arange(8))
+    write_dbstruct(tmp_path / "valid.db", reference, query, 5.0, "valid")
+    valid = (tmp_path / "valid.db").read_bytes()
+    check_loader(tmp_path, "x.db", valid, traversal_loader("query"))
+
+
+def test_ros_bags(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from tests.bags import fixes, write_bag
+
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(tmp_path / "frames"))
+    (tmp_path / "jpg").mkdir()
+    images = []
+    for i in range(4):
+        images.append(tmp_path / "jpg" / f"{i}.jpg")
+        Image.new("RGB", (8, 6), (40 * i, 0, 0)).save(images[-1])
+    valid = write_bag(tmp_path / "valid.bag", images, *fixes(4), ros1=True).read_bytes()
+    check_loader(tmp_path, "x.bag", valid, traversal_loader("query"))
+    folder = write_bag(tmp_path / "valid2", images, *fixes(4), ros1=False)
+    for number, member in enumerate(sorted(p.name for p in folder.iterdir())):
+        data = (folder / member).read_bytes()
+        check_loader(folder, member, data, lambda path: traversal_loader("query")(path.parent), seed=number)
+        (folder / member).write_bytes(data)

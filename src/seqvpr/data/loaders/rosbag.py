@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -160,8 +161,9 @@ def open_bag(path: Path) -> Iterator[Any]:
     except SeqvprError:
         raise
     except Exception as error:  # rosbags' own errors (ReaderError...), YAML's, and the file system's
-        if isinstance(error, (OSError, ValueError, KeyError, EOFError)) or \
-                type(error).__module__.startswith(("rosbags", "yaml", "ruamel")):
+        if isinstance(error, (OSError, ValueError, KeyError, EOFError, IndexError, AssertionError, MemoryError,
+                              struct.error)) or \
+                type(error).__module__.startswith(("rosbags", "yaml", "ruamel", "lz4", "zstandard", "zlib")):
             detail = " ".join(str(error).split())[:300] or type(error).__name__
             raise SeqvprError(f"{path}: not a readable bag ({type(error).__name__}: {detail})") from None
         raise
