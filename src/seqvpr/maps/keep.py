@@ -8,19 +8,20 @@ import json
 from pathlib import Path
 
 from seqvpr.io import carry_over
+from seqvpr.maps.codes import SIDE_FILES
+from seqvpr.maps.files import DESCRIPTORS_FILE, INFO_FILE, PER_FRAME_FILES
+from seqvpr.maps.names import NAMES_FILE, OFFSETS_FILE
 from seqvpr.progress import LOGGER
 
 CALIBRATION_FILE = "localizer.json"  # the localiser's calibrated thresholds (``seqvpr.localization.saved_state``)
-#: the files a map of any version may write (a version-1 map.json names none of them)
-MAP_FILES = ("map.json", "descriptors.npy", "quantizer.npy", "pq_centroids.npy", "segments.npy", "frame_index.npy",
-             "sources.npy", "positions.npy", "timestamps.npy", "headings.npy", "names.txt", "names_offsets.npy",
-             "index.faiss", "index_rows.npy")
+#: the files a map of any version may write (a version-1 map.json names none of them; an index is in its record)
+MAP_FILES = (INFO_FILE, DESCRIPTORS_FILE, *SIDE_FILES.values(), *PER_FRAME_FILES, NAMES_FILE, OFFSETS_FILE)
 
 
 def owned_files(folder: Path) -> set[str]:
     """The names a map folder's ``map.json`` makes the map's own (its files, its index's), and every map file name."""
     try:
-        values = json.loads((folder / "map.json").read_text())
+        values = json.loads((folder / INFO_FILE).read_text())
     except (OSError, ValueError):
         values = {}
     values = values if isinstance(values, dict) else {}
@@ -32,7 +33,7 @@ def owned_files(folder: Path) -> set[str]:
 def identity_of(folder: Path) -> str | None:
     """The identity a map folder's ``map.json`` records (None without one)."""
     try:
-        identity = json.loads((folder / "map.json").read_text()).get("identity")
+        identity = json.loads((folder / INFO_FILE).read_text()).get("identity")
     except (OSError, ValueError, AttributeError):
         return None
     return identity if isinstance(identity, str) else None
@@ -42,7 +43,7 @@ def keep_users_files(old: Path, new: Path) -> None:
     """Everything in the map folder ``old`` that the map does not own, carried into ``new`` (the map that replaces
     it): a user's files and folders as they are, the calibration when ``new`` is the same map (an index leaves the
     identity as it is), else left out with a warning naming it (another map's thresholds mean nothing)."""
-    if not (old / "map.json").is_file():
+    if not (old / INFO_FILE).is_file():
         return
     skip = {*owned_files(old), *(p.name for p in new.iterdir())}
     calibration = old / CALIBRATION_FILE
