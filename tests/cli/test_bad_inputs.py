@@ -322,3 +322,8 @@ def test_no_output_lands_on_an_input(tmp_path, monkeypatch, capsys):
     raises_one_line("the map", build_map, str(route / "ref.npz"), route / "ref.npz")
     raises_one_line("the sharded map", shard_map, tmp_path / "map", tmp_path / "map" / "s", 2)
     assert build_map(str(route / "ref.npz"), tmp_path / "one").info.count == 60  # one path alone is one source
+    from seqvpr.models.published import import_checkpoint
+
+    (tmp_path / "ckpt").mkdir()
+    (tmp_path / "ckpt" / "model.pth").write_bytes(b"not read: the output is checked first")
+    raises_one_line("the model folder", import_checkpoint, tmp_path / "ckpt" / "model.pth", tmp_path / "ckpt")

@@ -29,6 +29,7 @@ import torch
 
 from seqvpr.errors import SeqvprError
 from seqvpr.identity import digest_file
+from seqvpr.io import check_output_apart
 
 PREFIXES = (("module.", ""), ("pool.module.", "pool."))
 KINDS_KEYS = {
@@ -163,6 +164,7 @@ def import_checkpoint(path: str | Path, out: str | Path, flags_path: str | Path 
     from seqvpr.sequences.descriptors import SeqNet
 
     path = Path(path)
+    check_output_apart(out, [path, flags_path], "the model folder")
     state = state_dict_of(read_container(path), path)
     kind, flags = detect_kind(state, path), read_flags(flags_path)
     sha = file_sha256(path)

@@ -27,7 +27,7 @@ import torch
 from seqvpr import distributed, threads
 from seqvpr.data.ground_truth import ground_truth_within_radius
 from seqvpr.errors import SeqvprError, SettingError
-from seqvpr.io import check_replaceable
+from seqvpr.io import check_output_apart, check_replaceable
 from seqvpr.sequences.windows import SequenceSpec, require_windows, window_starts
 from seqvpr.training.history import EpochRecord
 from seqvpr.training.learner import (
@@ -86,6 +86,7 @@ def _train(data: TrainingData, learner: SequenceLearner, settings: LoopSettings,
         if run.state.exists(out) and not resume:
             raise SettingError(f"{out}: already holds a training run (use {{resume}} to continue it, or another {{out}})")
         check_replaceable(out, STATE_JSON)  # each epoch replaces the folder whole: say now if it cannot
+        check_output_apart(out, [t.source for t in data.traversals().values()], "the training run")
         return run, resume and run.state.exists(out)
 
     # every rank set up (or all fail with the first failure's line) and looked at out before rank 0 writes
