@@ -90,3 +90,29 @@ class Matcher(ABC):
         return max_span(self.settings.sequence)
 
 
+class WrappedMatcher(Matcher):
+    """A matcher around another (its shards, a shortlist): the inner matcher's settings, family, method, frame
+    preparation, own settings, span and window distance are its own; a subclass writes how it searches and how it
+    is rebuilt under other settings."""
+
+    def __init__(self, matcher: Matcher) -> None:
+        self.matcher = matcher
+        self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
+
+    @property
+    def settings(self) -> MatchSettings:  # type: ignore[override]
+        return self.matcher.settings
+
+    def prepare_frame(self, frame, out: FrameRow | None = None) -> FrameRow:
+        return self.matcher.prepare_frame(frame, out)
+
+    def own_settings(self) -> dict[str, Any]:
+        return self.matcher.own_settings()
+
+    def span(self) -> int:
+        return self.matcher.span()
+
+    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
+        """The inner matcher's: a window's distance does not depend on the shard or the search that found it."""
+        return self.matcher.window_distances(rows, window, starts)
+

@@ -20,7 +20,7 @@ import numpy as np
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError, SettingError
-from seqvpr.matchers.base import Matcher
+from seqvpr.matchers.base import Matcher, WrappedMatcher
 from seqvpr.matchers.stream import elapsed_ms
 from seqvpr.results import MatchResult, Scored, TopK
 from seqvpr.sequences.match_settings import MatchSettings
@@ -132,7 +132,7 @@ def no_match(query: Traversal, settings: MatchSettings) -> TopK:
     return TopK(np.full((len(query), settings.k), -1), np.full((len(query), settings.k), np.inf), has_window)
 
 
-class Sharded(Matcher):
+class Sharded(WrappedMatcher):
     """``matcher`` over a ``ShardedReference``, each shard by the rank that holds it (``world``: the distributed
     run, or the current one). Only a matcher whose scores are per window is sharded (``check_shardable``)."""
 
@@ -140,25 +140,11 @@ class Sharded(Matcher):
         from seqvpr import distributed
 
         check_shardable(matcher)
-        self.matcher, self.world = matcher, world or distributed.current()
-        self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
-
-    @property
-    def settings(self) -> MatchSettings:  # type: ignore[override]
-        return self.matcher.settings
+        super().__init__(matcher)
+        self.world = world or distributed.current()
 
     def with_settings(self, settings: MatchSettings) -> Sharded:
         return Sharded(self.matcher.with_settings(settings), self.world)
-
-    def prepare_frame(self, frame, out=None):
-        return self.matcher.prepare_frame(frame, out)
-
-    def own_settings(self) -> dict[str, Any]:
-        return self.matcher.own_settings()
-
-    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
-        """The inner matcher's: a window's distance does not depend on the shard that holds it."""
-        return self.matcher.window_distances(rows, window, starts)
 
     def topk(self, sharded: ShardedReference, query: Traversal) -> MatchResult | None:
         """The whole reference's match on rank 0 (None on the others)."""
@@ -209,9 +195,6 @@ class Sharded(Matcher):
         owned = (rows >= record.own_first) & (rows < record.own_last)
         local = TopK(np.where(owned, rows - record.first, -1), candidates.distances, candidates.has_window)
         return owned_topk(self.matcher.rerank(sharded.open_shard(number), query, local, k).topk, record, k)
-
-    def span(self) -> int:
-        return self.matcher.span()
 
     def stream(self, sharded: ShardedReference, exclusion: int = 10) -> ShardedStepper:
         """The matcher's stepper over each of this rank's shards, merged on rank 0 a frame at a time."""

@@ -5,7 +5,7 @@ matcher re-ranks only those, offline (``topk``) or a frame at a time (``stream``
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -13,7 +13,7 @@ import torch
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
-from seqvpr.matchers.base import Matcher
+from seqvpr.matchers.base import Matcher, WrappedMatcher
 from seqvpr.results import MatchResult, TopK
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.matchers.rows import query_rows
@@ -31,7 +31,7 @@ class Neighbors(Protocol):
         ...
 
 
-class Shortlisted(Matcher):
+class Shortlisted(WrappedMatcher):
     """``matcher`` over the candidates ``neighbours`` proposes: each query frame's ``shortlist`` S nearest
     reference frames place candidate windows (with the ``history`` H frames before each window, up to (L + H) x S
     a query; an index over windows: each window's own S nearest), re-ranked by the matcher's window distance. Only
@@ -41,27 +41,11 @@ class Shortlisted(Matcher):
         check_shortlistable(matcher)
         if history and neighbors.over != "frames":
             raise SettingError(f"{{history}} needs an index over frames; this one is over {neighbors.over}")
-        self.matcher, self.neighbors, self.shortlist, self.history = matcher, neighbors, shortlist, history
-        self.family, self.method, self.progress = matcher.family, matcher.method, matcher.progress
-
-    @property
-    def settings(self) -> MatchSettings:  # type: ignore[override]
-        return self.matcher.settings
+        super().__init__(matcher)
+        self.neighbors, self.shortlist, self.history = neighbors, shortlist, history
 
     def with_settings(self, settings: MatchSettings) -> Shortlisted:
         return Shortlisted(self.matcher.with_settings(settings), self.neighbors, self.shortlist, self.history)
-
-    def prepare_frame(self, frame, out=None):
-        return self.matcher.prepare_frame(frame, out)
-
-    def own_settings(self) -> dict[str, Any]:
-        return self.matcher.own_settings()
-
-    def span(self) -> int:
-        return self.matcher.span()
-
-    def window_distances(self, rows, window, starts: np.ndarray) -> np.ndarray:
-        return self.matcher.window_distances(rows, window, starts)
 
     def topk(self, reference: Reference, query: Traversal) -> MatchResult | None:
         from seqvpr.sequences.rerank import frame_shortlist
