@@ -196,3 +196,41 @@ def test_ros_bags(tmp_path, monkeypatch):
         data = (folder / member).read_bytes()
         check_loader(folder, member, data, lambda path: traversal_loader("query")(path.parent), seed=number)
         (folder / member).write_bytes(data)
+
+
+def test_msls_tables(tmp_path):
+    from tests.data.test_loader_msls import write_side
+
+    side = write_side(tmp_path / "database", {"dA": [(n, 3.0 * n) for n in range(6)]}, np.random.default_rng(0))
+    for number, name in enumerate(("seq_info.csv", "postprocessed.csv", "raw.csv", "subtask_index.csv")):
+        valid = (side / name).read_bytes()
+        check_loader(side, name, valid, lambda path: traversal_loader()(path.parent), seed=number)
+        (side / name).write_bytes(valid)
+
+
+def test_vprbench_rows(tmp_path):
+    from seqvpr.data.loaders.ground_truth_files import load_ground_truth_file
+    from tests.data.test_loader_vprbench import rows_file
+
+    rows_file(tmp_path / "valid.npy", [[0, 1], [1], [], [2, 3]])
+    check_loader(tmp_path, "gt.npy", (tmp_path / "valid.npy").read_bytes(),
+                 lambda path: load_ground_truth_file(path, 4, 4))
+
+
+def test_seq_bounds(tmp_path):
+    from seqvpr.data.loaders.seq_bounds import load_seq_bounds
+
+    valid = b"0 3\n0 3\n0 3\n3 5\n3 5\n"
+    check_loader(tmp_path, "x_seqBounds.txt", valid, lambda path: load_seq_bounds(path, 5))
+
+
+@pytest.mark.parametrize("suffix", ["png", "jpg"])
+def test_image_files(tmp_path, suffix):
+    from PIL import Image
+
+    from seqvpr.data.images import read_image
+
+    rng = np.random.default_rng(5)
+    Image.fromarray(rng.integers(0, 255, (12, 16, 3), dtype=np.uint8)).save(tmp_path / f"valid.{suffix}")
+    check_loader(tmp_path, f"x.{suffix}", (tmp_path / f"valid.{suffix}").read_bytes(),
+                 lambda path: read_image(path).load())

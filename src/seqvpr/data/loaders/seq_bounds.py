@@ -4,6 +4,7 @@ spans two sequences."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +20,12 @@ def load_seq_bounds(path: str | Path, n_frames: int) -> np.ndarray:
     from seqvpr.arrays import check_regular_file
 
     check_regular_file(path, "a seqBounds file")
+    if path.stat().st_size == 0:
+        raise SeqvprError(f"{path}: the seqBounds file is empty; expected {n_frames} rows (one per frame) of 'start end'")
     try:
-        bounds = np.loadtxt(path, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # a file of only blank lines: its shape is refused below
+            bounds = np.loadtxt(path, ndmin=2)
     except ValueError as error:
         raise SeqvprError(f"{path}: not a seqBounds file of 'start end' rows ({error})") from None
     if bounds.shape != (n_frames, 2):
