@@ -237,6 +237,14 @@ def check_output_apart(output: str | Path, inputs: Sequence[str | Path | None], 
                 raise SeqvprError(f"{what} {output} {how} the input {given}: write it elsewhere")
 
 
+def check_out_folder(folder: str | Path, marker: str | None, inputs: Sequence[str | Path | None],
+                     what: str = "--out") -> None:
+    """A command's output folder, before anything is read: apart from every input (``check_output_apart``) and
+    replaceable whole (``check_replaceable``)."""
+    check_output_apart(folder, inputs, what)
+    check_replaceable(Path(folder), marker)
+
+
 def _overlap(out: Path, source: Path) -> str | None:
     """How an output path meets an input path, in words (None: they are apart)."""
     if out == source or (out.is_file() and source.exists() and os.path.samefile(out, source)):

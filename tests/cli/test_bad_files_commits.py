@@ -33,11 +33,11 @@ L = ("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--radius", "10m")
 CASES = {
     "match: --out a folder of the user's files (they would be swapped away)": ((*M, "--out", "{w}/mine"), "holds other files"),
     "match: the reference inside --out (the swap would delete it)": (
-        ("match", "-r", "{w}/prev/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--out", "{w}/prev"), "prev/ref.npz lies in"),
-    "match: --cache-dir inside --out": ((*M, "--cache-dir", "{out}/cache", "--out", "{out}"), "cache lies in"),
+        ("match", "-r", "{w}/prev/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--out", "{w}/prev"), "holds the input"),
+    "match: --cache-dir inside --out": ((*M, "--cache-dir", "{out}/cache", "--out", "{out}"), "holds the input"),
     "localize: --out a folder of the user's files": ((*L, "--out", "{w}/mine"), "holds other files"),
     "localize: --save-state inside --out (the swap would delete it)": ((*L, "--save-state", "{out}/s.npz", "--out", "{out}"),
-                                                                       "s.npz lies in"),
+                                                                       "holds the input"),
     "convert: a folder where the set's descriptors file goes": (
         ("convert", "-r", "{w}/ref.npz", "-q", "{w}/qry.npz", "--radius", "10m", "--to", "dbstruct", "--out",
          "{w}/sets/route.db"), "route_query.npy is a folder"),

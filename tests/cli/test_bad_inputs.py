@@ -76,6 +76,9 @@ def world(tmp_path_factory):
     (w / "state.npz").write_bytes(b"PK\x03\x04 not really")
     (w / "bench.toml").write_text('[[dataset]]\nname = "a"\nreference = "ref.npz"\nquery = "qry.npz"\nradius = "10m"\n'
                                   'train = "0:40"\nselect = "40:60"\ntest = "60:80"\n[benchmark]\nks = ["one"]\n')
+    (w / "inner").mkdir()
+    (w / "bench_inner.toml").write_text((w / "bench.toml").read_text().replace('"ref.npz"', '"inner/ref.npz"')
+                                        .replace('ks = ["one"]', "ks = [1]"))
     (w / "bench_typo.toml").write_text((w / "bench.toml").read_text().replace('ks = ["one"]', "kz = [1]"))
     (w / "escape.toml").write_text((w / "bench.toml").read_text().replace('name = "a"', 'name = "../../escape"')
                                    .replace('ks = ["one"]', "ks = [1]"))
@@ -200,6 +203,19 @@ CASES = {
     "map shard: onto a folder of the user's files": (("map", "shard", "{w}/map", "--shards", "2", "--out", "{w}/mine"), "holds other files"),
     "map shard: not a map": (("map", "shard", "{w}/noimages", "--shards", "2", "--out", "{out}"), "not a seqvpr map"),
     "match: a malformed shards.json": (("match", "--map", "{w}/badshards", "-q", "{w}/qry.npz", "--radius", "10m"), "malformed sharded map"),
+    # --- outputs that would land on inputs (issue 44: one rule at every writer)
+    "match: --out inside the reference's image folder": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f",
+                                                          "--out", "{w}/imgs/run"), "lies inside the input"),
+    "match: --out holding the map": (("match", "--map", "{w}/map", "-q", "{w}/qry.npz", "--radius", "10m", "--out", "{w}"),
+                                     "holds the input"),
+    "localize: --out inside the map folder": (("localize", "--map", "{w}/map", "-q", "{w}/qry.npz", "--out", "{w}/map/run"),
+                                              "lies inside the input"),
+    "match: --cache-dir an image folder": (("match", "-r", "{w}/imgs", "-q", "{w}/imgs", "--radius", "2f", "--descriptor",
+                                            "efficientnet-lite0", "--cache-dir", "{w}/imgs"), "the descriptor cache"),
+    "extract: --cache-dir inside the image folder": (("extract", "{w}/imgs", "--descriptor", "efficientnet-lite0",
+                                                      "--cache-dir", "{w}/imgs/c", "--out", "{out}/d.npz"), "lies inside"),
+    "benchmark: --out holding its config": (("benchmark", "{w}/bench.toml", "--out", "{w}"), "holds the input"),
+    "benchmark: --out holding a dataset": (("benchmark", "{w}/bench_inner.toml", "--out", "{w}/inner"), "holds the input"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

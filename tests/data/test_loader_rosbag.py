@@ -77,6 +77,16 @@ def test_bad_topics_are_one_line(walking, tmp_path, monkeypatch):
                     "reference")
 
 
+def test_a_frame_cache_inside_the_bag_is_refused(walking, tmp_path, monkeypatch):
+    """The bag frame cache is an output too: never inside (or holding) the bag it is made from."""
+    _, sides = walking
+    _, images, lat, lon = sides["day_left"]
+    bag = write_bag(tmp_path / "b", images[:3], lat, lon, ros1=False)
+    monkeypatch.setenv("SEQVPR_BAG_FRAMES", str(bag / "frames"))
+    raises_one_line("the bag frame cache ($SEQVPR_BAG_FRAMES)", load_traversal, bag, "reference")
+    assert not (bag / "frames").exists()
+
+
 @pytest.mark.parametrize("ros1", [False, True])
 def test_topic_options_choose_the_camera_and_the_position_source(walking, tmp_path, monkeypatch, capsys, ros1):
     _, sides = walking

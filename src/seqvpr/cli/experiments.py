@@ -28,7 +28,9 @@ def benchmark(config_file, out_dir) -> None:
     """Every method of CONFIG on every dataset's test split: one table like the papers', plus a length table."""
     from seqvpr.experiments.benchmark import read_config, run_benchmark
     from seqvpr.experiments.tables import length_table, main_table, write_results
+    from seqvpr.io import check_output_apart
 
+    check_output_apart(out_dir, [config_file], "--out")
     config = read_config(config_file)
     out = Path(out_dir)
     rows = run_benchmark(config, out, progress=tqdm_progress, monitors=lambda kind: TqdmMonitor(f"{kind} "),

@@ -95,7 +95,7 @@ def localize(**options: Any) -> None:
     """Replay QUERY frame by frame through a localiser over MAP: one estimate, score and status per frame."""
     from seqvpr.data.sources import load_traversal
     from seqvpr.data.traversal import slice_frame_range
-    from seqvpr.io import check_output_apart, check_replaceable
+    from seqvpr.io import check_out_folder, check_output_apart
     from seqvpr.localization.replay import replay
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
 
@@ -105,7 +105,7 @@ def localize(**options: Any) -> None:
     if not 0.0 < options["target_precision"] <= 1.0:
         raise SeqvprError(f"--target-precision must be in (0, 1], got {options['target_precision']}")
     inputs = [options[k] for k in ("map_dir", "query", "gt_file", "resume_state", "save_state")]
-    check_replaceable(Path(options["out_dir"]), RUN_FILE, inputs + list(options["model_dirs"]))
+    check_out_folder(options["out_dir"], RUN_FILE, inputs + list(options["model_dirs"]))
     if options["save_state"]:  # resuming from the file it saves to is the documented update in place
         check_output_apart(options["save_state"], [options["query"], options["gt_file"]], "--save-state")
     from seqvpr import distributed

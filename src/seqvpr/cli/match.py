@@ -227,13 +227,13 @@ def _map_sides(options: dict[str, Any], settings) -> MatchInputs:
 def _checked_options(options: dict[str, Any]) -> tuple[int, ...]:
     """The options checked before any model or data is read: the K values parsed (returned), --out replaceable (and
     holding none of the inputs), the reference and shortlist options coherent."""
-    from seqvpr.io import check_replaceable
+    from seqvpr.io import check_out_folder
 
     k_values = parse_ks(options["ks"])
     if options["pca_dim"] < 0:
         raise SeqvprError(f"--pca-dim must be 0 (off) or positive, got {options['pca_dim']}")
     inputs = [options[k] for k in ("reference", "query", "map_dir", "gt_file", "cache_dir")]
-    check_replaceable(Path(options["out_dir"]), RUN_FILE, inputs + list(options["model_dirs"]))
+    check_out_folder(options["out_dir"], RUN_FILE, inputs + list(options["model_dirs"]))
     if bool(options["map_dir"]) == bool(options["reference"]):
         raise SeqvprError("give the reference as --reference or as --map (one of them)")
     if options["shortlist"] < 0 or (options["shortlist"] and not options["map_dir"]):

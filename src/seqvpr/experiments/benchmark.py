@@ -57,6 +57,7 @@ from seqvpr.evaluation.metrics import Evaluation
 from seqvpr.methods import METHODS
 from seqvpr.evaluation.scoring import evaluate_match
 from seqvpr.features.describe import describe
+from seqvpr.io import check_output_apart
 from seqvpr.results import MatchResult
 from seqvpr.sequences.match_settings import MatchSettings
 from seqvpr.sequences.windows import SequenceSpec
@@ -421,6 +422,7 @@ def run_benchmark(
     """Every method on every dataset (main length, then the length table); failures become rows, not exceptions.
     ``monitors(method)`` gives each training run its progress monitor."""
     ensure_policy()  # the one thread policy (seqvpr.threads)
+    check_output_apart(out, [path for spec in config.datasets for path in (spec.reference, spec.query)], "--out")
     rows: list[Row] = []
     provenance: dict[str, Any] = {}
     for spec in config.datasets:

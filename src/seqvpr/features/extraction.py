@@ -26,7 +26,7 @@ from seqvpr.features import backbones
 from seqvpr.data.images import read_image
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
-from seqvpr.io import atomic_write
+from seqvpr.io import atomic_write, check_output_apart
 from seqvpr.threads import ensure_policy
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -264,6 +264,8 @@ def extract_descriptors(
         raise SeqvprError("no images to extract descriptors from")
     if config.pooling == "netvlad" and extractor is None:
         raise SeqvprError("NetVLAD pooling needs an initialised extractor (build_extractor, then init_netvlad)")
+    if cache_dir is not None:  # the cache writes beside no image: one check per folder of images
+        check_output_apart(cache_dir, sorted({path.parent for path in paths}), "the descriptor cache")
     key = _extraction_key(config, paths, cache_dir, extractor)
     final = Path(cache_dir) / f"{key}.npz" if key else None
     cached = _load_cached(final, paths, progress)

@@ -29,6 +29,7 @@ import numpy as np
 from seqvpr.data.geo import LOCAL, latlon_to_utm
 from seqvpr.data.traversal import Traversal, time_gap_segments
 from seqvpr.errors import SeqvprError, SettingError
+from seqvpr.io import check_output_apart
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 GPS_TYPE, ODOM_TYPE = "sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry"
@@ -176,8 +177,9 @@ def read_recording(path: Path, topics: BagTopics = BagTopics(), folder: Path | N
 
     folder = frames_root() if folder is None else folder
     chosen = os.environ.get("SEQVPR_BAG_FRAMES", "").strip()
-    folder = writable_folder(folder, "SEQVPR_BAG_FRAMES" if chosen and folder == Path(chosen).expanduser()
-                             else "SEQVPR_CACHE")
+    variable = "SEQVPR_BAG_FRAMES" if chosen and folder == Path(chosen).expanduser() else "SEQVPR_CACHE"
+    check_output_apart(folder, [path], f"the bag frame cache (${variable})")
+    folder = writable_folder(folder, variable)
     with open_bag(path) as reader:
         image = topic_connection(reader, IMAGE_TYPES, topics.image, path, "image")
         frames = [(_stamp(m), _stamp_text(m), _frame_file(m, folder, path)) for m in _messages(reader, image)]
