@@ -60,7 +60,7 @@ def test_match_takes_a_traversal_a_map_and_a_sharded_map_by_object_or_path(files
     (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", "magic"), "method 'magic' is not known"),
     (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", seq_len=500), "longer than every segment"),
     (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", shortlist=5), "needs a map with an index"),
-    (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", k=0), "k (matches kept per query) must be a whole number at least 1"),
+    (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", k=0), "k must be an integer in [1, inf], got 0"),
     (lambda f: seqvpr.match(f / "ref.npz", f / "qry.npz", kk=3), "no setting 'kk'"),
     (lambda f: seqvpr.match(f / "map", f / "qry.npz", normalize=False), "match it with normalisation on"),
 ])

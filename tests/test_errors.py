@@ -20,7 +20,8 @@ from tests.helpers import raises_one_line, run_cli, write_route_files
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "seqvpr"
 #: settings a Python caller alone sets (no command takes them): their errors name them as they are
-PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer", "sources", "descriptors"}
+PYTHON_ONLY = {"group_per", "mining", "cosface_m", "select_k", "proposer", "sources", "descriptors", "extra", "source", "monitor",
+               "classification"}
 
 
 def test_a_setting_error_names_settings_as_the_caller_spells_them():
@@ -85,15 +86,15 @@ def python_calls(f: Path):
     query = seqvpr.load_traversal(str(f / "qry.npz"), "query")
     settings = MatchSettings(SequenceSpec(5))
     return [
-        (lambda: seqvpr.match(f / "ref.npz", query, seq_len=0), "seq_len must be a positive integer"),
+        (lambda: seqvpr.match(f / "ref.npz", query, seq_len=0), "seq_len must be an integer in [1, inf]"),
         (lambda: seqvpr.match(f / "ref.npz", query, seq_len=500), "a window of 500 frames (seq_len) is longer"),
         (lambda: seqvpr.match(f / "ref.npz", query, "single", seq_len=5), "method single uses L = 1; leave seq_len"),
         (lambda: seqvpr.match(f / "ref.npz", query, velocities=(-1.0,)), "velocities must be positive numbers"),
         (lambda: seqvpr.match(f / "ref.npz", query, shortlist=4), "shortlist S needs a map with an index"),
-        (lambda: seqvpr.match(f / "map", query, history=3), "history H needs H >= 0 and a shortlist S >= 1"),
+        (lambda: seqvpr.match(f / "map", query, history=3), "history H needs a shortlist S >= 1"),
         (lambda: seqvpr.match(f / "ref.npz", query, "seqnet"), "method seqnet needs a SeqNet model (models;"),
         (lambda: seqvpr.evaluate(seqvpr.match(f / "ref.npz", query), radius="5m", no_positive="skip"),
-         "no_positive must be 'exclude' or 'miss'"),
+         "no_positive must be one of 'exclude', 'miss'"),
         (lambda: seqvpr.build_map([str(f / "ref.npz")], f / "pq", dtype="pq:7"), "dtype pq:7: M = 7 must divide"),
         (lambda: match_map(seqvpr.open_map(f / "map"), query, "delta", settings, shortlist=5),
          "shortlist applies to the frame-matching methods (single, matching, seqmatchnet), not method delta"),
@@ -102,12 +103,12 @@ def python_calls(f: Path):
         (lambda: Localizer.open(f / "map", method="hmm", shortlist=3), "method hmm keeps a belief over every map "
                                                                        "frame: it takes no shortlist"),
         (lambda: Localizer.open(f / "map", history=2), "history H needs a shortlist"),
-        (lambda: SeqMatchNetSettings(epochs=-1), "epochs must be >= 0"),
-        (lambda: SeqMatchNetSettings(optimizer="rmsprop"), "optimizer must be 'sgd' or 'adam'"),
-        (lambda: seqvpr.match(f / "ref.npz", query, k=2.5), "k (matches kept per query) must be a whole number"),
+        (lambda: SeqMatchNetSettings(epochs=-1), "epochs must be an integer in [0, inf]"),
+        (lambda: SeqMatchNetSettings(optimizer="rmsprop"), "optimizer must be one of 'sgd', 'adam'"),
+        (lambda: seqvpr.match(f / "ref.npz", query, k=2.5), "k must be an integer in [1, inf], got 2.5"),
         (lambda: seqvpr.match(f / "ref.npz", query, "adaptive", seq_len=5, steps=(0, 10**9)),
          "steps: expected MIN, MAX with 0 <= MIN <= MAX <= 16"),
-        (lambda: seqvpr.match(f / "ref.npz", query, seq_len=2.0), "seq_len must be a positive integer, got 2.0"),
+        (lambda: seqvpr.match(f / "ref.npz", query, seq_len=2.0), "seq_len must be an integer in [1, inf], got 2.0"),
         (lambda: seqvpr.match(f / "ref.npz", query, velocities=["fast"]), "velocities must be numbers"),
         (lambda: seqvpr.Traversal.from_descriptors(np.array(3.0)), "descriptors must be a 2-D array"),
         (lambda: seqvpr.Traversal.from_descriptors(np.ones((4, 3), int)), "descriptors must be floating point"),

@@ -15,6 +15,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
 
 if TYPE_CHECKING:
@@ -39,8 +40,12 @@ def load_models(models: Iterable[str | Path] | Mapping[str, TrainedModel] | None
     if models is None:
         return {}
     if isinstance(models, Mapping):
+        from seqvpr.models.registry import TrainedModel
+
+        for model in models.values():
+            checks.instance(model, "models", TrainedModel, "model folders or loaded models by kind")
         return dict(models)
-    return load_folders(models, device)
+    return load_folders(checks.paths(models, "models"), device)
 
 
 def open_reference(reference: Any) -> Any:
@@ -104,19 +109,52 @@ def match(
     """
     from seqvpr.methods import check_run
 
+    from seqvpr.features.describe import check_extraction_settings
+
     extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
+    check_extraction_settings(**extraction)
     check_setting_names(conf)
+    search = check_match_arguments(method, settings, shortlist=shortlist, history=history, nprobe=nprobe,
+                                   rerank=rerank, index=index, steps=steps, contrast_window=contrast_window,
+                                   proposer=proposer, progress=progress)
     device = (settings.device if settings else conf.get("device")) or "cpu"
     models = load_models(models, device)
     check_run(method, models, rerank, seq_len)
-    if shortlist < 0 or history < 0 or (history and not shortlist):
-        raise SettingError(f"{{history}} H needs H >= 0 and a {{shortlist}} S >= 1 (got S = {shortlist}, H = {history})")
     settings = settings or match_settings(method, models, seq_len, **conf)
     reference, query = opened_sides(reference, query)
     options = {"shortlist": shortlist, "history": history, "nprobe": nprobe, "rerank": rerank, "index": index,
-               "progress": progress, "search": {"steps": steps, "contrast_window": contrast_window,
-                                                    **({"proposer": proposer} if proposer else {})}}
+               "progress": progress, "search": search}
     return match_reference(reference, query, method, settings, models, **options, **extraction)
+
+
+def check_match_arguments(method: Any, settings: Any, *, shortlist: Any, history: Any, nprobe: Any, rerank: Any,
+                          index: Any, steps: Any, contrast_window: Any, proposer: Any,
+                          progress: Any) -> dict[str, Any]:
+    """``match``'s own arguments checked (types and ranges, one line naming the argument); the method's search
+    options returned as its matcher takes them."""
+    from seqvpr.sequences.retrieval import INDEX_KINDS
+    from seqvpr.methods import get_method
+    from seqvpr.sequences.match_settings import MatchSettings
+    from seqvpr.sequences.windows import check_steps
+
+    checks.text(method, "method")
+    if settings is not None:
+        checks.instance(settings, "settings", MatchSettings, "a MatchSettings (or None)")
+    for name, value in (("shortlist", shortlist), ("history", history), ("rerank", rerank)):
+        checks.whole(value, name, 0)
+    checks.whole(nprobe, "nprobe", 1)
+    checks.text(index, "index", INDEX_KINDS)
+    checks.function(progress, "progress")
+    if history and not shortlist:
+        raise SettingError(f"{{history}} H needs a {{shortlist}} S >= 1 (got S = {shortlist}, H = {history})")
+    search: dict[str, Any] = {"steps": None if steps is None else check_steps(steps),
+                              "contrast_window": checks.optional_whole(contrast_window, "contrast_window", 2)}
+    if proposer is not None:
+        try:
+            search["proposer"] = get_method(checks.text(proposer, "proposer")).name
+        except SeqvprError as error:
+            raise SettingError(f"{{proposer}}: {error}") from None
+    return search
 
 
 def check_setting_names(conf: Mapping[str, Any]) -> None:
@@ -173,6 +211,17 @@ def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str |
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
     from seqvpr.evaluation.scoring import evaluate_match
 
-    gt = resolve_ground_truth(result.reference, result.query, radius,
-                              None if ground_truth is None else str(ground_truth))
-    return evaluate_match(result, gt, tuple(ks), no_positive, uniqueness)
+    from typing import get_args
+
+    from seqvpr.evaluation.metrics import NoPositivePolicy
+    from seqvpr.results import MatchResult
+
+    checks.instance(result, "result", MatchResult, "a MatchResult (what seqvpr.match returns)")
+    if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (str, int, float))):
+        raise SettingError(f"{{radius}} must be text such as '25m' or '2f', got {checks.shown(radius)}")
+    ground_truth = None if ground_truth is None else str(checks.a_path(ground_truth, "ground_truth"))
+    ks = checks.whole_numbers(ks, "ks")
+    checks.text(no_positive, "no_positive", get_args(NoPositivePolicy))
+    uniqueness = checks.optional_whole(uniqueness, "uniqueness", 0)
+    gt = resolve_ground_truth(result.reference, result.query, radius, ground_truth)
+    return evaluate_match(result, gt, ks, no_positive, uniqueness)

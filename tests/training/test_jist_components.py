@@ -82,7 +82,7 @@ def test_group_members_renumber_one_groups_classes():
 
 
 def test_grouping_rejects_bad_input():
-    raises_one_line("cell size", CellGrouping, cell_m=0)
+    raises_one_line("cell_m must be a finite number in (0, inf]", CellGrouping, cell_m=0)
     raises_one_line("groups_l", CellGrouping, groups_l=0)
     raises_one_line("positions must be [N, 2]", assign_classes, np.zeros((4, 3)), None, CellGrouping())
     raises_one_line("headings must be [N]", assign_classes, np.zeros((4, 2)), np.zeros(3), CellGrouping())

@@ -188,7 +188,7 @@ def test_saved_model_reloads_and_gives_identical_descriptors(tmp_path):
 
 def test_bad_input_is_one_line(tmp_path):
     raises_one_line("shorter than the temporal kernel width w=3", SeqNetSettings, SequenceSpec(2), w=3)
-    raises_one_line("w must be >= 1", SeqNetSettings, w=0)
+    raises_one_line("w must be an integer in [1, inf]", SeqNetSettings, w=0)
     raises_one_line("velocity 1 only", SeqNetSettings, SequenceSpec(5, velocities=(1.0, 1.5)))
     ref, qry = generate_route(n_frames=60, dim=8, seed=0)
     narrow = qry.with_descriptors(qry.descriptors[:, :6])

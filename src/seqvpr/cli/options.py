@@ -30,7 +30,7 @@ FLAGS = {
     "max_step": "--max-step", "image_size": "--image-size", "no_positive": "--no-positive", "optimizer": "--optimizer",
     "jitter": "--jitter", "hue": "--hue", "crop_scale": "--crop-scale", "max_iterations": "--max-iterations",
     "init": "--init", "trainable_stages": "--trainable-stages", "refresh_every": "--refresh-every",
-    "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr",
+    "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr", "floor": "--floor",
 }
 
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
@@ -134,21 +134,17 @@ class Number(click.ParamType):
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         import math
 
+        from seqvpr.checks import in_range, range_text
+
         try:
             number = self.kind(value)
         except (TypeError, ValueError):
             self.fail(f"{value!r} is not a{'n integer' if self.kind is int else ' number'}", param, ctx)
         if self.kind is float and not math.isfinite(number):
             self.fail(f"{value!r} is not a finite number", param, ctx)
-        below = self.low is not None and (number <= self.low if self.open_low else number < self.low)
-        if below or (self.high is not None and number > self.high):
-            self.fail(f"{value} is not in {self._range()}", param, ctx)
+        if not in_range(number, self.low, self.high, self.open_low):
+            self.fail(f"{value} is not in {range_text(self.low, self.high, self.open_low)}", param, ctx)
         return number
-
-    def _range(self) -> str:
-        low = "-inf" if self.low is None else f"{self.low:g}"
-        high = "inf" if self.high is None else f"{self.high:g}"
-        return f"{'(' if self.open_low else '['}{low}, {high}]"
 
 
 class Device(click.ParamType):
@@ -158,18 +154,12 @@ class Device(click.ParamType):
     name = "device"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
-        if value == "cpu":
-            return value
-        import torch
+        from seqvpr.checks import device
 
         try:
-            if torch.device(value).type not in ("cpu", "cuda", "mps", "xpu"):
-                raise ValueError("seqvpr runs on cpu, cuda, mps or xpu")
-            torch.empty(1, device=value)
-        except (RuntimeError, AssertionError, ValueError, TypeError, NotImplementedError) as error:
-            self.fail(f"{value!r} is not usable here ({str(error).splitlines()[0] if str(error) else type(error).__name__})",
-                      param, ctx)
-        return str(value)
+            return device(value, "device")
+        except SeqvprError as error:  # the library's one check; click names the option itself
+            self.fail(str(error).removeprefix("device "), param, ctx)
 
 
 DEVICE = Device()

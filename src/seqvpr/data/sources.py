@@ -25,6 +25,7 @@ from seqvpr.arrays import check_regular_file, open_npz
 from seqvpr.data.ground_truth import Radius, parse_radius
 from seqvpr.data.loaders.descriptor_files import DESCRIPTOR_SUFFIXES, load_descriptor_array, split_variable
 from seqvpr.data.traversal import Traversal
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, reading
 
 if sys.version_info >= (3, 11):
@@ -46,6 +47,10 @@ class GroundTruthSpec:
 def load_traversal(source: str | Path, role: Role) -> Traversal:
     """The traversal a command-line source names, for the given role; whatever a malformed file raises while it is
     read becomes one error naming the source."""
+    from typing import get_args
+
+    checks.a_path(source, "source")
+    checks.text(role, "role", get_args(Role))
     with reading(source, f"a {role} traversal"):
         traversal = _load_traversal(str(source), role)
     return traversal

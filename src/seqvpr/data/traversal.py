@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from seqvpr import checks
 from seqvpr.data.geo import LOCAL, parse_crs
 from seqvpr.arrays import file_mapped
 from seqvpr.errors import SeqvprError, SettingError
@@ -85,15 +87,20 @@ class Traversal:
     ) -> Traversal:
         """A traversal whose frame ``i`` is row ``i`` of ``descriptors`` (one segment unless ids are given): an array,
         a torch tensor or nested lists of numbers."""
+        checks.text(name, "name")
+        if not isinstance(source, str):
+            raise SettingError(f"{{source}} must be text (where the frames came from), got {checks.shown(source)}")
         descriptors = descriptor_rows(descriptors, name)
         n = len(descriptors)
+        label = source or name
+        segment_ids = _per_frame(segment_ids, "segment_ids", None, label)
         return cls(
             name=name,
             frame_index=np.arange(n, dtype=np.int64),
-            segment_ids=np.zeros(n, dtype=np.int64) if segment_ids is None else np.asarray(segment_ids),
+            segment_ids=np.zeros(n, dtype=np.int64) if segment_ids is None else segment_ids,
             descriptors=descriptors,
-            positions=None if positions is None else np.asarray(positions, dtype=np.float64),
-            timestamps=None if timestamps is None else np.asarray(timestamps, dtype=np.float64),
+            positions=_per_frame(positions, "positions", np.float64, label),
+            timestamps=_per_frame(timestamps, "timestamps", np.float64, label),
             source=source,
         )
 
@@ -204,7 +211,24 @@ def _check_indices(traversal: Traversal, field_name: str, values: np.ndarray) ->
                           f"{values.shape}")
 
 
+def _per_frame(values: Any, field_name: str, dtype: type | None, label: str) -> np.ndarray | None:
+    """A per-frame field given to ``from_descriptors`` as an array (None as given); what is no array of numbers
+    is one line naming the field."""
+    if values is None:
+        return None
+    try:
+        array = np.asarray(values, dtype=dtype)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.ndim == 0 or array.dtype.kind not in "iuf":
+        raise SettingError(f"{label}: {{{field_name}}} must be an array of numbers, one entry per frame, got "
+                           f"{checks.shown(values)}")
+    return array
+
+
 def _check_length(traversal: Traversal, field_name: str, values, n: int) -> None:
+    if values is not None and (not hasattr(values, "__len__") or getattr(values, "ndim", 1) == 0):
+        raise SeqvprError(f"{traversal._label()}: {field_name} must hold one entry per frame, got {values!r}")
     if values is not None and len(values) != n:
         raise SeqvprError(f"{traversal._label()}: {field_name} has {len(values)} entries for {n} frames")
 

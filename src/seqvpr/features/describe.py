@@ -6,8 +6,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from seqvpr.data.traversal import Traversal
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import (
     BACKBONES,
@@ -47,6 +49,7 @@ def describe(
     mean and std). With ``skip_bad`` unreadable images are dropped from the traversal.
     """
     ensure_policy()  # the one thread policy (seqvpr.threads)
+    check_extraction_settings(cache_dir, skip_bad)
     if traversal.descriptors is not None:
         return traversal
     if descriptor != "patchnorm":
@@ -64,6 +67,13 @@ def describe(
                                      skip_bad=skip_bad, progress=tick, extractor=model)
     kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
     return kept.with_descriptors(extraction.descriptors)
+
+
+def check_extraction_settings(cache_dir: Any = None, skip_bad: Any = False) -> None:
+    """``describe``'s settings every entry point takes alike: a cache folder path (or None) and a flag."""
+    checks.flag(skip_bad, "skip_bad")
+    if cache_dir is not None:
+        checks.a_path(cache_dir, "cache_dir")
 
 
 def descriptor_config(descriptor: str, extractor: ExtractorConfig) -> ExtractorConfig:

@@ -14,10 +14,9 @@ instead of the nearest one, and finds the route again by itself once the frames 
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from seqvpr.data.geo import utm_to_latlon
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError, reading
 from seqvpr.io import atomic_write, check_output_apart
 from seqvpr.localization.saved_state import (
@@ -77,18 +77,18 @@ class LocalizerSettings:
 
     def __post_init__(self) -> None:
         online = online_methods()
-        if self.method not in online:
+        if checks.text(self.method, "method") not in online:
             get_method(self.method)  # an unknown name: one line listing the methods
             raise SettingError(f"a localiser runs {', '.join(online)}, not {{method}} {self.method}")
+        for name, least in (("seq_len", 1), ("k", 1), ("lost_after", 1), ("shortlist", 0), ("history", 0),
+                            ("exclusion", 0), ("nprobe", 1), ("seed", 0)):
+            object.__setattr__(self, name, checks.whole(getattr(self, name), name, least))
+        if self.threshold is not None:
+            object.__setattr__(self, "threshold", checks.finite(self.threshold, "threshold"))
+        object.__setattr__(self, "keyframe_distance", checks.finite(self.keyframe_distance, "keyframe_distance", 0.0))
+        checks.instance(self.filter, "filter", FilterSettings, "a FilterSettings")
         if self.shortlist and get_method(self.method).family != "matching":
             raise SettingError(f"{{method}} {self.method} keeps a belief over every map frame: it takes no {{shortlist}}")
-        if self.threshold is not None and not (isinstance(self.threshold, (int, float))
-                                               and math.isfinite(self.threshold)):
-            raise SettingError(f"{{threshold}} must be a finite number (or None: the map's calibration), got "
-                               f"{self.threshold!r}")
-        if min(self.seq_len, self.k, self.lost_after) < 1 or min(self.shortlist, self.history, self.exclusion) < 0:
-            raise SettingError("localiser settings: {seq_len}, {k} and {lost_after} must be >= 1; {shortlist}, {history} and "
-                              "exclusion >= 0")
         if self.history and not self.shortlist:
             raise SettingError(f"{{history}} H needs a {{shortlist}} (got H = {self.history})")
 
@@ -170,8 +170,12 @@ class Localizer:
         sides. ``method`` None (or left out): the SeqMatchNet model's method when one is given, else ``matching``."""
         ensure_policy()  # the one thread policy (seqvpr.threads)
         started = time.perf_counter()
-        saved = map_folder if isinstance(map_folder, SavedMap) else open_map(map_folder)
-        models = _load_models(saved, model, device)
+        saved = map_folder if isinstance(map_folder, SavedMap) else open_map(checks.a_path(map_folder, "map_folder"))
+        models = _load_models(saved, model, checks.device(device))
+        unknown = sorted(set(settings) - {f.name for f in fields(LocalizerSettings)})
+        if unknown:
+            raise SettingError(f"a localiser has no setting {unknown[0]!r} (its settings: "
+                               f"{', '.join(f.name for f in fields(LocalizerSettings))})")
         if settings.get("method") is None:  # a SeqMatchNet model's own method, else plain sequence matching
             settings = {**settings, "method": "seqmatchnet" if "seqmatchnet" in models else "matching"}
         chosen = LocalizerSettings(**settings)
@@ -207,6 +211,8 @@ class Localizer:
         """The estimate after one more frame: a camera image (path, PIL image, H x W x 3 uint8 array) or a
         descriptor [D]. A bad frame is a one-line error and leaves the localiser as it was."""
         started = time.perf_counter()
+        if timestamp is not None:
+            timestamp = checks.finite(timestamp, "timestamp")
         row = self._describe(frame, self.rows[0] if self.last_kept is not self.rows[0] else self.rows[1])
         described = time.perf_counter()
         gate = self.settings.keyframe_distance
@@ -283,6 +289,8 @@ class Localizer:
     def check_state_path(self, path: str | Path) -> None:
         """A state file may not land on what the localiser reads (its map folder and files, its model folders): one
         line before anything is written (a node checks it at start, not at its last frame)."""
+        if checks.a_path(path, "path").is_dir():
+            raise SettingError(f"the state file {path} is a folder; give a file name (.npz)")
         check_output_apart(path, [self.saved.folder, *(model.folder for model in self.models.values())],
                            "the state file")
 
@@ -292,7 +300,7 @@ class Localizer:
         self.check_state_path(path)
         header = {"format": STATE_FORMAT, "version": STATE_VERSION, "map": map_record(self.saved.info),
                   "settings": self.settings.key(), "frame": self.frame, "misses": self.misses,
-                  "since_reset": self.since_reset, "extra": dict(extra or {})}
+                  "since_reset": self.since_reset, "extra": _json_extra(extra)}
         arrays = {f"matcher_{k}": v for k, v in self.stepper.state().items()}
         if self.last_kept is not None:
             arrays["last_kept"] = self.last_kept.numbers
@@ -305,6 +313,7 @@ class Localizer:
         Returns the ``extra`` saved with it ({} if none)."""
         from seqvpr.arrays import open_npz
 
+        checks.a_path(path, "path")
         with reading(path, "a localiser state"):
             with open_npz(path) as data:
                 header = json.loads(str(data["header"]))
@@ -321,10 +330,22 @@ class Localizer:
         return extra if isinstance(extra, dict) else {}
 
 
+def _json_extra(extra: Any) -> dict[str, Any]:
+    """What a caller keeps beside a saved state: a mapping of JSON values (None: nothing), checked before writing."""
+    if extra is None:
+        return {}
+    checks.instance(extra, "extra", Mapping, "a mapping of JSON values (or None)")
+    try:
+        json.dumps(dict(extra), allow_nan=False)
+    except (TypeError, ValueError) as error:
+        raise SettingError(f"{{extra}} must hold JSON values only ({error})") from None
+    return dict(extra)
+
+
 def _load_models(saved: SavedMap, model: str | Path | Sequence[str | Path] | None, device: str) -> dict[str, TrainedModel]:
     """The models given (folders), checked against those the map was built through (none read when neither has
     any, so a localiser over a descriptor map imports no model code)."""
-    folders = [] if model is None else [model] if isinstance(model, (str, Path)) else list(model)
+    folders = [] if model is None else checks.paths(model, "model")
     if not folders and not saved.info.model:
         return {}
     from seqvpr.maps.match import check_map_models

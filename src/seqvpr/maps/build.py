@@ -13,10 +13,11 @@ from typing import Any
 
 import numpy as np
 
+from seqvpr import checks
 from seqvpr.arrays import file_mapped, release_pages
 from seqvpr.data.sources import load_traversal
 from seqvpr.data.geo import positions_in
-from seqvpr.data.traversal import Traversal, slice_frame_range
+from seqvpr.data.traversal import Traversal, parse_frame_range, slice_frame_range
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import ExtractorConfig
 from seqvpr.features.patchnorm import PatchNormConfig
@@ -36,7 +37,7 @@ from seqvpr.maps.index import model_record
 from seqvpr.matchers.rows import transformed_by
 from seqvpr.methods import image_model
 from seqvpr.models.registry import TrainedModel
-from seqvpr.features.describe import describe
+from seqvpr.features.describe import check_extraction_settings, describe
 from seqvpr.progress import ProgressFactory
 from seqvpr.sequences.matching import unit_rows
 from seqvpr.progress import progress_or_log
@@ -141,6 +142,7 @@ def build_map(
     runs on the new map before it replaces anything at ``out``, so a failed index leaves the previous map as it
     was."""
     sources = checked_sources(sources, out, models)
+    check_build_settings(description, dtype, normalize, device, progress, frames, indexed, extraction)
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
     write_indexed_map(Path(out), whole, info, indexed)
@@ -167,6 +169,7 @@ def build_sharded_map(
     (``shards.write_sharded_map``: never the whole map first); ``indexed`` (e.g. ``index_shards``) runs on them
     before they replace anything at ``out``."""
     sources = checked_sources(sources, out, models)
+    check_build_settings(description, dtype, normalize, device, progress, frames, indexed, extraction)
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
     return write_sharded_map(out, whole, info, shards, overlap, indexed)
@@ -176,11 +179,40 @@ def checked_sources(sources: Sequence[str] | str | Path, out: str | Path,
                     models: Mapping[str, TrainedModel] | None = None) -> list[str]:
     """The sources as a list (one path given alone is one source, not its characters), none of them and no model
     folder where the map is written (``io.check_output_apart``): checked before any source is read."""
-    listed = [str(sources)] if isinstance(sources, (str, Path)) else [str(source) for source in sources]
-    if not listed:
-        raise SettingError("{sources}: a map needs at least one source")
+    listed = checks.paths(sources, "sources")
+    checks.a_path(out, "out")
+    if models is not None:
+        checks.instance(models, "models", Mapping, "loaded models by kind (models.registry.load_models)")
+        for model in models.values():
+            checks.instance(model, "models", TrainedModel, "loaded models by kind (models.registry.load_models)")
     check_output_apart(out, [*listed, *(model.folder for model in (models or {}).values())], "the map")
     return listed
+
+
+def check_build_settings(description: Any, dtype: Any, normalize: Any, device: Any, progress: Any, frames: Any,
+                         indexed: Any, extraction: Mapping[str, Any]) -> None:
+    """A map build's settings checked before any source is read (one line naming the argument); ``extraction``
+    takes ``describe``'s ``cache_dir`` and ``skip_bad``."""
+    unknown = sorted(set(extraction) - {"cache_dir", "skip_bad"})
+    if unknown:
+        raise SettingError(f"a map build has no setting {unknown[0]!r} (its extraction settings: {{cache_dir}}, "
+                           "skip_bad)")
+    check_extraction_settings(**extraction)
+    from seqvpr.maps.codes import parse_storage
+
+    checks.instance(description, "description", FrameDescription, "a FrameDescription")
+    try:
+        parse_storage(checks.text(dtype, "dtype"))
+    except SettingError:
+        raise
+    except SeqvprError as error:
+        raise SettingError(f"{{dtype}}: {error}") from None
+    checks.flag(normalize, "normalize")
+    checks.device(device)
+    checks.function(progress, "progress")
+    checks.function(indexed, "indexed")
+    if frames is not None:
+        parse_frame_range(checks.text(frames, "frames"))
 
 
 def described_map(sources: Sequence[str], name: str, description: FrameDescription = FrameDescription(),

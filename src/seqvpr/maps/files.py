@@ -37,6 +37,7 @@ import numpy as np
 from seqvpr.data.geo import LOCAL
 from seqvpr.data.traversal import Traversal
 from seqvpr.arrays import load_npy
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, SeqvprWarning
 from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
@@ -181,8 +182,6 @@ def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[
     import shutil
 
     folder.mkdir(parents=True)
-    from seqvpr.arrays import load_npy
-
     stored = load_npy(saved.folder / DESCRIPTORS_FILE, mmap_mode="r")
     np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
     for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
@@ -311,9 +310,8 @@ def with_crs(values: dict[str, Any]) -> dict[str, Any]:
 
 def open_map(folder: str | Path) -> SavedMap:
     """Open a saved map: descriptors and the per-frame table memory-mapped read-only (names decoded on access),
-    every file checked. A
-    sharded map (``seqvpr map shard``) opens as the whole map, its rows read through its shards."""
-    folder = Path(folder)
+    every file checked. A sharded map (``seqvpr map shard``) opens as the whole map, read through its shards."""
+    folder = checks.a_path(folder, "folder")
     if (folder / SHARDS_FILE).is_file():
         return open_sharded_map(folder).as_map()
     info = read_map_info(folder)

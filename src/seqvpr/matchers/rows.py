@@ -12,7 +12,7 @@ import torch
 
 from seqvpr.data.reference import Reference
 from seqvpr.data.traversal import Traversal
-from seqvpr.errors import SeqvprError, SettingError
+from seqvpr.errors import SeqvprError
 from seqvpr.sequences.frame_pass import FrameRow
 from seqvpr.sequences.matching import unit_rows
 
@@ -26,9 +26,7 @@ def query_rows(query: Traversal, settings: MatchSettings) -> torch.Tensor:
     """The query's descriptors as a tensor on the settings' device, L2-normalised per frame when asked."""
     if query.descriptors is None:
         raise SeqvprError(f"{query.source or query.name}: no descriptors (describe() the images first)")
-    dtype = {"float32": torch.float32, "float64": torch.float64}.get(settings.dtype)
-    if dtype is None:
-        raise SettingError(f"{{dtype}} must be float32 or float64, got {settings.dtype!r}")
+    dtype = {"float32": torch.float32, "float64": torch.float64}[settings.dtype]  # checked by MatchSettings
     try:
         array = query.descriptors
         if not isinstance(array, np.ndarray):  # a saved map's coded rows, decoded

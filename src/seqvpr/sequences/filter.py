@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.sequences.matching import ReferenceRows, distances_to_reference
 from seqvpr.sequences.topk import best_k
@@ -40,14 +41,16 @@ class FilterSettings:
     radius: int = 2
 
     def __post_init__(self) -> None:
+        for name, least in (("min_step", None), ("max_step", None), ("radius", 0)):
+            object.__setattr__(self, name, checks.whole(getattr(self, name), name, least))
+        object.__setattr__(self, "floor", checks.finite(self.floor, "floor", 0.0, 1.0))
+        object.__setattr__(self, "sharpness", checks.finite(self.sharpness, "sharpness", 0.0, open_low=True))
         if self.min_step > self.max_step:
             raise SeqvprError(f"filter steps: min_step {self.min_step} is above max_step {self.max_step}")
         if self.max_step > MAX_STEP:  # each step a frame is a pass over the belief
             raise SettingError(f"filter steps: {{max_step}} {self.max_step} is above {MAX_STEP} map frames per frame")
-        if not 0.0 <= self.floor < 1.0:
-            raise SeqvprError(f"filter floor must be in [0, 1), got {self.floor}")
-        if not self.sharpness > 0 or self.radius < 0:
-            raise SeqvprError(f"filter sharpness must be positive and radius >= 0, got {self.sharpness}, {self.radius}")
+        if self.floor >= 1.0:
+            raise SettingError(f"filter {{floor}} must be in [0, 1), got {self.floor}")
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-import numpy as np
-
+from seqvpr import checks
 from seqvpr.sequences.windows import SequenceSpec
+
+#: the numeric types matching computes in
+MATCH_DTYPES = ("float32", "float64")
 
 
 @dataclass(frozen=True)
@@ -22,10 +24,12 @@ class MatchSettings:
     memory_budget: int | None = 2 * 1024**3
 
     def __post_init__(self) -> None:
-        from seqvpr.errors import SettingError
-
-        if isinstance(self.k, bool) or not isinstance(self.k, (int, np.integer)) or self.k < 1:
-            raise SettingError(f"{{k}} (matches kept per query) must be a whole number at least 1, got {self.k!r}")
+        checks.instance(self.sequence, "sequence", SequenceSpec, "a SequenceSpec")
+        object.__setattr__(self, "k", checks.whole(self.k, "k", 1))
+        checks.flag(self.normalize, "normalize")
+        checks.text(self.dtype, "dtype", MATCH_DTYPES)
+        checks.device(self.device)
+        object.__setattr__(self, "memory_budget", checks.optional_whole(self.memory_budget, "memory_budget", 1))
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -14,7 +14,8 @@ from typing import Literal
 
 import numpy as np
 
-from seqvpr.errors import SeqvprError, SettingError
+from seqvpr import checks
+from seqvpr.errors import SettingError
 
 Align = Literal["centered", "causal"]
 Boundary = Literal["drop", "shift"]
@@ -39,13 +40,10 @@ class SequenceSpec:
     velocities: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
-        if isinstance(self.length, bool) or not isinstance(self.length, (int, np.integer)) or self.length < 1:
-            raise SettingError(f"{{seq_len}} must be a positive integer, got {self.length!r}")
+        object.__setattr__(self, "length", checks.whole(self.length, "seq_len", 1))
         object.__setattr__(self, "velocities", velocity_tuple(self.velocities))
-        if self.align not in ("centered", "causal"):
-            raise SettingError(f"{{align}} must be 'centered' or 'causal', got {self.align!r}")
-        if self.boundary not in ("drop", "shift"):
-            raise SettingError(f"{{boundary}} must be 'drop' or 'shift', got {self.boundary!r}")
+        checks.text(self.align, "align", ("centered", "causal"))
+        checks.text(self.boundary, "boundary", ("drop", "shift"))
         if not self.velocities or any(not np.isfinite(v) or v <= 0 for v in self.velocities):
             raise SettingError(f"{{velocities}} must be positive numbers, got {self.velocities}")
         check_velocities(self.velocities)
@@ -182,7 +180,7 @@ def check_steps(steps, what: str = "{steps}") -> tuple[int, int]:
     """Steps (MIN, MAX) as two whole numbers with 0 <= MIN <= MAX <= 16, else one line naming them."""
     try:
         low, high = steps
-        ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (low, high))
+        ok = all(checks.is_whole(v) for v in (low, high))
     except (TypeError, ValueError):
         ok = False
     if not ok or not 0 <= low <= high <= MAX_STEPS:

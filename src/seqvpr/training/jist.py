@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from seqvpr.data.ground_truth import GroundTruth, Radius
+from seqvpr import checks
 from seqvpr.data.traversal import Traversal, frame_positions
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.evaluation.metrics import Evaluation
@@ -48,7 +49,7 @@ from seqvpr.training.settings import CellGrouping, JistTrainSettings
 from seqvpr.training.losses import euclidean, triplet_hinge
 from seqvpr.training.mining import MiningConfig, SequenceMiner, Triplet
 from seqvpr.training.trainer import (
-    SequenceLearner, Step, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
+    SequenceLearner, Step, check_training_inputs, TrainingContext, TrainingData, TrainingMonitor, TrainResult,
     train_sequence_model,
 )
 
@@ -68,6 +69,13 @@ def train_jist(
     (``models.jist.load_jist`` reads it), with ``history.csv`` and the resumable state. ``classification``: the
     traversals whose single images feed the CosPlace branch (default: the training reference and query);
     ``backbone_factory`` builds an injected backbone (tests). Runs with the same seed are identical on CPU."""
+    check_training_inputs(data, settings, JistTrainSettings)
+    checks.instance(config, "config", JistConfig, "a JistConfig")
+    checks.function(backbone_factory, "backbone_factory")
+    if classification is not None and (isinstance(classification, (str, bytes)) or not all(
+            isinstance(t, Traversal) for t in checks.instance(classification, "classification", Sequence,
+                                                              "a list of traversals (or None)"))):
+        raise SettingError("{classification} must be a list of traversals (or None)")
     learner = JistLearner(config, settings, backbone_factory, classification)
     return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from seqvpr import checks
 from seqvpr.data.ground_truth import GroundTruth
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SeqvprError
@@ -34,6 +35,7 @@ from seqvpr.training.settings import SeqMatchNetSettings
 from seqvpr.training.mining import DistanceRows, Triplet, mining_kernel
 from seqvpr.training.descriptor_models import DescriptorLearner
 from seqvpr.training.trainer import (
+    check_training_inputs,
     EpochRecord,
     Step,
     SilentMonitor,
@@ -67,6 +69,9 @@ def train_seqmatchnet(
     ``history.csv``, and the resumable state of the last finished epoch. ``resume`` continues from that state
     (a run killed before its first state starts over, so ``resume=True`` is always safe to pass).
     """
+    check_training_inputs(data, settings, SeqMatchNetSettings)
+    if transform is not None:
+        checks.instance(transform, "transform", TransformConfig, "a TransformConfig (or None)")
     transform = transform or TransformConfig(data.dim)
     if transform.in_dim != data.dim:
         raise SeqvprError(f"transform expects {transform.in_dim}-D input but the descriptors are {data.dim}-D")

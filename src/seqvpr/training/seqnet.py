@@ -44,6 +44,7 @@ from seqvpr.training.mining import DistanceRows, Triplet
 from seqvpr.training.descriptor_models import DescriptorLearner
 from seqvpr.training.trainer import (
     Step,
+    check_training_inputs,
     TrainingContext,
     TrainingData,
     TrainingMonitor,
@@ -65,6 +66,7 @@ def train_seqnet(
     """Train a SeqNet on ``data``'s descriptors; the best model by validation R@``select_k`` goes to ``out_dir``
     (``model.safetensors`` + ``config.json``, read by ``load_seqnet``), with ``history.csv`` and the resumable
     state of the last finished epoch (``resume=True`` continues it, or starts over when there is none)."""
+    check_training_inputs(data, settings, SeqNetSettings)
     learner = SeqNetLearner(data.dim, settings.out_dim or data.dim, settings.w, settings.sequence)
     return train_sequence_model(data, learner, settings, out_dir, resume=resume, monitor=monitor)
 

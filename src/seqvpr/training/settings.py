@@ -11,7 +11,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
-from seqvpr.errors import SeqvprError, SettingError
+from seqvpr import checks
+from seqvpr.errors import SeqvprError
 from seqvpr.models.configs import check_dim
 from seqvpr.sequences.windows import SequenceSpec
 
@@ -40,26 +41,28 @@ class SettingsRecord:
 
 
 def check_optimizer_settings(settings: Any) -> None:
-    """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``)."""
-    for name in ("refresh_every", "batch_size", "lr_step", "select_k"):
-        if getattr(settings, name) is not None and getattr(settings, name) < 1:
-            raise SettingError(f"{{{name}}} must be >= 1, got {getattr(settings, name)}")
-    if settings.epochs < 0:
-        raise SettingError(f"{{epochs}} must be >= 0, got {settings.epochs}")
-    if settings.optimizer not in ("sgd", "adam"):
-        raise SettingError(f"{{optimizer}} must be 'sgd' or 'adam', got {settings.optimizer!r}")
-    if not (settings.lr > 0 and math.isfinite(settings.lr)):
-        raise SettingError(f"{{lr}} (learning rate) must be a positive number, got {settings.lr}")
+    """The checks of an SGD/Adam settings object (SeqMatchNet's and SeqNet's call this from ``__post_init__``):
+    each field's type and range, one line naming it (``seqvpr.checks``)."""
+    checks.instance(settings.sequence, "sequence", SequenceSpec, "a SequenceSpec")
+    for name, least in (("negatives", 1), ("batch_size", 1), ("epochs", 0), ("lr_step", 1), ("select_k", 1),
+                        ("seed", 0)):
+        object.__setattr__(settings, name, checks.whole(getattr(settings, name), name, least))
+    for name in ("negative_pool", "refresh_every"):
+        object.__setattr__(settings, name, checks.optional_whole(getattr(settings, name), name, 1))
+    for name, low, open_low in (("margin", 0.0, True), ("lr", 0.0, True), ("momentum", 0.0, False),
+                                ("weight_decay", 0.0, False), ("lr_gamma", 0.0, True)):
+        object.__setattr__(settings, name, checks.finite(getattr(settings, name), name, low, open_low=open_low))
+    checks.text(settings.optimizer, "optimizer", ("sgd", "adam"))
+    object.__setattr__(settings, "ks", checks.whole_numbers(settings.ks, "ks"))
+    checks.flag(settings.select_untrained, "select_untrained")
+    checks.device(settings.device)
 
 
 def check_augmentation(jitter: float, hue: float, crop_scale: float) -> None:
     """CosPlace-style augmentation strengths: jitter in [0, 1], hue in [0, 0.5] of a turn, crop area in (0, 1]."""
-    if not (math.isfinite(jitter) and 0 <= jitter <= 1):
-        raise SettingError(f"{{jitter}} must be in [0, 1], got {jitter}")
-    if not (math.isfinite(hue) and 0 <= hue <= 0.5):
-        raise SettingError(f"{{hue}} must be in [0, 0.5] (a fraction of a turn), got {hue}")
-    if not (math.isfinite(crop_scale) and 0 < crop_scale <= 1):
-        raise SettingError(f"{{crop_scale}} must be in (0, 1] (the smallest share of the area a crop keeps), got {crop_scale}")
+    checks.finite(jitter, "jitter", 0.0, 1.0)
+    checks.finite(hue, "hue", 0.0, 0.5)
+    checks.finite(crop_scale, "crop_scale", 0.0, 1.0, open_low=True)
 
 
 def window_part(method: SequenceMethod, length: int, offset: int) -> slice | None:
@@ -84,14 +87,10 @@ class CellGrouping:
     min_images: int = 10
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
-            raise SeqvprError(f"cell size must be a positive number of metres, got {self.cell_m}")
-        if not (math.isfinite(self.heading_deg) and 0 < self.heading_deg <= 360):
-            raise SeqvprError(f"heading sector must be in (0, 360] degrees, got {self.heading_deg}")
+        object.__setattr__(self, "cell_m", checks.finite(self.cell_m, "cell_m", 0.0, open_low=True))
+        object.__setattr__(self, "heading_deg", checks.finite(self.heading_deg, "heading_deg", 0.0, 360.0, True))
         for name in ("groups_n", "groups_l", "min_images"):
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise SeqvprError(f"{name} must be a positive integer, got {value}")
+            object.__setattr__(self, name, checks.whole(getattr(self, name), name, 1))
 
     @property
     def n_groups(self) -> int:
@@ -177,16 +176,14 @@ class SeqNetSettings(SettingsRecord):
 
     def __post_init__(self) -> None:
         check_optimizer_settings(self)
-        if self.w < 1:
-            raise SeqvprError(f"seqnet: the temporal kernel width w must be >= 1, got {self.w}")
+        object.__setattr__(self, "w", checks.whole(self.w, "w", 1))
+        object.__setattr__(self, "out_dim", checks.optional_whole(self.out_dim, "out_dim", 1))
         if self.sequence.length < self.w:
             raise SeqvprError(
                 f"seqnet: sequence length {self.sequence.length} is shorter than the temporal kernel width w={self.w}"
             )
         if tuple(self.sequence.velocities) != (1.0,):
             raise SeqvprError(f"seqnet: sequence descriptors use velocity 1 only, got {self.sequence.velocities}")
-        if self.out_dim is not None and self.out_dim < 1:
-            raise SeqvprError(f"seqnet: out_dim must be >= 1, got {self.out_dim}")
         if self.out_dim is not None:
             check_dim(self.out_dim, "--out-dim")
 
@@ -228,13 +225,15 @@ class JistTrainSettings(SettingsRecord):
     def __post_init__(self) -> None:
         for name in ("epochs", "refreshes", "queries_per_refresh", "negative_pool", "batch_size", "negatives",
                      "images_per_batch", "width", "height", "select_k", "infer_batch"):
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise SeqvprError(f"{name} must be a positive integer, got {value}")
-        if self.max_iterations is not None and (int(self.max_iterations) != self.max_iterations or self.max_iterations < 1):
-            raise SettingError(f"{{max_iterations}} must be a positive integer or None, got {self.max_iterations}")
-        if self.group_per not in ("iteration", "epoch"):
-            raise SettingError(f"{{group_per}} must be 'iteration' or 'epoch', got {self.group_per!r}")
+            object.__setattr__(self, name, checks.whole(getattr(self, name), name, 1))
+        object.__setattr__(self, "max_iterations", checks.optional_whole(self.max_iterations, "max_iterations", 1))
+        object.__setattr__(self, "seed", checks.whole(self.seed, "seed", 0))
+        object.__setattr__(self, "ks", checks.whole_numbers(self.ks, "ks"))
+        checks.text(self.group_per, "group_per", ("iteration", "epoch"))
+        checks.instance(self.grouping, "grouping", CellGrouping, "a CellGrouping")
+        for name in ("select_untrained", "amp", "cache_images"):
+            checks.flag(getattr(self, name), name)
+        checks.device(self.device)
         if self.select_k not in self.ks:
             raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
         check_augmentation(self.jitter, self.hue, self.crop_scale)

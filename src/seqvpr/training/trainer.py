@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from seqvpr import distributed, threads
+from seqvpr import checks, distributed, threads
 from seqvpr.data.ground_truth import ground_truth_within_radius
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.io import check_output_apart, check_replaceable
@@ -62,8 +62,27 @@ def train_sequence_model(
     when ``settings.select_untrained`` is set or no epoch is trained; ties keep the earlier epoch.
     """
     threads.ensure_policy()
+    out = check_run_arguments(data, out_dir, resume, monitor)
     with deterministic_algorithms(), distributed.process_group(settings.device):
-        return _train(data, learner, settings, Path(out_dir), resume, monitor or SilentMonitor())
+        return _train(data, learner, settings, out, resume, monitor or SilentMonitor())
+
+
+def check_training_inputs(data: object, settings: object, settings_type: type) -> None:
+    """What every trainer checks first: the data is a ``TrainingData``, the settings its own kind's."""
+    checks.instance(data, "data", TrainingData, "a TrainingData (training.learner.training_data)")
+    checks.instance(settings, "settings", settings_type, f"a {settings_type.__name__}")
+
+
+def check_run_arguments(data: object, out_dir: object, resume: object, monitor: object) -> Path:
+    """A training run's own arguments, checked before anything is built (one line naming the argument); the run
+    folder returned."""
+    checks.instance(data, "data", TrainingData, "a TrainingData (training.learner.training_data)")
+    checks.flag(resume, "resume")
+    if monitor is not None and not all(callable(getattr(monitor, name, None))
+                                       for name in ("start_run", "start_epoch", "advance", "end_epoch")):
+        raise SettingError("{monitor} must have start_run, start_epoch, advance and end_epoch (a TrainingMonitor), "
+                           f"got {type(monitor).__name__}")
+    return checks.a_path(out_dir, "out_dir")
 
 
 @contextlib.contextmanager
