@@ -76,6 +76,10 @@ def world(tmp_path_factory):
     (w / "state.npz").write_bytes(b"PK\x03\x04 not really")
     (w / "bench.toml").write_text('[[dataset]]\nname = "a"\nreference = "ref.npz"\nquery = "qry.npz"\nradius = "10m"\n'
                                   'train = "0:40"\nselect = "40:60"\ntest = "60:80"\n[benchmark]\nks = ["one"]\n')
+    np.savez(w / "far.npz", descriptors=base["descriptors"], positions=np.c_[np.full(80, 1e300), np.arange(80.0)])
+    (w / "junk.bag").write_text("junk")
+    (w / "badyaml").mkdir()
+    (w / "badyaml" / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
     (w / "inner").mkdir()
     (w / "bench_inner.toml").write_text((w / "bench.toml").read_text().replace('"ref.npz"', '"inner/ref.npz"')
                                         .replace('ks = ["one"]', "ks = [1]"))
@@ -216,6 +220,15 @@ CASES = {
                                                       "--cache-dir", "{w}/imgs/c", "--out", "{out}/d.npz"), "lies inside"),
     "benchmark: --out holding its config": (("benchmark", "{w}/bench.toml", "--out", "{w}"), "holds the input"),
     "benchmark: --out holding a dataset": (("benchmark", "{w}/bench_inner.toml", "--out", "{w}/inner"), "holds the input"),
+    # --- positions that are wrong, and readers' errors (issue 44)
+    "match: an easting of 1e300 (reached scipy and overflowed)": (("match", "-r", "{w}/far.npz", "-q", "{w}/qry.npz",
+                                                                   "--radius", "5m"), "not a place"),
+    "play: a file that is no bag (a rosbags traceback)": (("play", "{w}/junk.bag"), "junk.bag: not a readable bag"),
+    "play: --rate 1e-300 (overflowed)": (("play", "{w}/junk.bag", "--rate", "1e-300"), "--rate must be from 0.001"),
+    "match: a bag whose metadata.yaml does not parse (5-7 lines)": (("match", "-r", "{w}/badyaml", "-q", "{w}/qry.npz",
+                                                                      "--radius", "5m"), "badyaml: not a readable bag"),
+    "map build: a descriptor file whose positions are not numbers": (("map", "build", "{w}/pos_text.npz", "--out", "{out}"),
+                                                                     "pos_text.npz"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

@@ -115,3 +115,31 @@ def test_an_image_map_describes_the_query_with_the_maps_backbone(tmp_path, monke
                            "--out", tmp_path / "b")
     assert code == 0, err
     assert (tmp_path / "a" / "predictions.csv").read_text() == (tmp_path / "b" / "predictions.csv").read_text()
+
+
+def test_a_map_folder_keeps_its_calibration_and_its_users_files_through_every_map_command(tmp_path, monkeypatch,
+                                                                                             capsys):
+    """After ``map index`` (the map's identity unchanged) ``localize`` still uses the calibrated threshold; a user's
+    file and folder in the map folder survive build, index, check, info and shard."""
+    (tmp_path / "route").mkdir()
+    route = write_route_files(tmp_path / "route", 120, 16, 7)
+    folder = tmp_path / "m"
+    assert run_cli(monkeypatch, capsys, "map", "build", route / "ref.npz", "--out", folder)[0] == 0
+    (folder / "notes.txt").write_text("mine")
+    (folder / "drives").mkdir()
+    (folder / "drives" / "a.txt").write_text("also mine")
+    common = ("localize", "--map", folder, "-q", route / "qry.npz", "--radius", "10m", "--json")
+    code, _, err = run_cli(monkeypatch, capsys, *common, "--calibrate", "--target-precision", "0.9", "--out",
+                           tmp_path / "c")
+    assert code == 0, err
+    calibrated = json.loads((folder / "localizer.json").read_text())["calibrations"][0]["threshold"]
+    for command in (("map", "index", folder, "--index", "flat"), ("map", "build", route / "ref.npz", "--out", folder),
+                    ("map", "check", folder), ("map", "info", folder),
+                    ("map", "shard", folder, "--shards", "2", "--out", tmp_path / "s")):
+        code, _, err = run_cli(monkeypatch, capsys, *command)
+        assert code == 0, (command, err)
+        assert (folder / "notes.txt").read_text() == "mine" and (folder / "drives" / "a.txt").read_text() == "also mine"
+        code, out, err = run_cli(monkeypatch, capsys, *common, "--out", tmp_path / "l")
+        summary = json.loads(out)
+        assert code == 0 and summary["threshold"] == calibrated, (command, err)
+        assert summary["threshold_source"].startswith("calibrated on "), (command, summary["threshold_source"])
