@@ -174,14 +174,19 @@ def check_mat_elements(path: Path) -> None:
     """A MAT v5 file's elements each fit the element (or file) that holds them, compressed ones included: scipy's
     reader trusts the sizes and can crash the process on a file whose sizes lie, so a lie is one line here first.
     Files of other versions (v4, v7.3) are left to the reader's own errors."""
-    data = path.read_bytes()
-    if len(data) < 128 or data[126:128] not in (b"IM", b"MI") or data[124:126] not in (b"\x00\x01", b"\x01\x00"):
-        return
-    order = "<" if data[126:128] == b"IM" else ">"
-    _check_elements(data, 128, len(data), order, path, 0)
+    import mmap
+
+    size = path.stat().st_size
+    with open(path, "rb") as handle:
+        head = handle.read(128)
+        if size < 128 or head[126:128] not in (b"IM", b"MI") or head[124:126] not in (b"\x00\x01", b"\x01\x00"):
+            return
+        # the file's pages as a view (no copy): only the tags and headers walked here are read
+        data = memoryview(mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ))
+    _check_elements(data, 128, size, "<" if head[126:128] == b"IM" else ">", path, 0)
 
 
-def _check_elements(data: bytes, start: int, end: int, order: str, path: Path, depth: int) -> None:
+def _check_elements(data: bytes | memoryview, start: int, end: int, order: str, path: Path, depth: int) -> None:
     """Every element tag in ``data[start:end]`` and what it declares fit there; matrices and compressed elements
     checked inside (small elements: four bytes of data in the tag's second half)."""
     import struct
@@ -213,7 +218,8 @@ MAT_CELL, MAT_STRUCT, MAT_CHAR, MAT_SPARSE = 1, 2, 4, 5
 MAT_NUMERIC = range(6, 16)  # double, single, int8 ... uint64 (a logical array is uint8)
 
 
-def _mat_elements(data: bytes, start: int, end: int, order: str, path: Path) -> list[tuple[int, bytes]]:
+def _mat_elements(data: bytes | memoryview, start: int, end: int, order: str,
+                  path: Path) -> list[tuple[int, bytes | memoryview]]:
     """The elements in ``data[start:end]`` as (type, data), each checked to be of a known type and to fit."""
     import struct
 
@@ -230,7 +236,7 @@ def _mat_elements(data: bytes, start: int, end: int, order: str, path: Path) -> 
     return found
 
 
-def _check_matrix_size(data: bytes, start: int, end: int, order: str, path: Path) -> None:
+def _check_matrix_size(data: bytes | memoryview, start: int, end: int, order: str, path: Path) -> None:
     """A matrix's parts agree with its dimensions: a numeric or character array's data holds exactly its elements,
     a cell or struct holds as many matrices as it has elements (times fields); scipy trusts them and otherwise reads
     past the data or crashes."""
