@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, get_args
 
 from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
@@ -107,9 +107,8 @@ def match(
     ``contrast_window``, ``rerank`` N, ``index``, ``proposer`` (hvpr's retrieval method); against a map with an index, ``shortlist`` S a frame with
     ``history`` H. Under ``torchrun`` over a sharded map, ranks other than 0 get None.
     """
-    from seqvpr.methods import check_run
-
     from seqvpr.features.describe import check_extraction_settings
+    from seqvpr.methods import check_run
 
     extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
     check_extraction_settings(**extraction)
@@ -209,11 +208,8 @@ def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str |
     """Recall@K (and precision-recall) of a match against ground truth: within ``radius`` (``25m`` or ``2f``) of
     the positions, or from a ground-truth file."""
     from seqvpr.evaluation.ground_truth import resolve_ground_truth
-    from seqvpr.evaluation.scoring import evaluate_match
-
-    from typing import get_args
-
     from seqvpr.evaluation.metrics import NoPositivePolicy
+    from seqvpr.evaluation.scoring import evaluate_match
     from seqvpr.results import MatchResult
 
     checks.instance(result, "result", MatchResult, "a MatchResult (what seqvpr.match returns)")
