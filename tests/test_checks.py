@@ -100,7 +100,7 @@ MATCH = {
     "k": (COUNT, None), "align": (CHOICE, None), "boundary": (CHOICE, None),
     "velocities": ([[-1.0], "fast", OBJECT, []], None), "normalize": (FLAG, None), "dtype": (CHOICE, None),
     "device": ([3, "nope", OBJECT], None), "memory_budget": (OPTIONAL_COUNT, None),
-    "cache_dir": ([3, OBJECT], None), "skip_bad": (FLAG, None), "conf": ([], None),
+    "cache_dir": ([3, OBJECT], None), "skip_bad": (FLAG, None), "engine": (CHOICE, None), "conf": ([], None),
 }
 EVALUATE = {
     "result": ([None, 3, OBJECT], None), "radius": ([OBJECT, [1], "abc", True], None),
@@ -117,6 +117,7 @@ BUILD = {
 OPEN_MAP = {"folder": (PATH, None)}
 LOCALIZER_OPEN = {
     "map_folder": (PATH, None), "model": ([3, OBJECT, [3]], None), "device": ([3, "nope", OBJECT], None),
+    "engine": (CHOICE, None),
     "settings": ([], None),
 }
 UPDATE = {"frame": ([None, 3, "x", OBJECT, np.zeros(3, np.float32), np.zeros(8, int), np.full(8, np.nan)], None),

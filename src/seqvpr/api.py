@@ -110,7 +110,7 @@ def match(
     from seqvpr.features.describe import check_extraction_settings
     from seqvpr.methods import check_run
 
-    extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad") if key in conf}
+    extraction = {key: conf.pop(key) for key in ("cache_dir", "skip_bad", "engine") if key in conf}
     check_extraction_settings(**extraction)
     check_setting_names(conf)
     search = check_match_arguments(method, settings, shortlist=shortlist, history=history, nprobe=nprobe,
@@ -162,7 +162,7 @@ def check_setting_names(conf: Mapping[str, Any]) -> None:
     if unknown:
         raise SeqvprError(f"seqvpr.match: no setting {unknown[0]!r} (settings: {', '.join(SETTING_NAMES)}, "
                           "shortlist, history, nprobe, rerank, index, steps, contrast_window, proposer, cache_dir, "
-                          "skip_bad)")
+                          "skip_bad, engine)")
 
 
 def opened_sides(reference: Any, query: Any) -> tuple[Any, Traversal]:

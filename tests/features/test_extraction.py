@@ -59,8 +59,8 @@ CONFIG = ExtractorConfig(width=32, height=24, batch_size=3)
 def test_batched_equals_one_at_a_time_with_the_real_backbone(images):
     config = ExtractorConfig(width=64, height=48, batch_size=4)
     model = build_extractor(config)
-    batched = extract_descriptors(images[:5], config, extractor=model).descriptors
-    single = extract_descriptors(images[:5], ExtractorConfig(width=64, height=48, batch_size=1), extractor=model)
+    batched = extract_descriptors(images[:5], config, extractor=model, engine="torch").descriptors
+    single = extract_descriptors(images[:5], ExtractorConfig(width=64, height=48, batch_size=1), extractor=model, engine="torch")
     assert batched.shape == (5, 1280)
     assert np.allclose(batched, single.descriptors, atol=1e-5)
     assert np.allclose(np.linalg.norm(batched, axis=1), 1.0, atol=1e-5)
@@ -69,17 +69,17 @@ def test_batched_equals_one_at_a_time_with_the_real_backbone(images):
 def test_cache_is_reused_and_invalidated_by_config_or_images(tmp_path, images):
     cache = tmp_path / "cache"
     model = tiny()
-    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 10
-    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 10 and np.array_equal(first.descriptors, again.descriptors)
-    extract_descriptors(images, ExtractorConfig(width=40, height=24, batch_size=3), cache_dir=cache, extractor=model)
+    extract_descriptors(images, ExtractorConfig(width=40, height=24, batch_size=3), cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 20  # another input size: recomputed
-    extract_descriptors(images[:9], CONFIG, cache_dir=cache, extractor=model)
+    extract_descriptors(images[:9], CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 29  # another image list: recomputed
     Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(images[4])
     os.utime(images[4], ns=(1, 1))
-    changed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    changed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 39  # an image changed: recomputed
     assert not np.allclose(changed.descriptors[4], first.descriptors[4])
 
@@ -87,14 +87,14 @@ def test_cache_is_reused_and_invalidated_by_config_or_images(tmp_path, images):
 def test_an_image_rewritten_with_its_old_size_and_mtime_is_not_served_stale(tmp_path, images):
     cache = tmp_path / "cache"
     model = tiny()
-    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     stat = images[2].stat()
     data = bytearray(images[2].read_bytes())
     other = images[3].read_bytes()
     images[2].write_bytes(other[: len(data)] + bytes(max(0, len(data) - len(other))))  # cp -p / rsync -t
     os.utime(images[2], ns=(stat.st_atime_ns, stat.st_mtime_ns))
     assert images[2].stat().st_size == stat.st_size and images[2].stat().st_mtime_ns == stat.st_mtime_ns
-    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, skip_bad=True)
+    again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, skip_bad=True, engine="torch")
     assert model.backbone.images_seen == 20 and again.cache_file != first.cache_file
 
 
@@ -102,7 +102,7 @@ def test_an_image_rewritten_with_its_old_size_and_mtime_is_not_served_stale(tmp_
 def test_a_damaged_cache_entry_is_recomputed_never_used(tmp_path, images, damage):
     cache = tmp_path / "cache"
     model = tiny()
-    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    first = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     data = bytearray(first.cache_file.read_bytes())
     if damage == "truncate":  # a full disk or a killed writer
         first.cache_file.write_bytes(bytes(data[: len(data) // 2]))
@@ -111,10 +111,10 @@ def test_a_damaged_cache_entry_is_recomputed_never_used(tmp_path, images, damage
         data[at] ^= 0xFF
         first.cache_file.write_bytes(bytes(data))
     with pytest.warns(SeqvprWarning, match="damaged cache entry"):
-        again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+        again = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 20  # recomputed
     np.testing.assert_array_equal(again.descriptors, first.descriptors)
-    assert extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model).cache_file == first.cache_file
+    assert extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch").cache_file == first.cache_file
     assert model.backbone.images_seen == 20  # and the new entry is sound
 
 
@@ -130,9 +130,9 @@ def test_interrupted_extraction_resumes_where_it_stopped(tmp_path, images):
 
     model = tiny()
     with pytest.raises(KeyboardInterrupt):
-        extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, progress=interrupt)
+        extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, progress=interrupt, engine="torch")
     assert model.backbone.images_seen == 6
-    resumed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model)
+    resumed = extract_descriptors(images, CONFIG, cache_dir=cache, extractor=model, engine="torch")
     assert model.backbone.images_seen == 10  # only the 4 images not done before
     assert np.allclose(resumed.descriptors, whole, atol=1e-6)
     assert not any(p.name.endswith(".part") for p in cache.iterdir())
@@ -197,12 +197,12 @@ def test_netvlad_extraction_equals_pooling_the_local_features_and_its_head_keys_
         local = model.backbone.features((torch.stack([load_image(p, 32, 24) for p in images]) - 0.5) / 0.5)
         expected = model.pooling(local).numpy()
     cache = tmp_path / "cache"
-    first = extract_descriptors(images, config, cache_dir=cache, extractor=model)
+    first = extract_descriptors(images, config, cache_dir=cache, extractor=model, engine="torch")
     assert first.descriptors.shape == (10, 32)
     assert np.allclose(first.descriptors, expected, atol=1e-5)
-    assert extract_descriptors(images, config, cache_dir=cache, extractor=model).cache_file == first.cache_file
+    assert extract_descriptors(images, config, cache_dir=cache, extractor=model, engine="torch").cache_file == first.cache_file
     init_netvlad(model, images[:5], config, seed=2)  # a re-fitted head must not reuse the cache
-    again = extract_descriptors(images, config, cache_dir=cache, extractor=model)
+    again = extract_descriptors(images, config, cache_dir=cache, extractor=model, engine="torch")
     assert again.cache_file != first.cache_file and len(list(cache.glob("*.npz"))) == 2
 
 

@@ -13,7 +13,7 @@ import click
 from seqvpr.cli.options import (
     DEVICE,
     COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
-    bag_topic_options, locks_output, with_options
+    ENGINE_HELP, bag_topic_options, locks_output, with_options
 )
 from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
@@ -60,6 +60,8 @@ localizer_options = with_options([
         help="hmm: how sharply worse distances count."),
     option("Compute", "--device", type=DEVICE, default="cpu", show_default=True,
         help="torch device, e.g. cpu or cuda."),
+    option("Compute", "--engine", type=click.Choice(["auto", "torch", "onnx"]), default="auto", show_default=True,
+           help=ENGINE_HELP),
 ])
 
 
@@ -139,7 +141,7 @@ def open_localizer(options: dict[str, Any], k: int):
 
     steps = FilterSettings(options["min_step"], options["max_step"], options["floor"], options["sharpness"])
     return Localizer.open(options["map_dir"], list(options["model_dirs"]) or None, options["device"],
-                          method=options["method"],
+                          engine=options["engine"], method=options["method"],
                           seq_len=options["seq_len"], k=k, shortlist=options["shortlist"], history=options["history"],
                           nprobe=options["nprobe"], threshold=options["threshold"], lost_after=options["lost_after"],
                           exclusion=options["exclusion"], keyframe_distance=options["keyframe_distance"], filter=steps)

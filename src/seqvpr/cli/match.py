@@ -134,7 +134,7 @@ def match(**options: Any) -> None:
                                  shortlist=options["shortlist"], history=options["history"], nprobe=options["nprobe"],
                                  rerank=options["rerank"], index=options["index_kind"],
                                  progress=tqdm_progress if world.is_root else None, cache_dir=options["cache_dir"],
-                                 skip_bad=options["skip_bad"], **search)
+                                 skip_bad=options["skip_bad"], engine=options["engine"], **search)
     if result is None:  # another rank of a sharded match: rank 0 scores and writes
         return
     evaluation = evaluate_match(result, inputs.gt, k_values, options["no_positive"], options["uniqueness"])

@@ -30,7 +30,7 @@ FLAGS = {
     "max_step": "--max-step", "image_size": "--image-size", "no_positive": "--no-positive", "optimizer": "--optimizer",
     "jitter": "--jitter", "hue": "--hue", "crop_scale": "--crop-scale", "max_iterations": "--max-iterations",
     "init": "--init", "trainable_stages": "--trainable-stages", "refresh_every": "--refresh-every",
-    "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr", "floor": "--floor",
+    "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr", "floor": "--floor", "engine": "--engine",
 }
 
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
@@ -318,6 +318,13 @@ def parse_stages(text: str | None) -> tuple[str, ...] | None:
     return stages or None
 
 
+#: how an image encoder runs (seqvpr.features.engines)
+ENGINE_HELP = ("How a network describes images: onnx (ONNX Runtime's CPU engine over the network exported once and "
+               "checked against torch; about half torch's time a frame), torch, or auto: onnx on the CPU where it "
+               "exports, else torch.")
+ENGINE_OPTION = click.option("--engine", type=click.Choice(["auto", "torch", "onnx"]), default="auto",
+                             show_default=True, help=ENGINE_HELP)
+
 extraction_options = with_options([
     click.option("--descriptor", default="patchnorm", show_default=True, metavar="NAME|torchscript:PATH",
                  callback=lambda _ctx, _param, value: parse_descriptor(value),
@@ -338,6 +345,7 @@ extraction_options = with_options([
                       "MEAN/STD as R,G,B/R,G,B."),
     click.option("--batch-size", "extract_batch", default=32, show_default=True, type=COUNT,
                  help="Images per backbone batch."),
+    ENGINE_OPTION,
     click.option("--cache-dir", type=OUT_FOLDER, help="Cache extracted descriptors here (keyed by model and images)."),
     click.option("--skip-bad", is_flag=True, help="Skip unreadable images (listed on stderr) instead of failing."),
 ])
@@ -356,6 +364,7 @@ def extraction_settings(options: dict[str, Any], device: str = "cpu") -> tuple[s
                              options["clusters"], mean, std)
     return descriptor, PatchNormConfig(width, height, options["patch"]), {
         "extractor": config, "device": device, "cache_dir": options["cache_dir"], "skip_bad": options["skip_bad"],
+        "engine": options["engine"],
     }
 
 
@@ -373,4 +382,4 @@ def _encoder(descriptor: str, weights: str, normalize: str) -> tuple[str, str, A
 
 
 EXTRACTION_KEYS = ("descriptor", "thumbnail", "patch", "weights", "pooling", "clusters", "image_size", "normalize",
-                   "extract_batch", "cache_dir", "skip_bad")
+                   "extract_batch", "cache_dir", "skip_bad", "engine")

@@ -40,16 +40,18 @@ def describe(
     cache_dir: str | Path | None = None,
     skip_bad: bool = False,
     model: Extractor | None = None,
+    engine: str = "auto",
 ) -> Traversal:
     """The traversal with descriptors: kept if it has them, else computed from its images.
 
     ``descriptor`` is ``patchnorm`` (weight-free thumbnails, ``config``), a backbone name (with ``extractor``'s
     weights, pooling and input size; ``model``, if given, is that extractor already built, e.g. a NetVLAD head
     from ``netvlad_extractor``) or ``torchscript:PATH``, a user's exported encoder (``extractor``'s input size,
-    mean and std). With ``skip_bad`` unreadable images are dropped from the traversal.
+    mean and std). With ``skip_bad`` unreadable images are dropped from the traversal. ``engine`` runs a network
+    (``features.engines``: torch, onnx, or auto: ONNX Runtime on the CPU where the encoder exports).
     """
     ensure_policy()  # the one thread policy (seqvpr.threads)
-    check_extraction_settings(cache_dir, skip_bad)
+    check_extraction_settings(cache_dir, skip_bad, engine)
     if traversal.descriptors is not None:
         return traversal
     if descriptor != "patchnorm":
@@ -64,13 +66,16 @@ def describe(
         kept_traversal = traversal if len(kept) == len(traversal) else traversal.select(kept)
         return kept_traversal.with_descriptors(rows)
     extraction = extract_descriptors(traversal.image_paths, extractor, device=device, cache_dir=cache_dir,
-                                     skip_bad=skip_bad, progress=tick, extractor=model)
+                                     skip_bad=skip_bad, progress=tick, extractor=model, engine=engine)
     kept = traversal if len(extraction.rows) == len(traversal) else traversal.select(extraction.rows)
     return kept.with_descriptors(extraction.descriptors)
 
 
-def check_extraction_settings(cache_dir: Any = None, skip_bad: Any = False) -> None:
-    """``describe``'s settings every entry point takes alike: a cache folder path (or None) and a flag."""
+def check_extraction_settings(cache_dir: Any = None, skip_bad: Any = False, engine: Any = "auto") -> None:
+    """``describe``'s settings every entry point takes alike: a cache folder path (or None), a flag and an engine."""
+    from seqvpr.features.engines import check_engine
+
+    check_engine(engine)
     checks.flag(skip_bad, "skip_bad")
     if cache_dir is not None:
         checks.a_path(cache_dir, "cache_dir")

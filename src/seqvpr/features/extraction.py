@@ -24,6 +24,7 @@ from torch import nn
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
 from seqvpr.data.images import read_image
+from seqvpr.features.engines import OnnxEncoder, model_digest, with_engine
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write, check_output_apart
@@ -169,15 +170,6 @@ def init_netvlad(
     extractor.pooling.init_from_features(torch.cat(samples), seed=seed)
 
 
-def model_digest(model: nn.Module) -> str:
-    """A digest of a module's parameters and buffers, so a cache never outlives a changed (e.g. re-fitted) head."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()[:24]
-
-
 def _micro_batches(images: torch.Tensor, device: str) -> list[torch.Tensor]:
     """The batch on the device, split into CPU micro-batches in channels-last layout (faster there), whole on GPU."""
     images = images.to(device)
@@ -252,11 +244,13 @@ def extract_descriptors(
     skip_bad: bool = False,
     progress: Callable[[int], None] | None = None,
     extractor: nn.Module | None = None,
+    engine: str = "auto",
 ) -> Extraction:
     """Descriptors [N, D] of the images, in batches; reused from ``cache_dir`` when nothing changed.
 
     ``extractor`` (optional) replaces the model built from ``config``; it must be what ``config`` describes, since
-    the cache key is computed from ``config``.
+    the cache key is computed from ``config``. ``engine`` runs it (``features.engines``: torch, onnx or auto); the
+    engines agree within ``engines.TOLERANCE``, so a cached entry serves either.
     """
     ensure_policy()  # the one thread policy (seqvpr.threads)
     paths = [Path(p) for p in paths]
@@ -271,7 +265,7 @@ def extract_descriptors(
     cached = _load_cached(final, paths, progress)
     if cached is not None:
         return cached
-    model = _prepare_model(config, extractor, device)
+    model = _prepare_model(config, extractor, device, engine)
     part = _Partial(Path(cache_dir) / f"{key}.part" if key else None)
     if progress and part.done:
         progress(part.done)
@@ -322,11 +316,11 @@ def _read_checked(file: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] |
     return None
 
 
-def _prepare_model(config: ExtractorConfig, extractor: nn.Module | None, device: str) -> nn.Module:
-    """The given (or newly built) model on the device; a built-in backbone channels-last on CPU (faster there), a
-    TorchScript encoder as it was exported."""
-    model = (extractor or build_encoder(config)).to(device)
-    if config.backbone != TORCHSCRIPT and str(device).startswith("cpu"):
+def _prepare_model(config: ExtractorConfig, extractor: nn.Module | None, device: str, engine: str = "auto"):
+    """The given (or newly built) model on the device, run by ``engine``; under torch a built-in backbone is
+    channels-last on CPU (faster there), a TorchScript encoder as it was exported."""
+    model = with_engine((extractor or build_encoder(config)).to(device), config.width, config.height, engine, device)
+    if isinstance(model, nn.Module) and config.backbone != TORCHSCRIPT and str(device).startswith("cpu"):
         model = model.to(memory_format=torch.channels_last)
     return model
 
@@ -392,7 +386,9 @@ def _assemble(paths: list[Path], part: _Partial, final: Path | None) -> Extracti
 
 
 def _describe_batch(model: nn.Module, images: list[torch.Tensor], device: str) -> np.ndarray:
-    """Descriptors [n, D] of one batch of loaded images."""
+    """Descriptors [n, D] of one batch of loaded images (ONNX Runtime takes the batch whole, as laid out)."""
+    if isinstance(model, OnnxEncoder):
+        return model(torch.stack(images)).numpy()
     parts = [model(chunk).cpu() for chunk in _micro_batches(torch.stack(images), device)]
     return torch.cat(parts).numpy().astype(np.float32)
 

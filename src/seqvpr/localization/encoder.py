@@ -38,9 +38,10 @@ def rgb_image(frame: Frame) -> Image.Image:
 
 class ImageDescriber:
     """Describes single images as the map's frames: ``encode(frame) -> [D]`` float32 on the CPU (before any
-    transform or normalisation)."""
+    transform or normalisation); the network run by ``engine`` (``features.engines``)."""
 
-    def __init__(self, description: FrameDescription, models: Mapping[str, TrainedModel], device: str = "cpu"):
+    def __init__(self, description: FrameDescription, models: Mapping[str, TrainedModel], device: str = "cpu",
+                 engine: str = "auto"):
         self.description, self.device = description, device
         self.model = image_model(models)
         if self.model is not None:
@@ -56,7 +57,9 @@ class ImageDescriber:
             config = descriptor_config(description.descriptor, description.extractor)
             self.size, self.network = (config.width, config.height), build_encoder(config).to(device)
         if self.network is not None:
-            self.network.eval()
+            from seqvpr.features.engines import with_engine
+
+            self.network = with_engine(self.network.eval(), *self.size, engine, device)
 
     @torch.no_grad()
     def encode(self, frame: Frame) -> torch.Tensor:

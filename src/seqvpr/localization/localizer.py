@@ -26,6 +26,7 @@ import torch
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError, reading
+from seqvpr.features.engines import check_engine
 from seqvpr.io import atomic_write, check_output_apart
 from seqvpr.localization.saved_state import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
@@ -150,10 +151,10 @@ class Localizer:
     """A streaming localiser over a saved map (``Localizer.open``); ``update`` per frame, ``reset`` on a restart."""
 
     def __init__(self, saved: SavedMap, settings: LocalizerSettings, models: Mapping[str, TrainedModel],
-                 threshold: float, device: str = "cpu", threshold_source: str = "given") -> None:
+                 threshold: float, device: str = "cpu", threshold_source: str = "given", engine: str = "auto") -> None:
         self.saved, self.settings, self.models, self.threshold = saved, settings, dict(models), threshold
         self.threshold_source = threshold_source  # where the threshold came from: given, calibrated on what, default
-        self.encoder = _frame_encoder(saved, self.models, device)
+        self.encoder = _frame_encoder(saved, self.models, device, engine)
         self.transform = self.models.get("seqmatchnet")  # the map holds transformed frames; raw descriptors get it
         self.matcher = method_matcher(saved, settings)
         self.stepper = _stepper(saved, self.matcher, settings)
@@ -164,12 +165,14 @@ class Localizer:
 
     @classmethod
     def open(cls, map_folder: str | Path | SavedMap, model: str | Path | Sequence[str | Path] | None = None,
-             device: str = "cpu", **settings: Any) -> Localizer:
-        """A localiser over the map in ``map_folder`` (or the map opened) with ``LocalizerSettings(**settings)``;
+             device: str = "cpu", engine: str = "auto", **settings: Any) -> Localizer:
+        """A localiser over the map in ``map_folder`` (or the map opened) with ``LocalizerSettings(**settings)``,
+        camera frames described by ``engine`` (``features.engines``: torch, onnx or auto);
         ``model`` the folder(s) the map was built through (checked by sha256), or a SeqMatchNet model applied to both
         sides. ``method`` None (or left out): the SeqMatchNet model's method when one is given, else ``matching``."""
         ensure_policy()  # the one thread policy (seqvpr.threads)
         started = time.perf_counter()
+        check_engine(engine)
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(checks.a_path(map_folder, "map_folder"))
         models = _load_models(saved, model, checks.device(device))
         unknown = sorted(set(settings) - {f.name for f in fields(LocalizerSettings)})
@@ -191,7 +194,7 @@ class Localizer:
             raise SettingError("{method} seqmatchnet needs its SeqMatchNet {model} (the one the map was built through)")
         threshold, source = ((chosen.threshold, "given") if chosen.threshold is not None
                              else stored_threshold(saved.folder, chosen))
-        localizer = cls(saved, chosen, models, threshold, device, source)
+        localizer = cls(saved, chosen, models, threshold, device, source, check_engine(engine))
         ensure_policy()  # again after building the matcher: numba's launch must not have changed a count
         if time.perf_counter() - started >= 1.0:
             LOGGER.info(f"localiser: ready in {time.perf_counter() - started:.1f} s; threshold {threshold:g}, {source}")
@@ -356,14 +359,14 @@ def _load_models(saved: SavedMap, model: str | Path | Sequence[str | Path] | Non
     return models
 
 
-def _frame_encoder(saved: SavedMap, models: Mapping[str, TrainedModel], device: str):
+def _frame_encoder(saved: SavedMap, models: Mapping[str, TrainedModel], device: str, engine: str = "auto"):
     """Camera frames to map frames when the map was described from images (None for descriptor-file maps)."""
     if saved.info.description.get("descriptor") == "file":
         return None
     from seqvpr.localization.encoder import ImageDescriber
     from seqvpr.maps.build import FrameDescription
 
-    return ImageDescriber(FrameDescription.from_json(saved.info.description), models, device)
+    return ImageDescriber(FrameDescription.from_json(saved.info.description), models, device, engine)
 
 
 def next_status(score: float | None, threshold: float, misses: int, lost_after: int) -> tuple[Status, int]:

@@ -90,7 +90,7 @@ def describe_frames(
         from seqvpr.models.jist import describe_images
 
         width, height = description.image_size or model.image_size
-        return describe_images(model.module, traversal, width, height, device)
+        return describe_images(model.module, traversal, width, height, device, engine=extraction.get("engine", "auto"))
     if description.extractor.pooling == "netvlad":
         raise SeqvprError("a map cannot use NetVLAD pooling yet (its clusters are fitted to one run's images)")
     return describe(traversal, description.descriptor, description.patchnorm, progress,
@@ -193,10 +193,10 @@ def check_build_settings(description: Any, dtype: Any, normalize: Any, device: A
                          indexed: Any, extraction: Mapping[str, Any]) -> None:
     """A map build's settings checked before any source is read (one line naming the argument); ``extraction``
     takes ``describe``'s ``cache_dir`` and ``skip_bad``."""
-    unknown = sorted(set(extraction) - {"cache_dir", "skip_bad"})
+    unknown = sorted(set(extraction) - {"cache_dir", "skip_bad", "engine"})
     if unknown:
         raise SettingError(f"a map build has no setting {unknown[0]!r} (its extraction settings: {{cache_dir}}, "
-                           "skip_bad)")
+                           "skip_bad, {engine})")
     check_extraction_settings(**extraction)
     from seqvpr.maps.codes import parse_storage
 

@@ -288,14 +288,21 @@ def check_images_exist(traversal: Traversal, what: str) -> None:
 
 def describe_images(
     model: nn.Module, traversal: Traversal, width: int, height: int, device: str = "cpu",
-    store: ImageStore | None = None, batch: int = 32,
+    store: ImageStore | None = None, batch: int = 32, engine: str = "torch",
 ) -> Traversal:
     """The traversal with the frame descriptors of a frame encoder (CosPlace) or a JIST model's encoder, images at
     ``width`` x ``height``. Pooling JIST's frames with ``model.sequence_pool`` (the retrieval matcher with
-    pooling ``seqgem`` and that module) gives JIST's sequence descriptors."""
+    pooling ``seqgem`` and that module) gives JIST's sequence descriptors. ``engine`` runs the frame encoder
+    (``features.engines``)."""
     check_images_exist(traversal, traversal.source or traversal.name)
     store = store or ImageStore(width, height)
-    return traversal.with_descriptors(encode_frames(model, store, list(traversal.image_paths), device, batch).cpu().numpy())
+    encoder = model.encoder if isinstance(model, JistModel) else model
+    if engine != "torch":  # training's validation keeps torch: its weights change between epochs
+        from seqvpr.features.engines import with_engine
+
+        encoder = with_engine(encoder.eval(), width, height, engine, device)
+    rows = encode_frames(encoder, store, list(traversal.image_paths), device, batch)
+    return traversal.with_descriptors(rows.cpu().numpy())
 
 
 #: JIST's frames are its encoder's (the name the training and its tests use)

@@ -1,0 +1,200 @@
+"""Inference engines for an image encoder: torch as built, or ONNX Runtime's CPU engine over the same network.
+
+On a CPU, ONNX Runtime runs EfficientNet-Lite0 + GeM at 320x240 in about half torch's time with descriptors equal to
+1e-6 (BENCHMARKS, "What a frame costs"), and a robot's frame rate is set by its encoder. The network is exported
+once per encoder identity (its weights and buffers, input size, torch version), kept in seqvpr's cache folder
+(``encoders/``), and checked against torch on a probe batch when it is made: an export that differs by more than
+``TOLERANCE`` is never used. ``auto`` takes ONNX Runtime on the CPU when it is installed and the encoder exports,
+torch otherwise (and always on a GPU). ONNX Runtime's pools follow the one thread policy (``seqvpr.threads``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from seqvpr import checks
+from seqvpr.errors import SeqvprError, SettingError
+
+ENGINES = ("auto", "torch", "onnx")
+#: the largest difference (max abs over a probe batch's descriptors) an export may show against torch
+TOLERANCE = 1e-5
+OPSET = 17
+INPUT, OUTPUT = "images", "descriptors"
+LOGGER = logging.getLogger("seqvpr")
+INSTALL = "pip install onnxruntime onnx (both come with seqvpr; a slim install may lack them)"
+
+
+def onnx_runtime_installed() -> bool:
+    """Whether ONNX Runtime (to run) and onnx (to export) can be imported."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(name) is not None for name in ("onnxruntime", "onnx"))
+
+
+def check_engine(engine: Any) -> str:
+    """``engine`` one of ``ENGINES``; ``onnx`` where ONNX Runtime is absent is one line saying how to install it."""
+    checks.text(engine, "engine", ENGINES)
+    if engine == "onnx" and not onnx_runtime_installed():
+        raise SettingError(f"{{engine}} onnx needs ONNX Runtime: {INSTALL}")
+    return engine
+
+
+class OnnxEncoder:
+    """An encoder run by ONNX Runtime on the CPU, called as the torch module was: images [B, 3, H, W] in [0, 1] ->
+    descriptors [B, D] (float32 tensors). ``source`` names the file in errors."""
+
+    def __init__(self, path: str | Path, threads: int | None = None, source: str | None = None) -> None:
+        self.path, self.source = Path(path), source or str(path)
+        self.session = open_session(self.path, threads)
+        self.input = self.session.get_inputs()[0].name
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        batch = images.detach().to("cpu", torch.float32).contiguous().numpy()
+        try:
+            out = self.session.run(None, {self.input: batch})[0]
+        except Exception as error:  # noqa: BLE001 - ONNX Runtime's own error classes: one line naming the file
+            raise SeqvprError(f"{self.source}: ONNX Runtime failed on a batch of shape {list(batch.shape)} "
+                              f"({str(error).splitlines()[0][:200]})") from None
+        return torch.from_numpy(np.asarray(out, dtype=np.float32))
+
+    training = False  # the torch module's interface, where callers set it up: an export is fixed in eval mode
+
+    def eval(self) -> OnnxEncoder:
+        return self
+
+    def train(self, mode: bool = True) -> OnnxEncoder:
+        return self
+
+    def to(self, *args: Any, **kwargs: Any) -> OnnxEncoder:
+        return self
+
+
+def open_session(path: Path, threads: int | None = None):
+    """An ONNX Runtime CPU session over ``path`` with the thread policy's count in its intra-op pool, one inter-op
+    thread and no spinning between calls (a spinning pool takes cores a robot's other processes need)."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads or torch.get_num_threads()
+    options.inter_op_num_threads = 1
+    options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.log_severity_level = 3  # errors only: its warnings are about graph rewrites, not the user's input
+    try:
+        return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:  # noqa: BLE001 - a damaged or unsupported file: one line naming it
+        raise SeqvprError(f"{path}: not an ONNX model ONNX Runtime can run ({str(error).splitlines()[0][:200]})") \
+            from None
+
+
+def model_digest(model: nn.Module) -> str:
+    """A digest of a module's parameters and buffers, so a cache never outlives a changed (e.g. re-fitted) head."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:24]
+
+
+def encoder_identity(module: nn.Module, width: int, height: int) -> str:
+    """What an export depends on: the module's kind, every parameter and buffer (names and values), the input size
+    and the torch version that traces it."""
+    digest = hashlib.sha256(f"{type(module).__qualname__}|{width}x{height}|{torch.__version__}|{OPSET}".encode())
+    digest.update(model_digest(module).encode())
+    return digest.hexdigest()[:24]
+
+
+def export_onnx(module: nn.Module, width: int, height: int, out: Path,
+                metadata: dict[str, str] | None = None) -> Path:
+    """``module`` (images [B, 3, H, W] in [0, 1] -> [B, D]) written to ``out`` as ONNX with a dynamic batch, its input
+    contract in the file's metadata; written to a temporary name, then renamed."""
+    import onnx
+
+    from seqvpr.io import atomic_write
+
+    probe = torch.rand(1, 3, height, width, generator=torch.Generator().manual_seed(0))
+    module = module.to("cpu").eval()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")  # the tracer's notes on Python values it folds into constants
+        buffer = _exported_bytes(module, probe)
+    model = onnx.load_from_string(buffer)
+    contract = {"seqvpr.input": f"float32 [batch, 3, {height}, {width}] RGB in [0, 1]",
+                "seqvpr.output": "float32 [batch, dim] descriptors", **(metadata or {})}
+    for key, value in contract.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    with atomic_write(out, "wb") as handle:
+        handle.write(model.SerializeToString())
+    return out
+
+
+def _exported_bytes(module: nn.Module, probe: torch.Tensor) -> bytes:
+    """The module traced to ONNX (opset ``OPSET``, batch axis dynamic), as bytes."""
+    import io
+
+    buffer = io.BytesIO()
+    torch.onnx.export(module, (probe,), buffer, input_names=[INPUT], output_names=[OUTPUT], opset_version=OPSET,
+                      dynamic_axes={INPUT: {0: "batch"}, OUTPUT: {0: "batch"}}, dynamo=False)
+    return buffer.getvalue()
+
+
+def probe_difference(module: Callable, engine: Callable, width: int, height: int) -> float:
+    """The largest difference between two encoders' descriptors of a seeded probe batch (two images)."""
+    probe = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        return float((module(probe).float() - engine(probe)).abs().max())
+
+
+def cached_export(module: nn.Module, width: int, height: int, folder: Path | None = None) -> Path:
+    """The encoder's ONNX file in the cache (made, and checked against torch within ``TOLERANCE``, if absent)."""
+    from seqvpr.cache import cache_folder, writable_folder
+
+    folder = writable_folder(folder or cache_folder("encoders"))
+    path = folder / f"{encoder_identity(module, width, height)}.onnx"
+    if path.is_file():
+        return path
+    made = export_onnx(module, width, height, folder / f"{path.stem}.unchecked.onnx")
+    difference = probe_difference(module, OnnxEncoder(made), width, height)
+    if not difference <= TOLERANCE:
+        made.unlink(missing_ok=True)
+        raise SeqvprError(f"the encoder's ONNX export differs from torch by {difference:.2g} (over {TOLERANCE:g}) on "
+                          "a probe batch: not used")
+    made.replace(path)
+    return path
+
+
+def with_engine(module: nn.Module, width: int, height: int, engine: str = "auto", device: str = "cpu") -> Any:
+    """``module`` as ``engine`` runs it: itself (torch), or an ``OnnxEncoder`` over its cached export. ``auto``
+    takes ONNX Runtime on the CPU where it is installed and the export succeeds and checks out, else torch (a line
+    in the log says why); ``onnx`` on a GPU or a failed export is one line."""
+    check_engine(engine)
+    if engine == "torch" or isinstance(module, OnnxEncoder):
+        return module
+    if not str(device).startswith("cpu"):
+        if engine == "onnx":
+            raise SettingError(f"{{engine}} onnx runs on the CPU; on {device} give {{engine}} torch or auto")
+        return module
+    if engine == "auto" and not onnx_runtime_installed():
+        LOGGER.info(f"encoder: torch (ONNX Runtime is not installed: {INSTALL})")
+        return module
+    try:
+        return OnnxEncoder(cached_export(module, width, height), source=type(module).__name__)
+    except Exception as error:  # noqa: BLE001 - any export failure: auto falls back, onnx says why
+        if engine == "onnx":
+            raise SettingError(f"{{engine}} onnx: the encoder does not export to ONNX ({_line(error)})") from None
+        LOGGER.info(f"encoder: torch (the ONNX export failed: {_line(error)})")
+        return module
+
+
+def _line(error: BaseException) -> str:
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return (lines[0] if lines else type(error).__name__)[:200]

@@ -1,0 +1,98 @@
+"""The inference engines (``seqvpr.features.engines``): ONNX Runtime's descriptors equal torch's within the
+tolerance for every built-in encoder, the export is made once per encoder identity and reused, ``auto`` falls back
+to torch where an encoder does not export, ONNX Runtime's pool follows the thread policy, and a missing runtime is
+one line saying how to install it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from seqvpr.errors import SeqvprError
+from seqvpr.features import engines
+from seqvpr.features.engines import OnnxEncoder, TOLERANCE, cached_export, check_engine, probe_difference, with_engine
+from seqvpr.features.extraction import ExtractorConfig, build_extractor
+from tests.helpers import raises_one_line
+
+SIZE = (96, 64)
+
+
+@pytest.mark.parametrize("backbone, weights", [("efficientnet-lite0", "imagenet"), ("resnet18", None),
+                                               ("resnet50", None)])
+def test_onnx_gives_torchs_descriptors_for_every_built_in_encoder(tmp_path, backbone, weights):
+    module = build_extractor(ExtractorConfig(backbone, weights, width=SIZE[0], height=SIZE[1]))
+    engine = with_engine(module, *SIZE, "onnx")
+    assert isinstance(engine, OnnxEncoder)
+    images = torch.rand(3, 3, SIZE[1], SIZE[0], generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        assert float((module(images) - engine(images)).abs().max()) <= TOLERANCE
+
+
+def test_the_thumbnail_cnn_exports_too():
+    from seqvpr.features.backbones import thumbnail_cnn
+
+    module = nn.Sequential(thumbnail_cnn(None), nn.AdaptiveAvgPool2d(1), nn.Flatten()).eval()
+    assert probe_difference(module, with_engine(module, 64, 32, "onnx"), 64, 32) <= TOLERANCE
+
+
+def test_an_export_is_made_once_per_encoder_identity(tmp_path):
+    module = build_extractor(ExtractorConfig("resnet18", None, width=64, height=48))
+    first = cached_export(module, 64, 48, tmp_path)
+    stamp = first.stat().st_mtime_ns
+    assert cached_export(module, 64, 48, tmp_path) == first and first.stat().st_mtime_ns == stamp
+    assert cached_export(module, 64, 32, tmp_path) != first  # another input size, another export
+    with torch.no_grad():
+        module.pooling.p.add_(0.5)  # other weights, another identity
+    assert cached_export(module, 64, 48, tmp_path) != first
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".onnx"] * 3  # no unchecked leftovers
+
+
+class Branchy(nn.Module):
+    """An encoder whose output depends on its batch through Python control flow: the trace (one image) bakes one
+    branch in, so its export differs from torch on the probe batch (two images)."""
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        pooled = images.mean(dim=(2, 3))
+        return pooled * 2 if len(images) > 1 else pooled
+
+
+def test_auto_keeps_torch_where_the_export_differs_and_onnx_says_why(tmp_path, monkeypatch):
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path))
+    module = Branchy()
+    assert with_engine(module, 32, 24, "auto") is module
+    raises_one_line("engine onnx: the encoder does not export to ONNX", with_engine, module, 32, 24, "onnx")
+    assert not list((tmp_path / "encoders").glob("*.onnx"))
+
+
+def test_torch_and_gpu_devices_keep_the_module():
+    module = build_extractor(ExtractorConfig("resnet18", None, width=32, height=32))
+    assert with_engine(module, 32, 32, "torch") is module
+    assert with_engine(module, 32, 32, "auto", device="cuda") is module
+    raises_one_line("engine onnx runs on the CPU", with_engine, module, 32, 32, "onnx", "cuda")
+
+
+def test_onnx_runtime_threads_follow_the_policy(tmp_path):
+    module = build_extractor(ExtractorConfig("resnet18", None, width=32, height=32))
+    path = cached_export(module, 32, 32, tmp_path)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        options = OnnxEncoder(path).session.get_session_options()
+        assert (options.intra_op_num_threads, options.inter_op_num_threads) == (1, 1)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_a_missing_runtime_and_a_bad_engine_are_one_line(monkeypatch):
+    raises_one_line("engine must be one of 'auto', 'torch', 'onnx', got 'tensorrt'", check_engine, "tensorrt")
+    monkeypatch.setattr(engines, "onnx_runtime_installed", lambda: False)
+    raises_one_line("engine onnx needs ONNX Runtime: pip install onnxruntime onnx", check_engine, "onnx")
+    module = build_extractor(ExtractorConfig("resnet18", None, width=32, height=32))
+    assert with_engine(module, 32, 32, "auto") is module
+
+
+def test_a_damaged_onnx_file_is_one_line(tmp_path):
+    (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    with pytest.raises(SeqvprError, match="bad.onnx: not an ONNX model ONNX Runtime can run"):
+        OnnxEncoder(tmp_path / "bad.onnx")
