@@ -208,6 +208,6 @@ def test_the_loader_reads_both_formats_and_the_config_checks_its_fields(tmp_path
     encoder = build_encoder(ExtractorConfig("torchscript", str(tmp_path / "a.pt"), width=W, height=H))
     assert encoder.source == str(tmp_path / "a.pt")
     raises_one_line("needs its model file", ExtractorConfig, "torchscript", "imagenet")
-    raises_one_line("mean/std apply to a torchscript encoder only", ExtractorConfig, mean=(0, 0, 0), std=(1, 1, 1))
+    raises_one_line("mean/std apply to an encoder file only", ExtractorConfig, mean=(0, 0, 0), std=(1, 1, 1))
     raises_one_line("std must be positive", ExtractorConfig, "torchscript", "a.pt", std=(1, 0, 1))
     raises_one_line("descriptor 'vgg' is not known", descriptor_config, "vgg", ExtractorConfig())

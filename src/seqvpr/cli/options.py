@@ -36,6 +36,7 @@ FLAGS = {
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
 DESCRIPTORS = ("patchnorm", *BACKBONES)
 TORCHSCRIPT_PREFIX = "torchscript:"
+ENCODER_PREFIXES = (TORCHSCRIPT_PREFIX, "onnx:")  # a user's own encoder file
 POOLINGS = ("gem", "netvlad")
 
 
@@ -287,9 +288,11 @@ def parse_descriptor(text: str) -> str:
     """A --descriptor value: a known name, or ``torchscript:PATH`` naming an existing file."""
     if text in DESCRIPTORS:
         return text
-    if not text.startswith(TORCHSCRIPT_PREFIX):
-        raise SeqvprError(f"--descriptor {text!r}: choose from {', '.join(DESCRIPTORS)} or {TORCHSCRIPT_PREFIX}PATH")
-    path = Path(text.removeprefix(TORCHSCRIPT_PREFIX))
+    prefix = next((p for p in ENCODER_PREFIXES if text.startswith(p)), None)
+    if prefix is None:
+        raise SeqvprError(f"--descriptor {text!r}: choose from {', '.join(DESCRIPTORS)}, {TORCHSCRIPT_PREFIX}PATH or "
+                          "onnx:PATH")
+    path = Path(text.removeprefix(prefix))
     if not path.is_file():
         raise SeqvprError(f"--descriptor {text!r}: {path}: no such model file")
     return text
@@ -326,11 +329,12 @@ ENGINE_OPTION = click.option("--engine", type=click.Choice(["auto", "torch", "on
                              show_default=True, help=ENGINE_HELP)
 
 extraction_options = with_options([
-    click.option("--descriptor", default="patchnorm", show_default=True, metavar="NAME|torchscript:PATH",
+    click.option("--descriptor", default="patchnorm", show_default=True, metavar="NAME|torchscript:PATH|onnx:PATH",
                  callback=lambda _ctx, _param, value: parse_descriptor(value),
-                 help=f"How images become descriptors: {', '.join(DESCRIPTORS)}, or torchscript:PATH, your own "
-                      "encoder (a TorchScript or torch.export file: normalised [B,3,H,W] images -> [B,D] "
-                      "descriptors, used as returned). Descriptor files are used as they are."),
+                 help=f"How images become descriptors: {', '.join(DESCRIPTORS)}, or your own encoder: "
+                      "torchscript:PATH (a TorchScript or torch.export file) or onnx:PATH (an ONNX file; its input "
+                      "size is read from it when fixed): normalised [B,3,H,W] images -> [B,D] descriptors, used as "
+                      "returned. Descriptor files are used as they are."),
     click.option("--thumbnail", default="64x32", show_default=True, help="patchnorm: grayscale thumbnail WIDTHxHEIGHT."),
     click.option("--patch", default=8, show_default=True, type=COUNT, help="patchnorm: patch side in pixels."),
     click.option("--weights", default="imagenet", show_default=True,
@@ -339,10 +343,10 @@ extraction_options = with_options([
                  help="Backbone pooling: GeM, or NetVLAD with clusters from k-means of local features."),
     click.option("--clusters", default=64, show_default=True, type=COUNT, help="netvlad: number of clusters."),
     click.option("--image-size", default="320x240", show_default=True,
-                 help="Backbone or torchscript encoder input WIDTHxHEIGHT (images are resized to it)."),
+                 help="Backbone or encoder file input WIDTHxHEIGHT (images are resized to it)."),
     click.option("--normalize", default="imagenet", show_default=True,
-                 help="torchscript: input normalisation: imagenet (its mean and std), none (pixels in [0, 1]) or "
-                      "MEAN/STD as R,G,B/R,G,B."),
+                 help="torchscript/onnx: input normalisation: imagenet (its mean and std; a seqvpr export's "
+                      "own: pixels in [0, 1]), none (pixels in [0, 1]) or MEAN/STD as R,G,B/R,G,B."),
     click.option("--batch-size", "extract_batch", default=32, show_default=True, type=COUNT,
                  help="Images per backbone batch."),
     ENGINE_OPTION,
@@ -360,6 +364,8 @@ def extraction_settings(options: dict[str, Any], device: str = "cpu") -> tuple[s
 
     descriptor = options["descriptor"]
     backbone, weights, mean, std = _encoder(descriptor, options["weights"], options["normalize"])
+    if backbone == "onnx":
+        image_width, image_height = _onnx_size(weights, (image_width, image_height))
     config = ExtractorConfig(backbone, weights, options["pooling"], image_width, image_height, options["extract_batch"],
                              options["clusters"], mean, std)
     return descriptor, PatchNormConfig(width, height, options["patch"]), {
@@ -371,14 +377,29 @@ def extraction_settings(options: dict[str, Any], device: str = "cpu") -> tuple[s
 def _encoder(descriptor: str, weights: str, normalize: str) -> tuple[str, str, Any, Any]:
     """Backbone, weights, mean and std of the extractor: a TorchScript file with --normalize's mean and std, or a
     built-in backbone with --weights (and its own normalisation)."""
-    if descriptor.startswith(TORCHSCRIPT_PREFIX):
-        if weights != "imagenet":
-            raise SeqvprError(f"--weights does not apply to {TORCHSCRIPT_PREFIX}PATH (the model file holds its weights)")
-        return "torchscript", descriptor.removeprefix(TORCHSCRIPT_PREFIX), *parse_normalize(normalize)
+    for prefix in ENCODER_PREFIXES:
+        if descriptor.startswith(prefix):
+            if weights != "imagenet":
+                raise SeqvprError(f"--weights does not apply to {prefix}PATH (the model file holds its weights)")
+            return prefix.rstrip(":"), descriptor.removeprefix(prefix), *parse_normalize(normalize)
     if normalize.lower() != "imagenet":
-        raise SeqvprError(f"--normalize applies to {TORCHSCRIPT_PREFIX}PATH only ({descriptor} normalises as it was "
-                          "trained)")
+        raise SeqvprError(f"--normalize applies to {TORCHSCRIPT_PREFIX}PATH and onnx:PATH only ({descriptor} "
+                          "normalises as it was trained)")
     return (descriptor if descriptor != "patchnorm" else "efficientnet-lite0"), weights, None, None
+
+
+def _onnx_size(path: str, given: tuple[int, int]) -> tuple[int, int]:
+    """An ONNX encoder's input size: the one its file fixes when --image-size is left at its default (a file whose
+    size is free needs --image-size), else the one given."""
+    from seqvpr.features.engines import input_size
+
+    if click.get_current_context().get_parameter_source("image_size") not in (click.core.ParameterSource.DEFAULT,
+                                                                              None):
+        return given
+    fixed = input_size(path)
+    if fixed is None:
+        raise SeqvprError(f"--descriptor onnx:{path}: the model's input size is not fixed; give --image-size WxH")
+    return fixed
 
 
 EXTRACTION_KEYS = ("descriptor", "thumbnail", "patch", "weights", "pooling", "clusters", "image_size", "normalize",

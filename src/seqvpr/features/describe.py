@@ -13,6 +13,7 @@ from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.extraction import (
     BACKBONES,
+    FILE_ENCODERS,
     TORCHSCRIPT,
     Extractor,
     ExtractorConfig,
@@ -84,11 +85,12 @@ def check_extraction_settings(cache_dir: Any = None, skip_bad: Any = False, engi
 def descriptor_config(descriptor: str, extractor: ExtractorConfig) -> ExtractorConfig:
     """The extractor configuration of a descriptor name (a backbone, or ``torchscript:PATH``: that file), the
     rest from ``extractor``; an unknown name is a one-line error."""
-    if descriptor.startswith(TORCHSCRIPT_PREFIX) and descriptor != TORCHSCRIPT_PREFIX:
-        return replace(extractor, backbone=TORCHSCRIPT, weights=descriptor.removeprefix(TORCHSCRIPT_PREFIX))
+    for kind in FILE_ENCODERS:  # ``torchscript:PATH``, ``onnx:PATH``
+        if descriptor.startswith(f"{kind}:") and descriptor != f"{kind}:":
+            return replace(extractor, backbone=kind, weights=descriptor.removeprefix(f"{kind}:"))
     if descriptor not in BACKBONES:
         raise SeqvprError(f"descriptor {descriptor!r} is not known (choose from: {', '.join(DESCRIPTORS)}, "
-                          f"{TORCHSCRIPT_PREFIX}PATH)")
+                          f"{TORCHSCRIPT_PREFIX}PATH, onnx:PATH)")
     return replace(extractor, backbone=descriptor)
 
 

@@ -30,6 +30,7 @@ TOLERANCE = 1e-5
 OPSET = 17
 INPUT, OUTPUT = "images", "descriptors"
 LOGGER = logging.getLogger("seqvpr")
+Normalization = tuple[tuple[float, ...], tuple[float, ...]]
 INSTALL = "pip install onnxruntime onnx (both come with seqvpr; a slim install may lack them)"
 
 
@@ -56,9 +57,18 @@ class OnnxEncoder:
         self.path, self.source = Path(path), source or str(path)
         self.session = open_session(self.path, threads)
         self.input = self.session.get_inputs()[0].name
+        self.normalization: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def normalize_with(self, normalization: Normalization) -> None:
+        """Images are normalised with (mean, std) before the model (a user's file expects its own)."""
+        mean, std = (torch.tensor(v, dtype=torch.float32).view(1, 3, 1, 1) for v in normalization)
+        self.normalization = mean, std
 
     def __call__(self, images: torch.Tensor) -> torch.Tensor:
-        batch = images.detach().to("cpu", torch.float32).contiguous().numpy()
+        images = images.detach().to("cpu", torch.float32)
+        if self.normalization is not None:
+            images = (images - self.normalization[0]) / self.normalization[1]
+        batch = images.contiguous().numpy()
         try:
             out = self.session.run(None, {self.input: batch})[0]
         except Exception as error:  # noqa: BLE001 - ONNX Runtime's own error classes: one line naming the file
@@ -76,6 +86,56 @@ class OnnxEncoder:
 
     def to(self, *args: Any, **kwargs: Any) -> OnnxEncoder:
         return self
+
+
+def load_onnx_encoder(path: str | Path, width: int, height: int, normalization: Normalization | None,
+                      default: Normalization) -> OnnxEncoder:
+    """A user's ONNX encoder (``--descriptor onnx:PATH``), checked at load: one float input [B, 3, H, W] whose
+    fixed sides are ``width`` x ``height``, and a float [B, D] output on a probe image; one line naming the file
+    otherwise. ``normalization`` (mean, std) is applied before it; None: the file's own contract (a seqvpr export
+    takes pixels in [0, 1]) or else ``default``."""
+    path = Path(path)
+    if not path.is_file():
+        raise SeqvprError(f"{path}: no such ONNX file")
+    encoder = OnnxEncoder(path)
+    own = "seqvpr.input" in encoder.session.get_modelmeta().custom_metadata_map
+    encoder.normalize_with(normalization or (((0.0,) * 3, (1.0,) * 3) if own else default))
+    inputs = encoder.session.get_inputs()
+    if len(inputs) != 1:
+        raise SeqvprError(f"{path}: the model has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); seqvpr "
+                          "feeds one [batch, 3, height, width] image batch")
+    check_input(path, inputs[0], width, height)
+    probe = torch.rand(1, 3, height, width, generator=torch.Generator().manual_seed(0))
+    raw = encoder.session.run(None, {encoder.input: probe.numpy()})[0]
+    if not np.issubdtype(np.asarray(raw).dtype, np.floating) or np.ndim(raw) != 2 or len(raw) != 1:
+        raise SeqvprError(f"{path}: the model returned {np.asarray(raw).dtype} {list(np.shape(raw))} for one image; "
+                          "expected float [batch, dim] descriptors (pool and flatten inside the model)")
+    return encoder
+
+
+def check_input(path: Path, given: Any, width: int, height: int) -> None:
+    """The ONNX input takes float [B, 3, H, W] images at this size (a side given as a name is free)."""
+    shape = list(given.shape)
+    if given.type != "tensor(float)" or len(shape) != 4 or shape[1] not in (3, None) and not isinstance(shape[1], str):
+        raise SeqvprError(f"{path}: its input {given.name} is {given.type} {shape}; seqvpr feeds float "
+                          "[batch, 3, height, width] images")
+    fixed = [side if isinstance(side, int) else None for side in shape[2:]]
+    if any(side is not None and side != want for side, want in zip(fixed, (height, width))):
+        raise SeqvprError(f"{path}: the model takes {shape[3]}x{shape[2]} images (width x height), not {width}x{height}:"
+                          f" give --image-size {shape[3]}x{shape[2]}")
+
+
+def input_size(path: str | Path) -> tuple[int, int] | None:
+    """The (width, height) an ONNX file's input fixes, or None where a side is free (a name, not a number)."""
+    import onnx
+
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+        dims = model.graph.input[0].type.tensor_type.shape.dim
+    except Exception:  # noqa: BLE001 - unreadable files are refused with their own line when loaded
+        return None
+    sides = [d.dim_value if d.HasField("dim_value") else None for d in dims][2:]
+    return (sides[1], sides[0]) if len(sides) == 2 and all(sides) else None
 
 
 def open_session(path: Path, threads: int | None = None):

@@ -24,7 +24,7 @@ from torch import nn
 from seqvpr.errors import SeqvprError
 from seqvpr.features import backbones
 from seqvpr.data.images import read_image
-from seqvpr.features.engines import OnnxEncoder, model_digest, with_engine
+from seqvpr.features.engines import OnnxEncoder, load_onnx_encoder, model_digest, with_engine
 from seqvpr.features.pooling import GeM, NetVLAD
 from seqvpr.features.torchscript import load_encoder
 from seqvpr.io import atomic_write, check_output_apart
@@ -34,6 +34,8 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")
 TORCHSCRIPT = "torchscript"  # a user's exported encoder: its file is the config's ``weights``
+ONNX = "onnx"  # the same, as an ONNX file (run by ONNX Runtime)
+FILE_ENCODERS = (TORCHSCRIPT, ONNX)
 POOLINGS = ("gem", "netvlad")
 CPU_MICRO_BATCH = 2  # images per forward pass on CPU: large batches of depthwise convolutions are slower there
 
@@ -59,9 +61,9 @@ class ExtractorConfig:
     std: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        if self.backbone not in (*BACKBONES, TORCHSCRIPT):
+        if self.backbone not in (*BACKBONES, *FILE_ENCODERS):
             raise SeqvprError(f"backbone {self.backbone!r} is not known (choose from: {', '.join(BACKBONES)}, "
-                              f"{TORCHSCRIPT})")
+                              f"{', '.join(FILE_ENCODERS)})")
         self._check_normalization()
         if self.pooling not in POOLINGS:
             raise SeqvprError(f"pooling {self.pooling!r} is not known (choose from: {', '.join(POOLINGS)})")
@@ -73,15 +75,15 @@ class ExtractorConfig:
     def _check_normalization(self) -> None:
         """A TorchScript encoder has a model file, no pooling head and a 3-channel mean and positive std; a
         built-in backbone takes no mean/std (it normalises as it was trained)."""
-        if self.backbone != TORCHSCRIPT:
+        if self.backbone not in FILE_ENCODERS:
             if self.mean is not None or self.std is not None:
-                raise SeqvprError(f"mean/std apply to a {TORCHSCRIPT} encoder only ({self.backbone} has its own)")
+                raise SeqvprError(f"mean/std apply to an encoder file only ({self.backbone} has its own)")
             return
         if self.weights in (None, "imagenet"):
-            raise SeqvprError(f"a {TORCHSCRIPT} encoder needs its model file as weights, got {self.weights!r}")
+            raise SeqvprError(f"a {self.backbone} encoder needs its model file as weights, got {self.weights!r}")
         if self.pooling != "gem":
             raise SeqvprError(
-                f"a {TORCHSCRIPT} encoder returns descriptors itself; pooling {self.pooling!r} does not apply"
+                f"a {self.backbone} encoder returns descriptors itself; pooling {self.pooling!r} does not apply"
             )
         mean, std = self.normalization()
         if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
@@ -120,14 +122,17 @@ def build_encoder(config: ExtractorConfig) -> nn.Module:
     its file, else ``build_extractor``'s backbone and pooling head."""
     if config.backbone == TORCHSCRIPT:
         return load_encoder(str(config.weights), *config.normalization()).eval()
+    if config.backbone == ONNX:  # the user's normalisation, else the file's own contract, else ImageNet's
+        given = config.normalization() if config.mean is not None else None
+        return load_onnx_encoder(str(config.weights), config.width, config.height, given, config.normalization())
     return build_extractor(config)
 
 
 def build_extractor(config: ExtractorConfig) -> Extractor:
     """The backbone + pooling extractor a configuration describes, in eval mode (a NetVLAD head still needs
     ``init_netvlad``); a TorchScript encoder is ``build_encoder``'s."""
-    if config.backbone == TORCHSCRIPT:
-        raise SeqvprError(f"a {TORCHSCRIPT} encoder has no backbone and pooling head (use build_encoder)")
+    if config.backbone in FILE_ENCODERS:
+        raise SeqvprError(f"a {config.backbone} encoder has no backbone and pooling head (use build_encoder)")
     if config.backbone == "efficientnet-lite0":
         net = backbones.efficientnet_lite0(config.weights)
         mean, std = backbones.LITE_MEAN, backbones.LITE_STD
@@ -201,7 +206,7 @@ def cache_key(config: ExtractorConfig, paths: Sequence[Path], head: str = "") ->
     ``cp -p`` or ``rsync -t`` leave it, gets a new key); a TorchScript encoder's normalisation is in it as used."""
     # batching does not change rows; a built-in backbone's normalisation is part of the backbone
     settings = {k: v for k, v in asdict(config).items() if k not in ("batch_size", "mean", "std")}
-    if config.backbone == TORCHSCRIPT:
+    if config.backbone in FILE_ENCODERS:
         settings["normalization"] = config.normalization()
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode() + head.encode())
     for path in _weights_files(config) + list(paths):
