@@ -121,7 +121,9 @@ def test_models_and_methods_that_do_not_go_together_are_one_line_errors():
                     METHODS["seqnet"], {})
     raises_one_line("got a SeqMatchNet model", check_models, METHODS["jist"], {"seqmatchnet": SMN})
     raises_one_line("use method seqnet", check_models, METHODS["delta"], {"seqnet": SEQNET})
-    raises_one_line("use method jist", check_models, METHODS["matching"], jist)
+    raises_one_line("a JIST model and a CosPlace model (models) both describe the images", check_models,
+                    METHODS["matching"], {**jist, "cosplace": trained("cosplace", SeqNet(4, 4, 1), length=1)})
+    check_models(METHODS["matching"], jist)  # JIST's frame encoder describes the frames any method matches
     raises_one_line("rerank N needs", match_method, "matching", None, None, SETTINGS, rerank=5)
     raises_one_line("method 'magic' is not known", match_method, "magic", None, None, SETTINGS)
 

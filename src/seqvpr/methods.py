@@ -72,14 +72,15 @@ class Method:
         return self.matcher or FAMILY_MATCHERS[self.family]
 
     def accepts(self, kind: str) -> bool:
-        """Whether a model of ``kind`` can be given to this method: its own, a CosPlace encoder describing the
-        frames, a SeqMatchNet transform for the frames it matches or re-ranks, a SeqNet shortlist for ``hvpr``.
-        JIST's frames are its own encoder's, so nothing else goes with it."""
+        """Whether a model of ``kind`` can be given to this method: its own, a model that describes the frames
+        (JIST's frame encoder, CosPlace's: any method matches the frames they give), a SeqMatchNet transform for the
+        frames it matches or re-ranks, a SeqNet shortlist for ``hvpr``. The ``jist`` method pools its own
+        encoder's frames, so no other model goes with it."""
         if kind == self.needs:
             return True
-        if self.needs == "jist" or kind == "jist":
+        if self.needs == "jist":
             return False
-        return kind in ("cosplace", "seqmatchnet") or (self.family == "hierarchical" and kind == "seqnet")
+        return kind in IMAGE_MODELS or kind == "seqmatchnet" or (self.family == "hierarchical" and kind == "seqnet")
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
@@ -220,10 +221,11 @@ def describe_for_models(
     describe_pair: Callable[[Traversal, Traversal], tuple[Traversal, Traversal]],
     device: str = "cpu",
     image_size: tuple[int, int] | None = None,
+    engine: str = "auto",
 ) -> tuple[Traversal, Traversal]:
     """Frame descriptors of both traversals: the model that consumes images (JIST's encoder, CosPlace) reads them
-    at its image size, or at ``image_size`` (width, height) when given; without one, ``describe_pair`` (e.g. patch
-    normalisation or a backbone, as the caller chose)."""
+    at its image size, or at ``image_size`` (width, height) when given, run by ``engine``; without one,
+    ``describe_pair`` (e.g. patch normalisation or a backbone, as the caller chose)."""
     model = image_model(models)
     if model is None:
         return describe_pair(reference, query)
@@ -231,5 +233,5 @@ def describe_for_models(
 
     width, height = image_size or model.image_size
     store = ImageStore(width, height)
-    return tuple(describe_images(model.module, t, width, height, device, store=store)  # type: ignore[return-value]
-                 for t in (reference, query))
+    return tuple(describe_images(model.module, t, width, height, device, store=store,  # type: ignore[return-value]
+                                 engine=engine) for t in (reference, query))

@@ -183,6 +183,23 @@ def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
     assert (settings["method"], settings["descriptor"], settings["sequence"]["length"]) == ("jist", "jist", 3)
 
 
+def test_a_jist_models_frames_go_with_any_method(world, jist_run, tmp_path):
+    """``--model JIST --method matching`` matches JIST's frame encoder's descriptors (what ``extract --model`` writes)
+    by plain sequence matching: the same figures as matching those files."""
+    out, _, _ = jist_run
+    common = ("--radius", "25m", "--k", "1,5,10", "--json", "-L", "3", "--method", "matching")
+    stdout, _ = invoke("match", "-r", world["test_reference"], "-q", world["test_query"], "--model", out, *common,
+                       "--out", tmp_path / "m")
+    for side in ("test_reference", "test_query"):
+        invoke("extract", world[side], "--model", out, "--role", "query" if "query" in side else "reference",
+               "--out", tmp_path / f"{side}.npz")
+    frames = json.loads(invoke("match", "-r", tmp_path / "test_reference.npz", "-q", tmp_path / "test_query.npz",
+                               *common, "--out", tmp_path / "f")[0])
+    result = json.loads(stdout)
+    assert result["recall"] == frames["recall"] and result["queries_evaluated"] == frames["queries_evaluated"]
+    assert result["settings"]["method"] == "matching"
+
+
 def image_folders(world: dict[str, Path], tmp_path: Path, keys: tuple[str, ...]) -> dict[str, Path]:
     """Copies of the world's traversals as bare image folders (frame-aligned, no positions)."""
     folders = {}
@@ -235,7 +252,6 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
         "method without model": ([*match, "--method", "seqnet"], "--method seqnet needs a SeqNet model (--model; seqvpr train seqnet --out), got none"),
         "seqnet model, other method": ([*match, "--model", seqnet_run[0], "--method", "delta"], "use --method seqnet"),
         "jist method, seqnet model": ([*match, "--model", seqnet_run[0], "--method", "jist"], "got a SeqNet model"),
-        "jist model, matching": ([*match, "--model", jist_run[0], "--method", "matching"], "use --method jist"),
         "jist model on descriptors": ([*match, "--model", jist_run[0]], "descriptors only"),
         "missing model folder": ([*match, "--model", tmp_path / "absent"], "no such model folder"),
         "unknown model format": ([*match, "--model", unknown], f"{unknown / 'config.json'}: unknown model format"),
@@ -247,7 +263,8 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
                                    "shorter than the temporal kernel width w=5"),
         "two models of one kind": ([*match, "--model", seqnet_run[0], "--model", seqnet_run[0]],
                                    "a second seqnet model"),
-        "hvpr with a jist model": ([*match, "--model", jist_run[0], "--method", "hvpr"], "use --method jist"),
+        "extract --model of a SeqNet": (["extract", world["test_query"], "--model", seqnet_run[0], "--out",
+                                         tmp_path / "x.npz"], "give one model that describes images"),
         "single at another length": ([*match, "--method", "single", "-L", "5"], "uses L = 1"),
         "cells wider than negatives": (["train", "jist", *images, *JIST_ARGS, "--cell-size", "20"],
                                        "wider than the negative radius 25m"),
@@ -257,10 +274,10 @@ def bad_cases(route, world, seqnet_run, jist_run, tmp_path):
     }
 
 
-CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model", "jist model, matching",
+CASES = ["method without model", "seqnet model, other method", "jist method, seqnet model",
          "jist model on descriptors", "missing model folder", "unknown model format", "frame radius with positions",
          "mixed radius units", "jist on descriptors", "seqnet w longer than L", "two models of one kind",
-         "hvpr with a jist model", "single at another length", "cells wider than negatives", "hue beyond half a turn",
+         "extract --model of a SeqNet", "single at another length", "cells wider than negatives", "hue beyond half a turn",
          "missing class images"]
 
 

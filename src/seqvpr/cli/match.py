@@ -346,7 +346,7 @@ def _frames(reference, query, models: dict, options: dict[str, Any]):
     reference, query = describe_for_models(
         reference, query, models,
         lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), options["device"],
-        _image_size(options),
+        _image_size(options), options["engine"],
     )
     if not options["pca_dim"]:
         return reference, query
@@ -453,9 +453,12 @@ Examples:
 @click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @click.option("--out", "out_file", required=True, type=OUT_FILE,
               help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
+@click.option("--model", "model_dirs", multiple=True, type=click.Path(),
+              help="A model folder that describes images (JIST: its frame encoder; CosPlace): its frame descriptors, "
+                   "at its image size unless --image-size is given.")
 @bag_topic_options("images", "cluster_images")
 @locks_output("out_file")
-def extract(images, cluster_images, role, device, out_file, **options: Any) -> None:
+def extract(images, cluster_images, role, device, out_file, model_dirs, **options: Any) -> None:
     """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
     descriptor, patchnorm, extraction = extraction_settings(options, device)
     from seqvpr.data.sources import load_traversal, save_traversal_npz
@@ -472,9 +475,27 @@ def extract(images, cluster_images, role, device, out_file, **options: Any) -> N
         if source.image_paths is None:
             raise SeqvprError(f"{cluster_images}: --cluster-images must be a traversal of images")
         extraction["model"] = netvlad_extractor(extraction["extractor"], source.image_paths, device, tqdm_progress)
-    described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
+    if model_dirs:
+        described = _model_frames(traversal, model_dirs, options, device)
+        descriptor = f"model {model_dirs[0]}"
+    else:
+        described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
     skipped = dropped_frames(traversal, described)
     if skipped:
         click.echo(f"skipped {len(skipped)} unreadable images: {', '.join(skipped)}", err=True)
     save_traversal_npz(Path(out_file), described)
     click.echo(f"{out_file}: {len(described)} frames, {described.descriptors.shape[1]}-D {descriptor} descriptors")
+
+
+def _model_frames(traversal, model_dirs: tuple[str, ...], options: dict[str, Any], device: str):
+    """``extract --model``: the frame descriptors of the one model folder given, which must describe images."""
+    from seqvpr.methods import image_model
+    from seqvpr.models.jist import describe_images
+    from seqvpr.models.registry import load_models
+
+    models = load_models(model_dirs, device)
+    model = image_model(models)
+    if model is None or len(models) != 1:
+        raise SeqvprError(f"--model {', '.join(model_dirs)}: give one model that describes images (JIST or CosPlace)")
+    width, height = _image_size(options) or model.image_size
+    return describe_images(model.module, traversal, width, height, device, engine=options["engine"])

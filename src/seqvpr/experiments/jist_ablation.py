@@ -209,6 +209,12 @@ def ordered_scores(reference: Traversal, query: Traversal, truth: GroundTruth, l
         "sequence matching": aligned_distances(qry_unit, ref_unit, qry_frames, ref_frames),
     }
     scores = {}
+    if order == "forward":  # as recorded: what seqvpr match --model JIST --method matching -L length runs
+        from seqvpr.api import match
+
+        scores["sequence matching"] = evaluate_match(match(reference, query, "matching", seq_len=length, k=10),
+                                                     truth, (1, 5, 10))
+        distances.pop("sequence matching")
     for name, values in distances.items():
         candidates = np.broadcast_to(ref_rows, values.shape)
         rows, dists = best_of(candidates, values, 10)
