@@ -20,7 +20,7 @@ from seqvpr.io import raise_for_signal
 
 #: command name -> "module:attribute"; a command's module is imported only when that command (or --help) runs
 COMMANDS = {
-    "match": "seqvpr.cli.match:match", "eval": "seqvpr.cli.match:eval_command", "extract": "seqvpr.cli.match:extract",
+    "match": "seqvpr.cli.match:match", "eval": "seqvpr.cli.match:eval_command", "extract": "seqvpr.cli.extract:extract",
     "train": "seqvpr.cli.train:train", "ablate": "seqvpr.cli.train:ablate",
     "benchmark": "seqvpr.cli.experiments:benchmark", "demo": "seqvpr.cli.experiments:demo",
     "import": "seqvpr.cli.published:import_command", "map": "seqvpr.cli.maps:map_group",

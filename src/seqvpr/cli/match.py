@@ -12,15 +12,8 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
-    DEVICE,
-    COUNT,
-    NONNEGATIVE,
-    Number,
-    bag_topic_options,
-    locks_output,
-    OUT_FILE,
-    OUT_FOLDER,
-    extraction_options, extraction_settings, parse_ks, parse_size, parse_thumbnail,
+    COUNT, DEVICE, NONNEGATIVE, OUT_FOLDER, Number, bag_topic_options, extraction_options, extraction_settings,
+    given_image_size, locks_output, parse_ks, parse_size,
 )
 from seqvpr.cli.help import SectionedCommand, for_methods, option, section
 from seqvpr.cli.progress import tqdm_progress
@@ -199,7 +192,7 @@ def _traversal_sides(options: dict[str, Any], models: dict, settings) -> MatchIn
     _say_skipped(pair, (reference, query))
     image = image_model(models)
     descriptor = image.kind if image else options["descriptor"] if has_images else "file"
-    record = {"image_size": list(_image_size(options) or image.image_size)} if image else {}
+    record = {"image_size": list(given_image_size(options) or image.image_size)} if image else {}
     return MatchInputs(reference, query, gt, descriptor, record)
 
 
@@ -346,7 +339,7 @@ def _frames(reference, query, models: dict, options: dict[str, Any]):
     reference, query = describe_for_models(
         reference, query, models,
         lambda r, q: describe_pair(r, q, descriptor, patchnorm, tqdm_progress, **extraction), options["device"],
-        _image_size(options), options["engine"],
+        given_image_size(options), options["engine"],
     )
     if not options["pca_dim"]:
         return reference, query
@@ -354,16 +347,6 @@ def _frames(reference, query, models: dict, options: dict[str, Any]):
     if used < options["pca_dim"]:
         click.echo(f"PCA-whitening to {used} dimensions (at most reference frames - 1 and descriptor size)", err=True)
     return reference, query
-
-
-def _image_size(options: dict[str, Any]) -> tuple[int, int] | None:
-    """--image-size when given on the command line (it overrides a model's own image size), else None."""
-    from click.core import ParameterSource
-
-    source = click.get_current_context().get_parameter_source("image_size")
-    if source in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None):
-        return None
-    return parse_thumbnail(options["image_size"], "--image-size")
 
 
 def _run_settings(options: dict[str, Any], method: str, models: dict, descriptor: str, rule: str, match: dict) -> dict:
@@ -435,67 +418,3 @@ def eval_command(predictions, reference, query, radius, gt_file, gt_layout, ks, 
         click.echo(json.dumps(evaluation_json(evaluation, {"predictions": predictions, "ground_truth_rule": gt.description})))
     else:
         click.echo(recall_table(evaluation, Path(predictions).name))
-
-
-@click.command(epilog="""\b
-Examples:
-  seqvpr extract images/ --out ref.npz
-  seqvpr extract images/ --descriptor resnet50 --weights cosplace_r50.pth --image-size 512x384 --out ref.npz
-  seqvpr extract images/ --descriptor torchscript:megaloc.pt --image-size 322x322 --out ref.npz
-  seqvpr match --reference ref.npz --query qry.npz --radius 25m -L 5
-""")
-@click.argument("images")
-@extraction_options
-@click.option("--cluster-images", help="netvlad: traversal whose images initialise the clusters  [default: IMAGES]; "
-              "extract the query with the reference's images here so both share one NetVLAD head.")
-@click.option("--role", type=click.Choice(["reference", "query"]), default="reference", show_default=True,
-              help="Which side of a dbStruct or description file to read.")
-@click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
-@click.option("--out", "out_file", required=True, type=OUT_FILE,
-              help="Traversal file (.npz: descriptors, positions, segments, frame_index) for seqvpr match.")
-@click.option("--model", "model_dirs", multiple=True, type=click.Path(),
-              help="A model folder that describes images (JIST: its frame encoder; CosPlace): its frame descriptors, "
-                   "at its image size unless --image-size is given.")
-@bag_topic_options("images", "cluster_images")
-@locks_output("out_file")
-def extract(images, cluster_images, role, device, out_file, model_dirs, **options: Any) -> None:
-    """Describe the images of a traversal (image folder, @UTM folder, dbStruct...) and save a traversal file."""
-    descriptor, patchnorm, extraction = extraction_settings(options, device)
-    from seqvpr.data.sources import load_traversal, save_traversal_npz
-    from seqvpr.features.describe import describe, dropped_frames, netvlad_extractor
-    from seqvpr.io import check_output_apart
-
-    check_output_apart(out_file, [images, cluster_images, options["cache_dir"]], "--out")
-
-    traversal = load_traversal(images, role)
-    if traversal.image_paths is None:
-        raise SeqvprError(f"{images}: holds descriptors, not images; nothing to extract")
-    if descriptor != "patchnorm" and options["pooling"] == "netvlad":
-        source = load_traversal(cluster_images, "reference") if cluster_images else traversal
-        if source.image_paths is None:
-            raise SeqvprError(f"{cluster_images}: --cluster-images must be a traversal of images")
-        extraction["model"] = netvlad_extractor(extraction["extractor"], source.image_paths, device, tqdm_progress)
-    if model_dirs:
-        described = _model_frames(traversal, model_dirs, options, device)
-        descriptor = f"model {model_dirs[0]}"
-    else:
-        described = describe(traversal, descriptor, patchnorm, tqdm_progress, **extraction)
-    skipped = dropped_frames(traversal, described)
-    if skipped:
-        click.echo(f"skipped {len(skipped)} unreadable images: {', '.join(skipped)}", err=True)
-    save_traversal_npz(Path(out_file), described)
-    click.echo(f"{out_file}: {len(described)} frames, {described.descriptors.shape[1]}-D {descriptor} descriptors")
-
-
-def _model_frames(traversal, model_dirs: tuple[str, ...], options: dict[str, Any], device: str):
-    """``extract --model``: the frame descriptors of the one model folder given, which must describe images."""
-    from seqvpr.methods import image_model
-    from seqvpr.models.jist import describe_images
-    from seqvpr.models.registry import load_models
-
-    models = load_models(model_dirs, device)
-    model = image_model(models)
-    if model is None or len(models) != 1:
-        raise SeqvprError(f"--model {', '.join(model_dirs)}: give one model that describes images (JIST or CosPlace)")
-    width, height = _image_size(options) or model.image_size
-    return describe_images(model.module, traversal, width, height, device, engine=options["engine"])

@@ -404,3 +404,13 @@ def _onnx_size(path: str, given: tuple[int, int]) -> tuple[int, int]:
 
 EXTRACTION_KEYS = ("descriptor", "thumbnail", "patch", "weights", "pooling", "clusters", "image_size", "normalize",
                    "extract_batch", "cache_dir", "skip_bad", "engine")
+
+
+def given_image_size(options: dict[str, Any]) -> tuple[int, int] | None:
+    """--image-size when given on the command line (it overrides a model's own image size), else None."""
+    from click.core import ParameterSource
+
+    source = click.get_current_context().get_parameter_source("image_size")
+    if source in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None):
+        return None
+    return parse_thumbnail(options["image_size"], "--image-size")
