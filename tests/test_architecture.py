@@ -105,8 +105,8 @@ def test_imports_point_down_the_layers_and_form_no_cycle():
 
 def test_cli_command_modules_share_only_options_progress_and_help():
     graph = import_graph()
-    commands = ("seqvpr.cli.match", "seqvpr.cli.train", "seqvpr.cli.experiments", "seqvpr.cli.published",
-                "seqvpr.cli.maps")
+    commands = ("seqvpr.cli.match", "seqvpr.cli.extract", "seqvpr.cli.export", "seqvpr.cli.train",
+                "seqvpr.cli.experiments", "seqvpr.cli.published", "seqvpr.cli.maps")
     for module in commands:
         shared = {"seqvpr.cli.options", "seqvpr.cli.progress", "seqvpr.cli.help"}
         assert {m for m in graph[module] if m.startswith("seqvpr.cli")} <= shared
