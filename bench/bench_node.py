@@ -1,5 +1,5 @@
 """Does ``seqvpr node`` keep up with a live camera? A Gardens Point night drive played over DDS (loopback) at
-``--rate`` x a ``--fps`` camera into the node with its default drop policy, per descriptor.
+``--rate`` x a ``--fps`` camera into the node with its default drop policy, per descriptor and encoder engine.
 
 Run from the repository root (about a minute on 2 cores, ``../shared/data`` beside the checkout):
 
@@ -80,7 +80,7 @@ def build_map(name: str, args, env: dict, work: Path) -> Path:
     return out
 
 
-def run_node(name: str, policy: str, args, env: dict, work: Path) -> dict:
+def run_node(name: str, engine: str, policy: str, args, env: dict, work: Path) -> dict:
     """The node over ``name``'s map with drop ``policy`` (default or no-drop) while the night drive plays; its
     statuses and its closing line, as one row."""
     from seqvpr.ros2.dds import Recorder
@@ -88,7 +88,8 @@ def run_node(name: str, policy: str, args, env: dict, work: Path) -> dict:
 
     recorder = Recorder("/seqvpr/status", STATUS)
     node = seqvpr(env, "node", "--map", build_map(name, args, env, work), "--topic", "/camera/image_raw/compressed",
-                  "--device", args.device, "--threshold", "0.01", *(["--no-drop"] if policy == "no-drop" else []))
+                  "--device", args.device, "--engine", engine, "--threshold", "0.01",
+                  *(["--no-drop"] if policy == "no-drop" else []))
     played = subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", work / "night", "--rate", str(args.rate),
                              "--wait", "60"], env=env, cwd=ROOT, capture_output=True, text=True)
     processed = int(played.stdout.split()[1]) if played.returncode == 0 else 0
@@ -104,16 +105,17 @@ def run_node(name: str, policy: str, args, env: dict, work: Path) -> dict:
     column = lambda key: np.array([float(v[key]) for v in values if v.get(key)])  # noqa: E731
     latency, total, describe = column("latency_ms"), column("total_ms"), column("describe_ms")
     processed, received, dropped = (int(g) for g in closing.groups())
-    return {"descriptor": name, "policy": policy, "received": received, "processed": processed, "dropped": dropped,
+    return {"descriptor": name, "engine": engine, "policy": policy, "received": received, "processed": processed, "dropped": dropped,
             "latency": np.percentile(latency, [50, 95]), "total": np.percentile(total, [50, 95]),
             "describe": float(np.percentile(describe, 50))}
 
 
 def table(rows: list[dict], period: float) -> str:
-    lines = ["| descriptor | policy | received | processed | dropped | latency p50 / p95 ms | localiser p50 / p95 ms "
-             "| describe p50 ms | p95 latency / frame period |", "|---|---|---:|---:|---:|---|---|---:|---:|"]
+    lines = ["| descriptor | engine | policy | received | processed | dropped | latency p50 / p95 ms | "
+             "localiser p50 / p95 ms | describe p50 ms | p95 latency / frame period |",
+             "|---|---|---|---:|---:|---:|---|---|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['descriptor']} | {r['policy']} | {r['received']} | {r['processed']} | {r['dropped']} | "
+        lines.append(f"| {r['descriptor']} | {r['engine']} | {r['policy']} | {r['received']} | {r['processed']} | {r['dropped']} | "
                      f"{r['latency'][0]:.1f} / {r['latency'][1]:.1f} | {r['total'][0]:.1f} / {r['total'][1]:.1f} | "
                      f"{r['describe']:.1f} | {r['latency'][1] / period:.2f} |")
     return "\n".join(lines)
@@ -128,6 +130,7 @@ def main() -> None:
     parser.add_argument("--descriptors", default="patchnorm,efficientnet-lite0")
     parser.add_argument("--policies", default="default,no-drop", help="drop policies: default (newest frame), no-drop")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--engines", default="torch,auto", help="how the node's encoder runs (--engine)")
     parser.add_argument("--threads", default="2", help="SEQVPR_THREADS of the node (the machine's cores)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -139,7 +142,8 @@ def main() -> None:
            "CYCLONEDDS_URI": os.environ.get("CYCLONEDDS_URI", LOOPBACK),
            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "CYCLONEDDS_URI")})
-    rows = [run_node(name, policy, args, env, args.out) for name in args.descriptors.split(",")
+    rows = [run_node(name, engine, policy, args, env, args.out) for name in args.descriptors.split(",")
+            for engine in (args.engines.split(",") if name != "patchnorm" else ["torch"])
             for policy in args.policies.split(",")]
     period = 1000.0 / (args.fps * args.rate)
     where = "cuda" if args.device.startswith("cuda") else f"{cpu_model()}, SEQVPR_THREADS={args.threads}"

@@ -96,3 +96,46 @@ def test_a_damaged_onnx_file_is_one_line(tmp_path):
     (tmp_path / "bad.onnx").write_bytes(b"not a model")
     with pytest.raises(SeqvprError, match="bad.onnx: not an ONNX model ONNX Runtime can run"):
         OnnxEncoder(tmp_path / "bad.onnx")
+
+
+def test_a_batch_through_onnx_runtime_gives_torchs_rows_and_keeps_skipping_bad_images(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from seqvpr.features.extraction import extract_descriptors
+
+    rng = np.random.default_rng(2)
+    paths = []
+    for i in range(7):
+        paths.append(tmp_path / f"{i}.png")
+        Image.fromarray(rng.integers(0, 255, (40, 50, 3), dtype=np.uint8)).save(paths[-1])
+    config = ExtractorConfig("resnet18", None, width=48, height=32, batch_size=3)
+    torch.manual_seed(0)
+    module = build_extractor(config)
+    rows = {engine: extract_descriptors(paths, config, extractor=module, engine=engine) for engine in ("torch", "onnx")}
+    assert np.abs(rows["torch"].descriptors - rows["onnx"].descriptors).max() <= TOLERANCE
+    paths[4].write_bytes(b"not an image")
+    raises_one_line("4.png", extract_descriptors, paths, config, extractor=module, engine="onnx")
+    kept = extract_descriptors(paths, config, extractor=module, engine="onnx", skip_bad=True)
+    assert kept.rows.tolist() == [0, 1, 2, 3, 5, 6] and [p.name for p in kept.skipped] == ["4.png"]
+    assert np.abs(kept.descriptors - np.delete(rows["torch"].descriptors, 4, axis=0)).max() <= TOLERANCE
+
+
+def test_the_engines_agree_on_real_images_to_the_recall(shared_data):
+    """Gardens Point Walking, day left against night right, Lite0 at 160x120 (half the default, to stay quick):
+    descriptors within the tolerance and Recall@1/5 of sequence matching identical."""
+    import numpy as np
+
+    import seqvpr
+    from seqvpr.features.describe import describe
+
+    walking = shared_data / "gardenspoint_walking"
+    found = {}
+    for engine in ("torch", "onnx"):
+        sides = [describe(seqvpr.load_traversal(str(walking / side), role), "efficientnet-lite0",
+                          extractor=ExtractorConfig(width=160, height=120), engine=engine)
+                 for side, role in (("day_left", "reference"), ("night_right", "query"))]
+        found[engine] = sides, seqvpr.evaluate(seqvpr.match(*sides, seq_len=5), radius="2f", ks=(1, 5)).recall
+    for torch_side, onnx_side in zip(found["torch"][0], found["onnx"][0]):
+        assert np.abs(torch_side.descriptors - onnx_side.descriptors).max() <= TOLERANCE
+    assert found["torch"][1] == found["onnx"][1] and found["torch"][1][1] > 0.3, found["torch"][1]

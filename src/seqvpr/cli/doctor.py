@@ -14,7 +14,7 @@ from typing import Any
 import click
 
 PACKAGES = ("seqvpr", "torch", "numpy", "scipy", "faiss-cpu", "numba", "safetensors", "pillow", "rosbags", "click",
-            "cyclonedds")
+            "onnxruntime", "onnx", "cyclonedds")
 
 
 @click.command("doctor")
@@ -55,10 +55,11 @@ def environment_report(cache_dir: str | None = None) -> dict[str, dict[str, Any]
     compute = {"thread policy": policy.describe(), "faiss SIMD": faiss.get_compile_options().strip() or "generic",
                "faiss threads": faiss.omp_get_max_threads(), "numba threading layer": numba.threading_layer(),
                "numba threads": numba.get_num_threads(), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "unset")}
-    from seqvpr.cache import cache_root
+    from seqvpr.cache import cache_folder, cache_root
     from seqvpr.data.loaders.rosbag import frames_root
 
-    caches = {"cache": _folder_line(cache_root()), "bag frames": _folder_line(frames_root())}
+    caches = {"cache": _folder_line(cache_root()), "bag frames": _folder_line(frames_root()),
+              "ONNX encoders": _folder_line(cache_folder("encoders"))}
     if cache_dir:
         caches["descriptor cache"] = _folder_line(Path(cache_dir))
     return {"versions": versions, "devices": devices, "compute": compute, "caches": caches}

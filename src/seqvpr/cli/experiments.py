@@ -9,7 +9,7 @@ import click
 
 from seqvpr.cli.progress import TqdmMonitor, tqdm_progress
 from seqvpr.cli.options import (
-    DEVICE,
+    DEVICE, ENGINE_OPTION,
     COUNT, NONNEGATIVE, SEED, OUT_FOLDER, locks_output
 )
 from seqvpr.errors import SeqvprError
@@ -57,14 +57,15 @@ Examples:
 @click.option("--epochs", type=NONNEGATIVE, help="SeqMatchNet training epochs.  [default: 30; --quick: 10]")
 @click.option("--no-train", is_flag=True, help="Skip SeqMatchNet training (matching baselines only).")
 @click.option("--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@ENGINE_OPTION
 @locks_output("out_dir")
-def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device) -> None:
+def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device, engine) -> None:
     """Render a synthetic route world, describe it with EfficientNet-Lite0, match single images and sequences,
     train SeqMatchNet, and write an HTML report (OUT/report/index.html)."""
     from seqvpr.experiments.demo import DemoSettings, demo_recall_table, run_demo
 
     settings = DemoSettings.quick() if quick else DemoSettings()
-    changes = {"seed": seed, "condition": condition, "train": not no_train, "device": device}
+    changes = {"seed": seed, "condition": condition, "train": not no_train, "device": device, "engine": engine}
     changes.update({k: v for k, v in (("frames", n_frames), ("epochs", epochs)) if v is not None})
     settings = replace(settings, **changes)
     out = Path(out_dir)

@@ -59,12 +59,16 @@ class DemoSettings:
     lr: float = 1e-2
     device: str = "cpu"
     examples: int = 6
+    engine: str = "auto"  # how Lite0 runs (seqvpr.features.engines)
 
     def __post_init__(self) -> None:
         if not 50 <= self.frames <= MAX_DEMO_FRAMES:  # each frame is two rendered images
             raise SettingError(f"{{frames}} must be at least 50 and at most {MAX_DEMO_FRAMES}, got {self.frames}")
         if self.epochs < 1:
             raise SettingError(f"{{epochs}} must be at least 1, got {self.epochs}")
+        from seqvpr.features.engines import check_engine
+
+        check_engine(self.engine)
 
     @classmethod
     def quick(cls, **changes) -> DemoSettings:
@@ -107,7 +111,7 @@ def describe_world(
     for name in TRAVERSALS:
         traversal = replace(load_traversal(str(folders[name]), "reference"), name=name)
         described[name] = describe(traversal, "efficientnet-lite0", progress=progress, extractor=config,
-                                   device=settings.device, cache_dir=cache_dir)
+                                   device=settings.device, cache_dir=cache_dir, engine=settings.engine)
     return described
 
 

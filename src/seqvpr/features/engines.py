@@ -59,6 +59,15 @@ class OnnxEncoder:
         self.input = self.session.get_inputs()[0].name
         self.normalization: tuple[torch.Tensor, torch.Tensor] | None = None
 
+    def with_threads(self, threads: int) -> OnnxEncoder:
+        """The same file in a session of ``threads`` intra-op threads (a batch runs one-thread sessions side by
+        side); this one when it already has that many."""
+        if self.session.get_session_options().intra_op_num_threads == threads:
+            return self
+        other = OnnxEncoder(self.path, threads, self.source)
+        other.normalization = self.normalization
+        return other
+
     def normalize_with(self, normalization: Normalization) -> None:
         """Images are normalised with (mean, std) before the model (a user's file expects its own)."""
         mean, std = (torch.tensor(v, dtype=torch.float32).view(1, 3, 1, 1) for v in normalization)

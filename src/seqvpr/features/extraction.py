@@ -13,6 +13,7 @@ import hashlib
 import json
 import shutil
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -323,28 +324,42 @@ def _read_checked(file: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] |
 
 def _prepare_model(config: ExtractorConfig, extractor: nn.Module | None, device: str, engine: str = "auto"):
     """The given (or newly built) model on the device, run by ``engine``; under torch a built-in backbone is
-    channels-last on CPU (faster there), a TorchScript encoder as it was exported."""
+    channels-last on CPU (faster there), a TorchScript encoder as it was exported. ONNX Runtime describes a batch
+    an image per thread of the policy (one-thread sessions side by side: faster on a CPU than one pool per image)."""
     model = with_engine((extractor or build_encoder(config)).to(device), config.width, config.height, engine, device)
-    if isinstance(model, nn.Module) and config.backbone != TORCHSCRIPT and str(device).startswith("cpu"):
+    if isinstance(model, OnnxEncoder):
+        return model.with_threads(1)
+    if config.backbone != TORCHSCRIPT and str(device).startswith("cpu"):
         model = model.to(memory_format=torch.channels_last)
     return model
 
 
 def _load_batch(
-    paths: list[Path], begin: int, end: int, config: ExtractorConfig, skip_bad: bool
+    paths: list[Path], begin: int, end: int, config: ExtractorConfig, skip_bad: bool,
+    encode: Callable[[torch.Tensor], torch.Tensor] | None = None, pool: ThreadPoolExecutor | None = None,
 ) -> tuple[list[torch.Tensor], list[int], list[int]]:
-    """Images ``begin..end-1`` as tensors, with the rows they are and the rows skipped as unreadable (if allowed)."""
+    """Images ``begin..end-1`` as tensors, each passed through ``encode`` when given, on ``pool``'s threads side by
+    side when given (PIL decodes and ONNX Runtime runs without the GIL), with the rows they are and the rows
+    skipped as unreadable (if allowed)."""
+    def read(index: int) -> torch.Tensor | SeqvprError:
+        try:
+            image = load_image(paths[index], config.width, config.height)
+        except SeqvprError as error:
+            return error
+        return encode(image[None]) if encode else image
+
+    loaded = list(pool.map(read, range(begin, end)) if pool else map(read, range(begin, end)))
     images: list[torch.Tensor] = []
     batch_rows: list[int] = []
     batch_skipped: list[int] = []
-    for index in range(begin, end):
-        try:
-            images.append(load_image(paths[index], config.width, config.height))
-            batch_rows.append(index)
-        except SeqvprError:
+    for index, image in zip(range(begin, end), loaded):
+        if isinstance(image, SeqvprError):
             if not skip_bad:
-                raise
+                raise image
             batch_skipped.append(index)
+        else:
+            images.append(image)
+            batch_rows.append(index)
     return images, batch_rows, batch_skipped
 
 
@@ -359,11 +374,18 @@ def _extract_remaining(
     progress: Callable[[int], None] | None,
 ) -> None:
     """Describe the batches after those ``part`` already holds, adding each to it (and its folder) as it finishes."""
-    with torch.no_grad():
+    onnx = isinstance(model, OnnxEncoder)  # an image a call: read and described on one thread, one per core
+    workers = torch.get_num_threads() if onnx else 1
+    with torch.no_grad(), ThreadPoolExecutor(workers) as threads:
+        pool = threads if workers > 1 else None
         for begin in range(part.done, len(paths), config.batch_size):
             end = min(begin + config.batch_size, len(paths))
-            images, batch_rows, batch_skipped = _load_batch(paths, begin, end, config, skip_bad)
-            out = _describe_batch(model, images, device) if images else None
+            images, batch_rows, batch_skipped = _load_batch(paths, begin, end, config, skip_bad,
+                                                            model if onnx else None, pool)
+            if onnx:
+                out = torch.cat(images).numpy() if images else None
+            else:
+                out = _describe_batch(model, images, device) if images else None
             if out is not None:
                 part.rows.append(out)
             part.kept.extend(batch_rows)
@@ -391,9 +413,7 @@ def _assemble(paths: list[Path], part: _Partial, final: Path | None) -> Extracti
 
 
 def _describe_batch(model: nn.Module, images: list[torch.Tensor], device: str) -> np.ndarray:
-    """Descriptors [n, D] of one batch of loaded images (ONNX Runtime takes the batch whole, as laid out)."""
-    if isinstance(model, OnnxEncoder):
-        return model(torch.stack(images)).numpy()
+    """Descriptors [n, D] of one batch of loaded images."""
     parts = [model(chunk).cpu() for chunk in _micro_batches(torch.stack(images), device)]
     return torch.cat(parts).numpy().astype(np.float32)
 
