@@ -200,6 +200,21 @@ def test_a_jist_models_frames_go_with_any_method(world, jist_run, tmp_path):
     assert result["settings"]["method"] == "matching"
 
 
+def test_the_ablations_sequence_matching_over_jist_frames_is_the_command_lines(world, jist_run, tmp_path):
+    """The JIST ablation's forward "sequence matching" row (over the trained model's frames) is what ``seqvpr match
+    --model RUN --method matching -L`` prints: one path."""
+    from seqvpr.experiments.jist_ablation import JistSplit, robustness_rows
+
+    out, _, _ = jist_run
+    test = tuple(load_traversal(world[side], role) for side, role in (("test_reference", "reference"),
+                                                                      ("test_query", "query")))
+    split = JistSplit(test, test, test, Radius(25.0, "m"))
+    rows = dict(robustness_rows(out, split, lengths=(3,)))
+    stdout, _ = invoke("match", "-r", world["test_reference"], "-q", world["test_query"], "--model", out, "--radius",
+                       "25m", "--k", "1,5,10", "--json", "-L", "3", "--method", "matching", "--out", tmp_path / "m")
+    assert json.loads(stdout)["recall"] == {str(k): v for k, v in rows["L = 3"]["sequence matching"].recall.items()}
+
+
 def image_folders(world: dict[str, Path], tmp_path: Path, keys: tuple[str, ...]) -> dict[str, Path]:
     """Copies of the world's traversals as bare image folders (frame-aligned, no positions)."""
     folders = {}
