@@ -80,6 +80,7 @@ def world(tmp_path_factory):
     (w / "junk.bag").write_text("junk")
     (w / "badyaml").mkdir()
     (w / "badyaml" / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
+    (w / "junk.onnx").write_bytes(b"not an onnx model")
     (w / "inner").mkdir()
     (w / "bench_inner.toml").write_text((w / "bench.toml").read_text().replace('"ref.npz"', '"inner/ref.npz"')
                                         .replace('ks = ["one"]', "ks = [1]"))
@@ -229,6 +230,14 @@ CASES = {
                                                                       "--radius", "5m"), "badyaml: not a readable bag"),
     "map build: a descriptor file whose positions are not numbers": (("map", "build", "{w}/pos_text.npz", "--out", "{out}"),
                                                                      "pos_text.npz"),
+    # --- encoders and engines (issue 45)
+    "extract: a damaged ONNX file": (("extract", "{w}/imgs", "--descriptor", "onnx:{w}/junk.onnx", "--image-size",
+                                      "32x32", "--out", "{out}/d.npz"), "junk.onnx: not an ONNX model"),
+    "extract: an ONNX file that is not there": (("extract", "{w}/imgs", "--descriptor", "onnx:{w}/nope.onnx", "--out",
+                                                 "{out}/d.npz"), "nope.onnx"),
+    "match: an engine seqvpr does not have": ((*M, "--engine", "tensorrt"), "'--engine'"),
+    "export: a model folder that describes no images": (("export", "{w}/not_a_model", "--out", "{out}.onnx"),
+                                                        "not_a_model"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }
