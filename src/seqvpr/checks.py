@@ -16,6 +16,8 @@ from seqvpr.errors import SettingError
 
 #: the torch device types seqvpr runs on
 DEVICE_TYPES = ("cpu", "cuda", "mps", "xpu")
+#: how an image encoder runs (``seqvpr.features.engines``)
+ENGINES = ("auto", "torch", "onnx")
 
 
 def shown(value: Any) -> str:

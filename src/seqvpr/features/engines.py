@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -24,7 +25,7 @@ from torch import nn
 from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
 
-ENGINES = ("auto", "torch", "onnx")
+ENGINES = checks.ENGINES
 #: the largest difference (max abs over a probe batch's descriptors) an export may show against torch
 TOLERANCE = 1e-5
 OPSET = 17
@@ -231,7 +232,7 @@ def cached_export(module: nn.Module, width: int, height: int, folder: Path | Non
     path = folder / f"{encoder_identity(module, width, height)}.onnx"
     if path.is_file():
         return path
-    made = export_onnx(module, width, height, folder / f"{path.stem}.unchecked.onnx")
+    made = export_onnx(module, width, height, folder / f"{path.stem}.{os.getpid()}.unchecked.onnx")  # one a process
     difference = probe_difference(module, OnnxEncoder(made), width, height)
     if not difference <= TOLERANCE:
         made.unlink(missing_ok=True)

@@ -26,7 +26,6 @@ import torch
 from seqvpr.data.geo import utm_to_latlon
 from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError, reading
-from seqvpr.features.engines import check_engine
 from seqvpr.io import atomic_write, check_output_apart
 from seqvpr.localization.saved_state import (
     CALIBRATION_FILE, STATE_FORMAT, STATE_VERSION, calibration_file, check_state_arrays, check_state_header, map_record,
@@ -172,7 +171,7 @@ class Localizer:
         sides. ``method`` None (or left out): the SeqMatchNet model's method when one is given, else ``matching``."""
         ensure_policy()  # the one thread policy (seqvpr.threads)
         started = time.perf_counter()
-        check_engine(engine)
+        checks.text(engine, "engine", checks.ENGINES)  # whether ONNX Runtime is there: when an encoder is built
         saved = map_folder if isinstance(map_folder, SavedMap) else open_map(checks.a_path(map_folder, "map_folder"))
         models = _load_models(saved, model, checks.device(device))
         unknown = sorted(set(settings) - {f.name for f in fields(LocalizerSettings)})
@@ -194,7 +193,7 @@ class Localizer:
             raise SettingError("{method} seqmatchnet needs its SeqMatchNet {model} (the one the map was built through)")
         threshold, source = ((chosen.threshold, "given") if chosen.threshold is not None
                              else stored_threshold(saved.folder, chosen))
-        localizer = cls(saved, chosen, models, threshold, device, source, check_engine(engine))
+        localizer = cls(saved, chosen, models, threshold, device, source, engine)
         ensure_policy()  # again after building the matcher: numba's launch must not have changed a count
         if time.perf_counter() - started >= 1.0:
             LOGGER.info(f"localiser: ready in {time.perf_counter() - started:.1f} s; threshold {threshold:g}, {source}")
