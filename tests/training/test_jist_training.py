@@ -185,6 +185,17 @@ def test_resume_after_kill_gives_the_same_weights(data, run, tmp_path):
     assert resumed_log.losses == whole_log.losses[len(whole_log.losses) // 2 :]
 
 
+def test_validation_through_onnx_runtime_gives_the_same_run(data, run, tmp_path, monkeypatch):
+    """``engine="onnx"``: each epoch's validation runs an export of that epoch's encoder (checked against torch, not
+    kept in the cache); the run's validation recalls and weights are torch's."""
+    monkeypatch.setenv("SEQVPR_CACHE", str(tmp_path / "cache"))
+    (first, _), (again, _) = run, _train(data, tmp_path / "run", dataclasses.replace(SETTINGS, engine="onnx"))
+    assert [r.recall for r in again.history] == [r.recall for r in first.history]
+    a, b = read_tensors(first.folder / MODEL_FILE), read_tensors(again.folder / MODEL_FILE)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not list((tmp_path / "cache").rglob("*.onnx"))  # an export an epoch, none kept
+
+
 def test_saved_model_reloads_and_scores_its_validation_recall(data, run):
     """The best model folder loads, and the pipeline's JIST evaluation of it is the recall the loop recorded."""
     result, _ = run

@@ -281,6 +281,9 @@ jist_options = with_options([
                  "alone, or the CosPlace classification of single images alone."),
     click.option("--seed", default=JIST_RUN.seed, show_default=True, type=SEED),
     click.option("--device", type=DEVICE, default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
+    click.option("--engine", type=click.Choice(["auto", "torch", "onnx"]), default=JIST_RUN.engine, show_default=True,
+                 help="How validation describes frames: torch, or ONNX Runtime over an export made each epoch "
+                      "(auto: on the CPU; not kept in the cache)."),
 ])
 
 
@@ -297,6 +300,7 @@ def jist_values(options: dict) -> dict[str, Any]:
         "min_images": options["min_images"], "select_k": options["select_k"], "ks": parse_ks(options["ks"]), "device": options["device"],
         "seed": options["seed"], "select_untrained": options["select_untrained"], "jitter": options["jitter"], "hue": options["hue"],
         "crop_scale": options["crop_scale"], "seqgem_normalize": options["seqgem_normalize"], "branches": options["branches"],
+        "engine": options["engine"],
     }
 
 

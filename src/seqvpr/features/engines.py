@@ -242,10 +242,12 @@ def cached_export(module: nn.Module, width: int, height: int, folder: Path | Non
     return path
 
 
-def with_engine(module: nn.Module, width: int, height: int, engine: str = "auto", device: str = "cpu") -> Any:
-    """``module`` as ``engine`` runs it: itself (torch), or an ``OnnxEncoder`` over its cached export. ``auto``
-    takes ONNX Runtime on the CPU where it is installed and the export succeeds and checks out, else torch (a line
-    in the log says why); ``onnx`` on a GPU or a failed export is one line."""
+def with_engine(module: nn.Module, width: int, height: int, engine: str = "auto", device: str = "cpu",
+                keep: bool = True) -> Any:
+    """``module`` as ``engine`` runs it: itself (torch), or an ``OnnxEncoder`` over its cached export (``keep``
+    False: exported to a temporary folder, gone once the session holds it). ``auto`` takes ONNX Runtime on the CPU
+    where it is installed and the export succeeds and checks out, else torch (a line in the log says why); ``onnx``
+    on a GPU or a failed export is one line."""
     check_engine(engine)
     if engine == "torch" or isinstance(module, OnnxEncoder):
         return module
@@ -257,7 +259,12 @@ def with_engine(module: nn.Module, width: int, height: int, engine: str = "auto"
         LOGGER.info(f"encoder: torch (ONNX Runtime is not installed: {INSTALL})")
         return module
     try:
-        return OnnxEncoder(cached_export(module, width, height), source=type(module).__name__)
+        if keep:
+            return OnnxEncoder(cached_export(module, width, height), source=type(module).__name__)
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="seqvpr-encoder-") as folder:
+            return OnnxEncoder(cached_export(module, width, height, Path(folder)), source=type(module).__name__)
     except Exception as error:  # noqa: BLE001 - any export failure: auto falls back, onnx says why
         if engine == "onnx":
             raise SettingError(f"{{engine}} onnx: the encoder does not export to ONNX ({_line(error)})") from None

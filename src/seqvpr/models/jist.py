@@ -288,19 +288,20 @@ def check_images_exist(traversal: Traversal, what: str) -> None:
 
 def describe_images(
     model: nn.Module, traversal: Traversal, width: int, height: int, device: str = "cpu",
-    store: ImageStore | None = None, batch: int = 32, engine: str = "torch",
+    store: ImageStore | None = None, batch: int = 32, engine: str = "torch", keep: bool = True,
 ) -> Traversal:
     """The traversal with the frame descriptors of a frame encoder (CosPlace) or a JIST model's encoder, images at
     ``width`` x ``height``. Pooling JIST's frames with ``model.sequence_pool`` (the retrieval matcher with
     pooling ``seqgem`` and that module) gives JIST's sequence descriptors. ``engine`` runs the frame encoder
-    (``features.engines``)."""
+    (``features.engines``; ``keep`` False: its export is not kept in the cache, as training's changing weights
+    would only fill it)."""
     check_images_exist(traversal, traversal.source or traversal.name)
     store = store or ImageStore(width, height)
     encoder = model.encoder if isinstance(model, JistModel) else model
     if engine != "torch":  # training's validation keeps torch: its weights change between epochs
         from seqvpr.features.engines import with_engine
 
-        encoder = with_engine(encoder.eval(), width, height, engine, device)
+        encoder = with_engine(encoder.eval(), width, height, engine, device, keep)
     rows = encode_frames(encoder, store, list(traversal.image_paths), device, batch)
     return traversal.with_descriptors(rows.cpu().numpy())
 

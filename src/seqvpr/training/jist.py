@@ -400,7 +400,7 @@ class JistLearner(SequenceLearner):
     def validate(self, model: JistModel, data: TrainingData, gt: GroundTruth, settings: JistTrainSettings) -> Evaluation:
         """The pipeline's JIST evaluation: frame descriptors once, SeqGeM windows, faiss top-K, Recall@K."""
         describe = lambda t: describe_with_jist(model, t, settings.width, settings.height, settings.device,  # noqa: E731
-                                                self.store, settings.infer_batch)
+                                                self.store, settings.infer_batch, settings.engine, keep=False)
         match = MatchSettings(self.spec, k=max(settings.ks), device=settings.device)
         result = RetrievalMatcher(match, "seqgem", model.sequence_pool).topk(describe(data.val_reference),
                                                                              describe(data.val_query))

@@ -218,6 +218,7 @@ class JistTrainSettings(SettingsRecord):
     select_untrained: bool = False
     infer_batch: int = 32
     device: str = "cpu"
+    engine: str = "torch"  # how validation describes frames (seqvpr.features.engines; an export an epoch, not kept)
     amp: bool = True
     cache_images: bool = True
     seed: int = 0
@@ -234,13 +235,14 @@ class JistTrainSettings(SettingsRecord):
         for name in ("select_untrained", "amp", "cache_images"):
             checks.flag(getattr(self, name), name)
         checks.device(self.device)
+        checks.text(self.engine, "engine", checks.ENGINES)
         if self.select_k not in self.ks:
             raise SeqvprError(f"select_k={self.select_k} must be one of the recall ks {self.ks}")
         check_augmentation(self.jitter, self.hue, self.crop_scale)
 
     def resume_key(self) -> dict[str, Any]:
         """What must not change when a run is resumed (not the epochs, device, inference batch or image cache)."""
-        return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images")}
+        return {k: v for k, v in super().resume_key().items() if k not in ("infer_batch", "cache_images", "engine")}
 
 
 #: frames whose sides are both at most this many pixels are thumbnails (Nordland's 64x32)
