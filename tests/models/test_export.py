@@ -36,7 +36,8 @@ def test_a_backbone_written_as_onnx_and_read_back_gives_its_descriptors(tmp_path
 
 @pytest.mark.parametrize("file_format", ["torchscript", "export"])
 def test_torchscript_and_torch_export_files_read_back_alike(tmp_path, file_format):
-    written = export_encoder("efficientnet-lite0", tmp_path / f"e.{file_format}", file_format, (64, 48))
+    suffix = {"torchscript": "pt", "export": "pt2"}[file_format]
+    written = export_encoder("efficientnet-lite0", tmp_path / f"e.{suffix}", file_format, (64, 48))
     original = build_extractor(ExtractorConfig(width=64, height=48))
     config = ExtractorConfig("torchscript", str(written.path), width=64, height=48, mean=(0, 0, 0), std=(1, 1, 1))
     with torch.no_grad():
@@ -118,3 +119,6 @@ def test_what_seqvpr_cannot_feed_is_one_line(tmp_path, monkeypatch, capsys):
     assert code == 2 and "input size is not fixed; give --image-size WxH" in err and err.count("\n") == 1, err
     code, _, err = run_cli(monkeypatch, capsys, "export", str(tmp_path), "--out", tmp_path / "x.onnx")
     assert code == 2 and err.count("\n") == 1 and not (tmp_path / "x.onnx").exists(), err
+    (tmp_path / "mine.npz").write_bytes(b"a user's file")
+    code, _, err = run_cli(monkeypatch, capsys, "export", "efficientnet-lite0", "--out", tmp_path / "mine.npz")
+    assert code == 2 and "onnx files are named .onnx" in err and (tmp_path / "mine.npz").read_bytes() == b"a user's file"

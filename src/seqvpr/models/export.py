@@ -16,12 +16,12 @@ import torch
 from torch import nn
 
 from seqvpr import checks
-from seqvpr.errors import SeqvprError
+from seqvpr.errors import SeqvprError, SettingError
 from seqvpr.features.engines import TOLERANCE, OnnxEncoder, export_onnx, probe_difference
 from seqvpr.io import atomic_write, check_output_apart
 
 FORMATS = ("onnx", "torchscript", "export")
-SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt", "export": ".pt2"}
+SUFFIXES = {"onnx": (".onnx",), "torchscript": (".pt", ".pth", ".ts"), "export": (".pt2",)}
 
 
 @dataclass(frozen=True)
@@ -64,6 +64,9 @@ def export_encoder(source: str, out: str | Path, format: str = "onnx", image_siz
     probe batch (within ``engines.TOLERANCE``); a file that differs is removed and the difference is one line."""
     checks.text(format, "format", FORMATS)
     out = checks.a_path(out, "out")
+    if out.suffix.lower() not in SUFFIXES[format]:
+        raise SettingError(f"{{out}} {out}: {format} files are named {' or '.join(SUFFIXES[format])} (so that no other "
+                           "file is overwritten by mistake)")
     check_output_apart(out, [source if Path(source).exists() else None, weights if weights not in (None, "imagenet")
                              else None], "the exported file")
     module, width, height, what = frame_encoder(checks.text(source, "source"), image_size, pooling, weights)
