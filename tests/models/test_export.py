@@ -122,3 +122,17 @@ def test_what_seqvpr_cannot_feed_is_one_line(tmp_path, monkeypatch, capsys):
     (tmp_path / "mine.npz").write_bytes(b"a user's file")
     code, _, err = run_cli(monkeypatch, capsys, "export", "efficientnet-lite0", "--out", tmp_path / "mine.npz")
     assert code == 2 and "onnx files are named .onnx" in err and (tmp_path / "mine.npz").read_bytes() == b"a user's file"
+
+
+@pytest.mark.parametrize("arguments, fragment", [
+    ({"image_size": "320x240"}, "image_size must be (width, height)"),
+    ({"image_size": (0, 48)}, "image_size must be an integer in [1, inf]"),
+    ({"pooling": "netvlad"}, "pooling must be one of 'gem'"),
+    ({"format": "tensorrt"}, "format must be one of 'onnx', 'torchscript', 'export'"),
+    ({"out": 3}, "out must be a path"),
+    ({"source": "nope"}, "nope"),
+])
+def test_bad_arguments_from_python_are_one_line(tmp_path, arguments, fragment):
+    given = {"source": "efficientnet-lite0", "out": tmp_path / "e.onnx", **arguments}
+    raises_one_line(fragment, export_encoder, **given)
+    assert not (tmp_path / "e.onnx").exists()

@@ -67,6 +67,12 @@ def export_encoder(source: str, out: str | Path, format: str = "onnx", image_siz
     if out.suffix.lower() not in SUFFIXES[format]:
         raise SettingError(f"{{out}} {out}: {format} files are named {' or '.join(SUFFIXES[format])} (so that no other "
                            "file is overwritten by mistake)")
+    if image_size is not None and (isinstance(image_size, (str, bytes)) or len(image_size) != 2):
+        raise SettingError(f"{{image_size}} must be (width, height), got {checks.shown(image_size)}")
+    image_size = None if image_size is None else tuple(checks.whole(side, "image_size", 1) for side in image_size)
+    checks.text(pooling, "pooling", ("gem",))
+    if weights is not None:
+        checks.text(weights, "weights")
     check_output_apart(out, [source if Path(source).exists() else None, weights if weights not in (None, "imagenet")
                              else None], "the exported file")
     module, width, height, what = frame_encoder(checks.text(source, "source"), image_size, pooling, weights)
