@@ -44,3 +44,17 @@ def run_beside_load(arguments: list[str], setting: str, load: int) -> dict:
     if done.returncode:
         raise SystemExit(f"{' '.join(arguments)} at {setting} failed:\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def median_time(fn, repeats: int) -> float:
+    """The median of ``repeats`` timed calls of ``fn`` (after one untimed call), in seconds."""
+    import statistics
+    import time
+
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)

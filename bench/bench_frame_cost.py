@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import cpu_model, spin_load
+from _common import cpu_model, median_time, spin_load
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
@@ -33,13 +33,7 @@ ENCODERS = {"efficientnet-lite0": "imagenet", "resnet18": None, "resnet50": None
 
 
 def median_ms(function, frames: int) -> float:
-    function()
-    times = []
-    for _ in range(frames):
-        started = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - started)
-    return float(np.median(times) * 1e3)
+    return median_time(function, frames) * 1e3
 
 
 def stage_times(image_path: Path, encoder: str, threads: int, frames: int) -> dict[str, float]:

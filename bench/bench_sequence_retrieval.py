@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import cpu_model
+from _common import cpu_model, median_time
 
 try:
     import seqvpr  # noqa: F401
@@ -52,16 +51,6 @@ def random_walk(n: int, dim: int, seed: int) -> np.ndarray:
     for i in range(1, n):  # AR(1): x_i = 0.9 x_{i-1} + noise
         walk[i] = 0.9 * walk[i - 1] + steps[i]
     return walk / np.linalg.norm(walk, axis=1, keepdims=True)
-
-
-def median_time(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:

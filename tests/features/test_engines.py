@@ -139,3 +139,10 @@ def test_the_engines_agree_on_real_images_to_the_recall(shared_data):
     for torch_side, onnx_side in zip(found["torch"][0], found["onnx"][0]):
         assert np.abs(torch_side.descriptors - onnx_side.descriptors).max() <= TOLERANCE
     assert found["torch"][1] == found["onnx"][1] and found["torch"][1][1] > 0.3, found["torch"][1]
+
+
+def test_the_command_lines_engines_are_the_librarys():
+    from seqvpr import checks
+    from seqvpr.cli.options import ENGINES
+
+    assert ENGINES == checks.ENGINES == engines.ENGINES

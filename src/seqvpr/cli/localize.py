@@ -13,7 +13,7 @@ import click
 from seqvpr.cli.options import (
     DEVICE,
     COUNT, FINITE, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, POSITIVE, parse_ks, OUT_FILE, OUT_FOLDER,
-    ENGINE_HELP, bag_topic_options, locks_output, with_options
+    ENGINE_CHOICE, ENGINE_HELP, bag_topic_options, locks_output, with_options
 )
 from seqvpr.cli.help import SectionedCommand, option, section
 from seqvpr.cli.progress import tqdm_progress
@@ -60,7 +60,7 @@ localizer_options = with_options([
         help="hmm: how sharply worse distances count."),
     option("Compute", "--device", type=DEVICE, default="cpu", show_default=True,
         help="torch device, e.g. cpu or cuda."),
-    option("Compute", "--engine", type=click.Choice(["auto", "torch", "onnx"]), default="auto", show_default=True,
+    option("Compute", "--engine", type=ENGINE_CHOICE, default="auto", show_default=True,
            help=ENGINE_HELP),
 ])
 

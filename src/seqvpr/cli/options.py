@@ -325,7 +325,10 @@ def parse_stages(text: str | None) -> tuple[str, ...] | None:
 ENGINE_HELP = ("How a network describes images: onnx (ONNX Runtime's CPU engine over the network exported once and "
                "checked against torch; about half torch's time a frame), torch, or auto: onnx on the CPU where it "
                "exports, else torch.")
-ENGINE_OPTION = click.option("--engine", type=click.Choice(["auto", "torch", "onnx"]), default="auto",
+#: seqvpr.checks.ENGINES, spelled here so that --help imports nothing more (a test holds them equal)
+ENGINES = ("auto", "torch", "onnx")
+ENGINE_CHOICE = click.Choice(list(ENGINES))
+ENGINE_OPTION = click.option("--engine", type=ENGINE_CHOICE, default="auto",
                              show_default=True, help=ENGINE_HELP)
 
 extraction_options = with_options([

@@ -11,7 +11,7 @@ from typing import Any
 import click
 
 from seqvpr.cli.options import (
-    DEVICE,
+    DEVICE, ENGINE_CHOICE,
     COUNT, FRACTION, NONNEGATIVE, NONNEGATIVE_FLOAT, Number, POSITIVE, SEED, parse_ks, parse_stages,
     parse_thumbnail, with_options, OUT_FOLDER, bag_topic_options, locks_output
 )
@@ -281,7 +281,7 @@ jist_options = with_options([
                  "alone, or the CosPlace classification of single images alone."),
     click.option("--seed", default=JIST_RUN.seed, show_default=True, type=SEED),
     click.option("--device", type=DEVICE, default=JIST_RUN.device, show_default=True, help="torch device, e.g. cpu or cuda (AMP on CUDA)."),
-    click.option("--engine", type=click.Choice(["auto", "torch", "onnx"]), default=JIST_RUN.engine, show_default=True,
+    click.option("--engine", type=ENGINE_CHOICE, default=JIST_RUN.engine, show_default=True,
                  help="How validation describes frames: torch, or ONNX Runtime over an export made each epoch "
                       "(auto: on the CPU; not kept in the cache)."),
 ])

@@ -197,14 +197,19 @@ def export_onnx(module: nn.Module, width: int, height: int, out: Path,
         warnings.simplefilter("ignore")  # the tracer's notes on Python values it folds into constants
         buffer = _exported_bytes(module, probe)
     model = onnx.load_from_string(buffer)
-    contract = {"seqvpr.input": f"float32 [batch, 3, {height}, {width}] RGB in [0, 1]",
-                "seqvpr.output": "float32 [batch, dim] descriptors", **(metadata or {})}
-    for key, value in contract.items():
+    for key, value in {**input_contract(width, height), **(metadata or {})}.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
     with atomic_write(out, "wb") as handle:
         handle.write(model.SerializeToString())
     return out
+
+
+def input_contract(width: int, height: int) -> dict[str, str]:
+    """What an exported encoder takes and returns, as its file's metadata says it (``seqvpr.input`` marks a file
+    seqvpr wrote: pixels in [0, 1], no normalisation before it)."""
+    return {"seqvpr.input": f"float32 [batch, 3, {height}, {width}] RGB in [0, 1]",
+            "seqvpr.output": "float32 [batch, dim] descriptors"}
 
 
 def _exported_bytes(module: nn.Module, probe: torch.Tensor) -> bytes:
@@ -230,16 +235,26 @@ def cached_export(module: nn.Module, width: int, height: int, folder: Path | Non
 
     folder = writable_folder(folder or cache_folder("encoders"))
     path = folder / f"{encoder_identity(module, width, height)}.onnx"
-    if path.is_file():
-        return path
-    made = export_onnx(module, width, height, folder / f"{path.stem}.{os.getpid()}.unchecked.onnx")  # one a process
-    difference = probe_difference(module, OnnxEncoder(made), width, height)
-    if not difference <= TOLERANCE:
-        made.unlink(missing_ok=True)
-        raise SeqvprError(f"the encoder's ONNX export differs from torch by {difference:.2g} (over {TOLERANCE:g}) on "
-                          "a probe batch: not used")
-    made.replace(path)
+    if not path.is_file():
+        write_checked(module, width, height, path, lambda made: export_onnx(module, width, height, made), OnnxEncoder)
     return path
+
+
+def write_checked(module: nn.Module, width: int, height: int, out: Path, write: Callable[[Path], Path],
+                  read: Callable[[Path], Callable]) -> float:
+    """Write ``module`` as a file (``write`` to a name of this process beside ``out``), read it back (``read``) and
+    put it at ``out`` only if its descriptors of a probe batch are within ``TOLERANCE`` of torch's: a file that
+    differs never replaces anything (one line). The difference, returned."""
+    made = write(out.with_name(f"{out.stem}.{os.getpid()}.unchecked{out.suffix}"))
+    try:
+        difference = probe_difference(module, read(made), width, height)
+        if not difference <= TOLERANCE:
+            raise SeqvprError(f"{out}: the exported encoder differs from torch by {difference:.2g} (over "
+                              f"{TOLERANCE:g}) on a probe batch: not used")
+        made.replace(out)
+    finally:
+        made.unlink(missing_ok=True)
+    return difference
 
 
 def with_engine(module: nn.Module, width: int, height: int, engine: str = "auto", device: str = "cpu",

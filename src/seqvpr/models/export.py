@@ -2,7 +2,7 @@
 TorchScript or ``torch.export``. The encoder is a built-in backbone with its pooling head (its ImageNet or given
 weights) or a trained model folder's frame encoder (JIST's, CosPlace's, the thumbnail CNN inside a JIST model); the
 file takes float [batch, 3, height, width] RGB pixels in [0, 1] and returns [batch, dim] descriptors, its input
-contract written in its metadata, and it is checked against torch on a probe batch before it is kept.
+contract written in its metadata, and it is checked against torch on a probe batch before it replaces anything.
 
 Same name as ``seqvpr.cli.export``: the command that calls this."""
 
@@ -17,7 +17,7 @@ from torch import nn
 
 from seqvpr import checks
 from seqvpr.errors import SeqvprError, SettingError
-from seqvpr.features.engines import TOLERANCE, OnnxEncoder, export_onnx, probe_difference
+from seqvpr.features.engines import OnnxEncoder, export_onnx, input_contract, write_checked
 from seqvpr.io import atomic_write, check_output_apart
 
 FORMATS = ("onnx", "torchscript", "export")
@@ -76,17 +76,12 @@ def export_encoder(source: str, out: str | Path, format: str = "onnx", image_siz
     check_output_apart(out, [source if Path(source).exists() else None, weights if weights not in (None, "imagenet")
                              else None], "the exported file")
     module, width, height, what = frame_encoder(checks.text(source, "source"), image_size, pooling, weights)
-    contract = {"seqvpr.source": what, "seqvpr.input": f"float32 [batch, 3, {height}, {width}] RGB in [0, 1]",
-                "seqvpr.output": "float32 [batch, dim] descriptors"}
+    contract = {"seqvpr.source": what, **input_contract(width, height)}
     with torch.no_grad():
         dim = int(module(torch.zeros(1, 3, height, width)).shape[1])
-    written = WRITERS[format](module, width, height, out, contract)
-    difference = probe_difference(module, READERS[format](written), width, height)
-    if not difference <= TOLERANCE:
-        written.unlink(missing_ok=True)
-        raise SeqvprError(f"{out}: the {format} file differs from torch by {difference:.2g} (over {TOLERANCE:g}) on a "
-                          "probe batch; not written")
-    return ExportedEncoder(written, format, width, height, dim, difference)
+    difference = write_checked(module, width, height, out,
+                               lambda made: WRITERS[format](module, width, height, made, contract), READERS[format])
+    return ExportedEncoder(out, format, width, height, dim, difference)
 
 
 def _write_onnx(module: nn.Module, width: int, height: int, out: Path, contract: dict[str, str]) -> Path:
