@@ -136,3 +136,14 @@ def test_bad_arguments_from_python_are_one_line(tmp_path, arguments, fragment):
     given = {"source": "efficientnet-lite0", "out": tmp_path / "e.onnx", **arguments}
     raises_one_line(fragment, export_encoder, **given)
     assert not (tmp_path / "e.onnx").exists()
+
+
+def test_an_export_that_differs_from_torch_replaces_nothing(tmp_path, monkeypatch):
+    from seqvpr.features import engines
+
+    (tmp_path / "e.onnx").write_bytes(b"the user's earlier export")
+    monkeypatch.setattr(engines, "probe_difference", lambda *args: 0.5)
+    raises_one_line("e.onnx: the exported encoder differs from torch by 0.5", export_encoder, "efficientnet-lite0",
+                    tmp_path / "e.onnx", image_size=(64, 48))
+    assert (tmp_path / "e.onnx").read_bytes() == b"the user's earlier export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e.onnx"]
