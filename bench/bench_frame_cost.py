@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -143,6 +144,8 @@ def run_build(args) -> list[str]:
     command, inside = {}, {}
     for run, engine in enumerate(("onnx", "torch", "onnx", "torch")):
         out, cache = args.work / f"map-{engine}", args.work / f"descriptors-{run}"  # a new descriptor cache: no reuse
+        for folder in (cache, args.work / f"descriptors-{run}-in"):
+            shutil.rmtree(folder, ignore_errors=True)
         started = time.perf_counter()
         subprocess.run([sys.executable, "-m", "seqvpr.cli", "map", "build", *sources, "--descriptor",
                         "efficientnet-lite0", "--engine", engine, "--cache-dir", cache, "--out", out], env=env,
