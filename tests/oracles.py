@@ -146,3 +146,41 @@ def uniqueness(rows, values, exclusion):
         if r >= 0 and math.isfinite(v) and abs(r - rows[0]) > exclusion:
             return 0.0 if v <= 0 else min(max(1.0 - values[0] / v, 0.0), 1.0)
     return 1.0
+
+
+def eligible_limit(sessions, clock, i, value, unit):
+    """Frames j eligible for frame i, by a plain loop: every frame of an earlier session, and of its own session
+    those more than ``value`` before it (frames: rows; seconds or metres: ``clock``); the count of the prefix."""
+    limit = 0
+    for j in range(i):
+        if sessions[j] != sessions[i]:
+            eligible = True
+        elif unit == "f":
+            eligible = i - j > value
+        else:
+            eligible = clock[j] < clock[i] - value and all(clock[m] < clock[i] - value for m in range(j + 1)
+                                                             if sessions[m] == sessions[i])
+        if eligible:
+            limit = j + 1
+        else:
+            break
+    return limit
+
+
+def loops_by_plain_loop(rows, segments, limits, length):
+    """Each frame's best earlier window (row, mean of order-aligned distances) among rows j < limits[i] whose
+    causal window lies in one segment, by plain loops in float64; (-1, inf) without a window. Ties: lower row."""
+    rows = np.asarray(rows, dtype=np.float64)
+    rows = rows / np.linalg.norm(rows, axis=1, keepdims=True)
+    best = []
+    for i in range(len(rows)):
+        found = (-1, math.inf)
+        if window_start(segments, i, length, length - 1, "drop") is not None:
+            for j in range(limits[i]):
+                if window_start(segments, j, length, length - 1, "drop") is None:
+                    continue
+                value = sum(float(np.linalg.norm(rows[i - k] - rows[j - k])) for k in range(length)) / length
+                if value < found[1]:
+                    found = (j, value)
+        best.append(found)
+    return np.array([b[0] for b in best]), np.array([b[1] for b in best])

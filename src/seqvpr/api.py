@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from seqvpr.models.registry import TrainedModel
     from seqvpr.progress import ProgressFactory
 
-DEFAULT_BUDGET = 2 * 1024**3
+from seqvpr.sequences.match_settings import DEFAULT_BUDGET  # noqa: E402  (re-exported: the API's default)
 #: the match settings ``match`` takes by name (``match_settings``)
 SETTING_NAMES = ("k", "align", "boundary", "velocities", "normalize", "dtype", "device", "memory_budget")
 

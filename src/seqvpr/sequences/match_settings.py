@@ -9,6 +9,8 @@ from seqvpr.sequences.windows import SequenceSpec
 
 #: the numeric types matching computes in
 MATCH_DTYPES = ("float32", "float64")
+#: bytes a match's distance blocks may take unless told otherwise (the command line's and the API's default)
+DEFAULT_BUDGET = 2 * 1024**3
 
 
 @dataclass(frozen=True)

@@ -258,9 +258,14 @@ def sequence_topk(
     progress: ProgressFn | None = None,
     chunk: int | None = None,
     scorer: WindowScorer | None = None,
+    limits: np.ndarray | None = None,
 ) -> TopK:
     """Top-K references per query by sequence distance, computed in query blocks (with a halo of L - 1 rows) and,
     when the budget asks for it, reference chunks (with a halo of the longest window on both sides).
+
+    ``limits`` [n_query] (non-decreasing) keeps query i to reference windows ending before row ``limits[i]`` (a drive
+    against its own past: loop closures); a block reads the reference only up to its largest limit, so a drive
+    against itself costs the triangle, never the square.
 
     With ``memory_budget`` (bytes) no block's distance matrix exceeds the budget, so the full
     n_query x n_reference matrix is never held. ``reference`` is a tensor or an array of rows; an ``np.memmap``
@@ -280,11 +285,14 @@ def sequence_topk(
     rows, columns = block_shape(n_q, n_r, spec, query.element_size(), memory_budget, in_memory=_in_memory(reference))
     if chunk is not None:
         columns = max(1, min(int(chunk), n_r))
+    if limits is not None:
+        limits = check_limits(limits, n_q, n_r)
     for begin in range(0, n_q, rows):
         end = min(begin + rows, n_q)
         starts = q_starts[begin:end]
         if (starts >= 0).any():
-            values, picked = _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer)
+            values, picked = _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer,
+                                           None if limits is None else limits[begin:end])
             picked[~np.isfinite(values)] = -1
             indices[begin:end], distances[begin:end] = picked, values
         if progress is not None:
@@ -335,22 +343,38 @@ def block_shape(
     return int(rows), int(columns)
 
 
-def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None) -> tuple[np.ndarray, np.ndarray]:
+def check_limits(limits: np.ndarray, n_query: int, n_reference: int) -> np.ndarray:
+    """Per-query reference limits as int64 [n_query], non-decreasing, within [0, n_reference]; one line otherwise."""
+    limits = np.asarray(limits, dtype=np.int64)
+    if limits.shape != (n_query,) or (len(limits) and (limits.min() < 0 or limits.max() > n_reference
+                                                       or (np.diff(limits) < 0).any())):
+        raise SeqvprError(f"limits: expected {n_query} non-decreasing row limits within [0, {n_reference}]")
+    return limits
+
+
+def _chunked_topk(query, reference, spec, starts, r_seg, k, columns, scorer=None,
+                  limits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The K best (distances, reference rows) of a query block over reference chunks of ``columns`` frames; rows of
     queries without a window stay +inf / -1. Ties go to the lower reference row, whatever the chunking.
 
     A chunk is described with ``max_span`` frames of halo on each side, so every window of its own columns, and
-    its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference."""
+    its place in the segment under ``drop`` or ``shift``, is what it is in the whole reference. With ``limits``
+    (the block's), a query's columns from its limit on are +inf and no chunk past the largest limit is read."""
     n_r, halo = len(reference), (scorer.span(spec) if scorer is not None else max_span(spec))
     valid = np.flatnonzero(starts >= 0)
     merged = TopKMerge(len(valid), k)
     workspace = Workspace()
-    for first in range(0, n_r, columns):
-        last = min(first + columns, n_r)
+    stop = n_r if limits is None else int(limits[valid].max(initial=0))
+    for first in range(0, stop, columns):
+        last = min(first + columns, stop)
         lo, hi = max(0, first - halo), min(n_r, last + halo)
         block = reference_rows(reference, slice(lo, hi), query)
         rows = sequence_distance_rows(query, block, spec, starts[valid], r_seg[lo:hi], workspace, scorer, lo)
-        merged.push_columns(rows[:, first - lo : last - lo], first)
+        part = rows[:, first - lo : last - lo]
+        if limits is not None:
+            beyond = np.arange(first, last)[None, :] >= limits[valid][:, None]
+            part.masked_fill_(torch.from_numpy(beyond).to(part.device), float("inf"))
+        merged.push_columns(part, first)
     values, picked = merged.values, merged.rows
     all_values = np.full((len(starts), k), np.inf)
     all_picked = np.full((len(starts), k), -1, dtype=np.int64)

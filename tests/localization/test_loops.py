@@ -1,0 +1,77 @@
+"""Loop closures within a drive: the best earlier frame of each frame outside the exclusion equals a plain loop
+over eligible earlier windows (random drives of one or several sessions); the score, the acceptance and the PR
+curve over it follow their definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from seqvpr.data.traversal import Traversal
+from seqvpr.localization.loops import LoopSettings, find_loops, make_drive, score_loops
+from tests.helpers import raises_one_line
+from tests.oracles import loops_by_plain_loop
+
+
+def drive_of(rows: np.ndarray, segments: np.ndarray, name: str = "run", stamps=None) -> Traversal:
+    return Traversal(name, np.arange(len(rows)), np.asarray(segments, np.int64), rows.astype(np.float32),
+                     timestamps=stamps, source=name)
+
+
+def assert_plain_loop(loops, length: int) -> None:
+    rows = np.asarray(loops.drive.frames.descriptors[:])
+    match, distance = loops_by_plain_loop(rows, loops.drive.frames.segment_ids, loops.limits, length)
+    np.testing.assert_array_equal(loops.match, match)
+    found = match >= 0
+    np.testing.assert_allclose(loops.distance[found], distance[found], rtol=1e-5, atol=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(2, 40), st.integers(1, 3), st.integers(1, 5), st.integers(0, 8), st.integers(0, 2**31 - 1))
+def test_each_frames_loop_is_the_plain_loops_best_eligible_window(n, n_sessions, length, exclude, seed):
+    rng = np.random.default_rng(seed)
+    parts = [drive_of(rng.normal(size=(n, 6)), np.sort(rng.integers(0, 2, n)), f"s{s}") for s in range(n_sessions)]
+    drive = make_drive(parts)
+    settings_ = LoopSettings(seq_len=length, exclude=f"{exclude}f")
+    try:
+        loops = find_loops(drive, settings_)
+    except Exception as error:  # L longer than every segment: the kernel's one line
+        assert "longer than every" in str(error)
+        return
+    assert_plain_loop(loops, length)
+    assert (loops.match < loops.limits).all()
+    assert ((loops.score >= 0) & (loops.score <= 1)).all()
+    np.testing.assert_array_equal(loops.accepted, (loops.match >= 0) & (loops.score >= settings_.accept))
+
+
+def test_a_drive_with_a_revisit_finds_it_and_scores_it_against_positions():
+    rng = np.random.default_rng(3)
+    places, where = rng.normal(size=(60, 16)), np.cumsum(np.ones((60, 2)), axis=0)
+    rows = np.concatenate([places, places[10:40] + 0.05 * rng.normal(size=(30, 16))])
+    frames = Traversal("run", np.arange(90), np.zeros(90, np.int64), rows.astype(np.float32),
+                       positions=np.concatenate([where, where[10:40]]), source="run")
+    loops = find_loops(make_drive([frames]), LoopSettings(seq_len=5, exclude="20f", threshold=0.2))
+    revisit = np.arange(64, 90)  # frames 60..89 revisit 10..39; from the 5th on the whole window does
+    np.testing.assert_array_equal(loops.match[revisit], revisit - 50)
+    assert loops.accepted[revisit].all() and not loops.accepted[:60].any()
+    scored = score_loops(loops, "0.5m")
+    np.testing.assert_array_equal(scored.revisit, np.arange(90) >= 60)
+    assert scored.correct[revisit].all() and not scored.correct[:60].any()
+    assert scored.pr.recall_at_100_precision >= 26 / 30 and scored.pr.auc >= 26 / 30
+
+
+def test_sessions_come_in_time_order_and_earlier_sessions_are_eligible_whole():
+    rng = np.random.default_rng(0)
+    late = drive_of(rng.normal(size=(10, 4)), np.zeros(10), "late", stamps=np.arange(10) + 100.0)
+    early = drive_of(rng.normal(size=(10, 4)), np.zeros(10), "early", stamps=np.arange(10) + 0.0)
+    drive = make_drive([late, early])
+    assert drive.session_names == ("early", "late")
+    loops = find_loops(drive, LoopSettings(seq_len=1, exclude="100s"))
+    np.testing.assert_array_equal(loops.limits, [0] * 10 + [10] * 10)
+
+
+def test_loop_settings_refuse_a_method_that_does_not_step_and_a_bad_exclusion():
+    raises_one_line("loop closure runs", LoopSettings, method="hmm")
+    raises_one_line("exclude", LoopSettings, exclude="-3f")
+    raises_one_line("exclude", LoopSettings, exclude="3 parsecs")
