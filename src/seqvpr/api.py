@@ -221,3 +221,43 @@ def evaluate(result: MatchResult, radius: str | None = None, ground_truth: str |
     uniqueness = checks.optional_whole(uniqueness, "uniqueness", 0)
     gt = resolve_ground_truth(result.reference, result.query, radius, ground_truth)
     return evaluate_match(result, gt, ks, no_positive, uniqueness)
+
+
+def loops(
+    sources: Iterable[str | Path] | str | Path,
+    *,
+    method: str = "matching",
+    seq_len: int = 5,
+    exclude: str | None = None,
+    exclusion: int = 10,
+    threshold: float | None = None,
+    radius: str | None = None,
+    models: Iterable[str | Path] | Mapping[str, TrainedModel] | None = None,
+    description: Any = None,
+    frames: str | None = None,
+    memory_budget: int | None = DEFAULT_BUDGET,
+    progress: ProgressFactory | None = None,
+    **extraction: Any,
+):
+    """Loop closures over one drive, or several as sessions in time order (``seqvpr.localization.loops``): each
+    frame's best earlier frame outside ``exclude`` (``30s``, ``200f``, ``50m``) by causal sequence matching, its
+    score and acceptance, and, with ``radius`` (``25m``, ``2f``), which are right with the PR curve over the score.
+    Returns (``Loops``, ``ScoredLoops`` or None)."""
+    from seqvpr.features.describe import check_extraction_settings
+    from seqvpr.localization.loops import LoopSettings, find_loops, load_drive, score_loops
+
+    from seqvpr.data.ground_truth import parse_radius
+    from seqvpr.methods import check_run
+
+    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold)  # checked before anything is read
+    listed = checks.paths(sources, "sources")
+    unit = None if radius is None else parse_radius(checks.text(radius, "radius")).unit
+    check_extraction_settings(**extraction)
+    loaded = load_models(models)
+    check_run(method, loaded)
+    drive = load_drive(listed, description, loaded, frames=frames, progress=progress, **extraction)
+    if unit == "m" and drive.frames.positions is None:
+        raise SettingError(f"{drive.frames.source or drive.frames.name}: {{radius}} {radius} is in metres but the "
+                           "drive has no positions (use frames, e.g. 2f)")
+    found = find_loops(drive, settings, loaded, memory_budget=memory_budget, progress=progress)
+    return found, (score_loops(found, radius) if radius is not None else None)

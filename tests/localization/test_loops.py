@@ -75,3 +75,33 @@ def test_loop_settings_refuse_a_method_that_does_not_step_and_a_bad_exclusion():
     raises_one_line("loop closure runs", LoopSettings, method="hmm")
     raises_one_line("exclude", LoopSettings, exclude="-3f")
     raises_one_line("exclude", LoopSettings, exclude="3 parsecs")
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(2, 30), st.integers(1, 3), st.integers(1, 4), st.sampled_from(["0f", "3f", "2s", "1.5m"]),
+       st.integers(0, 2**31 - 1))
+def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, length, exclude, seed):
+    from seqvpr.localization.loop_detector import replay_loops
+
+    rng = np.random.default_rng(seed)
+    parts = []
+    for s in range(n_sessions):
+        part = drive_of(rng.normal(size=(n, 6)), np.sort(rng.integers(0, 2, n)), f"s{s}",
+                        stamps=np.cumsum(rng.uniform(0, 1, n)) + 100 * s)
+        parts.append(Traversal(part.name, part.frame_index, part.segment_ids, part.descriptors,
+                               positions=np.cumsum(rng.normal(size=(n, 2)), axis=0), timestamps=part.timestamps,
+                               source=part.name))
+    drive = make_drive(parts)
+    settings_ = LoopSettings(seq_len=length, exclude=exclude)
+    try:
+        offline = find_loops(drive, settings_)
+    except Exception as error:
+        assert "longer than every" in str(error)
+        return
+    streamed = replay_loops(drive, settings_, memory_budget=256)  # past a tiny budget: memory-mapped rows
+    np.testing.assert_array_equal(streamed.limits, offline.limits)
+    np.testing.assert_array_equal(streamed.match, offline.match)
+    found = offline.match >= 0
+    np.testing.assert_allclose(streamed.distance[found], offline.distance[found], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(streamed.score, offline.score, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(streamed.accepted, offline.accepted)

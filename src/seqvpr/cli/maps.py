@@ -11,7 +11,7 @@ import click
 from seqvpr.cli.options import (
     COUNT,
     DEVICE,
-    NONNEGATIVE, SEED, extraction_options, extraction_settings, parse_thumbnail, OUT_FOLDER, bag_topic_options,
+    NONNEGATIVE, SEED, extraction_options, frame_description, OUT_FOLDER, bag_topic_options,
     locks_output
 )
 from seqvpr.cli.help import SectionedCommand, option, section
@@ -84,7 +84,7 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     spec = parse_index_spec(index_spec) if index_spec else None  # a bad spec or storage fails before any work
     parse_storage(dtype)
     check_replaceable(Path(out_dir), SHARDS_FILE if shards else INFO_FILE)
-    description, extraction = _description(options, device)
+    description, extraction = frame_description(options, device)
     models = _models(model_dirs, device)
 
     index = (spec, seed, windows, window_method, index_model)
@@ -258,18 +258,6 @@ def _echo_shards(map_dir: str) -> None:
         index = sharded.open_shard(number).info.index
         click.echo(f"  {record.folder}: rows {record.own_first}..{record.own_last - 1} (stored from {record.first}), "
                    f"index {'-' if not index else index['spec'] + ' over ' + index['over']}")
-
-
-def _description(options: dict[str, Any], device: str):
-    """The FrameDescription of the extraction options, and describe()'s remaining keyword arguments."""
-    from seqvpr.maps import FrameDescription
-
-    descriptor, patchnorm, extraction = extraction_settings(options, device)
-    extractor = extraction.pop("extractor")
-    extraction.pop("device")
-    source = click.get_current_context().get_parameter_source("image_size")
-    size = None if source in (click.core.ParameterSource.DEFAULT, None) else parse_thumbnail(options["image_size"])
-    return FrameDescription(descriptor, patchnorm, extractor, size), extraction
 
 
 def _models(folders: tuple[str, ...], device: str) -> dict:

@@ -417,3 +417,15 @@ def given_image_size(options: dict[str, Any]) -> tuple[int, int] | None:
     if source in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None):
         return None
     return parse_thumbnail(options["image_size"], "--image-size")
+
+
+def frame_description(options: dict[str, Any], device: str):
+    """The FrameDescription of the extraction options, and describe()'s remaining keyword arguments."""
+    from seqvpr.maps import FrameDescription
+
+    descriptor, patchnorm, extraction = extraction_settings(options, device)
+    extractor = extraction.pop("extractor")
+    extraction.pop("device")
+    source = click.get_current_context().get_parameter_source("image_size")
+    size = None if source in (click.core.ParameterSource.DEFAULT, None) else parse_thumbnail(options["image_size"])
+    return FrameDescription(descriptor, patchnorm, extractor, size), extraction

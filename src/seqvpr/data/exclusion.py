@@ -79,9 +79,9 @@ def eligible_limits(exclusion: Exclusion, sessions: np.ndarray, timestamps: np.n
         clock = _clock(exclusion, sessions, timestamps, positions, where)
         own = np.empty(len(sessions), np.int64)
         for first, last in _session_runs(starts):
-            part = clock[first:last]
-            # eligible: part[j] < part[i] - value (strictly more than ``value`` before), found in sorted order
-            own[first:last] = first + np.searchsorted(np.maximum.accumulate(part), part - exclusion.value, "left")
+            part = np.maximum.accumulate(clock[first:last])  # a clock that steps back holds its latest value
+            # eligible: part[j] < part[i] - value (strictly more than ``value`` before)
+            own[first:last] = first + np.searchsorted(part, part - exclusion.value, "left")
     return np.maximum.accumulate(np.maximum(np.minimum(own, rows), starts))
 
 

@@ -133,6 +133,23 @@ def make_drive(traversals: Sequence[Traversal], names: Sequence[str] | None = No
     return Drive(frames, sessions, tuple(names[i] for i in order))
 
 
+def load_drive(sources: Sequence[str], description: Any = None, models: Mapping[str, Any] | None = None, *,
+               frames: str | None = None, device: str = "cpu", progress: ProgressFactory | None = None,
+               **extraction: Any) -> Drive:
+    """Each source read (cut to source frames ``START:STOP`` when given) and described as a map's frames are
+    (``maps.build.describe_frames``: descriptor files as they are, images through ``description`` or an image
+    model among ``models``), as the sessions of one drive."""
+    from seqvpr.data.sources import load_traversal
+    from seqvpr.data.traversal import slice_frame_range
+    from seqvpr.maps.build import FrameDescription, describe_frames, with_default_cache
+
+    description = description or FrameDescription()
+    extraction = with_default_cache(description, dict(models or {}), extraction)
+    parts = [describe_frames(slice_frame_range(load_traversal(source, "query"), frames), description,
+                             dict(models or {}), device, progress, **extraction) for source in sources]
+    return make_drive(parts, [str(source) for source in sources])
+
+
 def loop_limits(drive: Drive, exclusion: Exclusion) -> np.ndarray:
     """Each frame's eligible rows ``[0, limit)``."""
     frames = drive.frames
@@ -191,7 +208,7 @@ def loop_score(indices: np.ndarray, distances: np.ndarray, exclusion: int) -> fl
     no rival is not a sure one."""
     from seqvpr.sequences.topk import other_place, uniqueness_ratio
 
-    if other_place(indices, distances, exclusion)[0] < 0 and not np.isfinite(distances).all():
+    if other_place(indices, distances, exclusion)[0] < 0 and np.isfinite(distances).sum() < 2 * exclusion + 2:
         return 0.0
     return uniqueness_ratio(indices, distances, exclusion)
 

@@ -1,0 +1,237 @@
+"""Loop closures a frame at a time: ``LoopDetector`` takes each new frame's descriptor, matches the window that ends
+at it against every earlier window outside the exclusion (``seqvpr.localization.loops``' settings, limits and
+score), and then adds the frame to the past it searches. A replayed drive gives what ``find_loops`` gives.
+
+    detector = LoopDetector(LoopSettings(seq_len=5, exclude="30s"))
+    for descriptor, stamp in camera:
+        loop = detector.update(descriptor, timestamp=stamp)
+        if loop.accepted:
+            back_end.add_loop(loop.frame, loop.match)
+
+The past grows by one row a frame, appended in amortised O(1) (``GrowingRows``: capacity doubled, memory-mapped
+once it passes ``memory_budget``); per frame the cost is one distance pass over the past and one pass over the
+last L distance rows, as for the localiser.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from seqvpr.data.exclusion import Exclusion, parse_exclusion
+from seqvpr.errors import SeqvprError
+from seqvpr.localization.loops import DEFAULT_FRAMES, DEFAULT_SECONDS, LoopSettings, loop_score
+from seqvpr.matchers.rows import frame_row, frame_transform
+from seqvpr.sequences.topk import best_k
+
+#: bytes of past rows kept in memory before they go to a memory-mapped file
+DEFAULT_BUDGET = 1024**3
+
+
+@dataclass(frozen=True)
+class Loop:
+    """One frame's loop: its row in the drive, the best eligible earlier frame (``match``, -1 when none), its
+    sequence distance, the score and whether it is accepted; the sessions of both."""
+
+    frame: int
+    match: int
+    distance: float
+    score: float
+    accepted: bool
+    session: int
+    match_session: int
+
+
+class GrowingRows:
+    """Rows [n, width] appended one at a time with amortised O(1) cost: the capacity doubles, in memory up to
+    ``budget`` bytes, then in a memory-mapped file in ``folder`` (a temporary one unless given)."""
+
+    def __init__(self, width: int, dtype: Any = np.float32, budget: int = DEFAULT_BUDGET,
+                 folder: str | Path | None = None) -> None:
+        self.width, self.dtype, self.budget, self.folder = width, np.dtype(dtype), budget, folder
+        self.data = np.zeros((16, width), self.dtype) if width else np.zeros(16, self.dtype)
+        self.count = 0
+        self._file: Any = None
+
+    def __len__(self) -> int:
+        return self.count
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The rows so far (a view; a later append may move them)."""
+        return self.data[: self.count]
+
+    def append(self, row: Any) -> None:
+        if self.count == len(self.data):
+            self._grow(2 * len(self.data))
+        self.data[self.count] = row
+        self.count += 1
+
+    def _grow(self, capacity: int) -> None:
+        shape = (capacity, self.width) if self.width else (capacity,)
+        if capacity * max(self.width, 1) * self.dtype.itemsize <= self.budget:
+            grown = np.zeros(shape, self.dtype)
+        else:
+            folder = self.folder or tempfile.gettempdir()
+            self._file = tempfile.NamedTemporaryFile(dir=folder, prefix="seqvpr-loops-", suffix=".bin")
+            grown = np.memmap(self._file, self.dtype, "w+", shape=shape)
+        grown[: self.count] = self.data[: self.count]
+        self.data = grown
+
+
+class LoopDetector:
+    """Loop closures over a drive that grows a frame at a time (``update``); ``new_session`` and ``new_segment``
+    mark where windows may not continue; ``state``/``load_state`` save and resume it (a restarted robot)."""
+
+    def __init__(self, settings: LoopSettings = LoopSettings(), models: dict[str, Any] | None = None, *,
+                 memory_budget: int = DEFAULT_BUDGET, folder: str | Path | None = None) -> None:
+        self.settings, self.transform = settings, frame_transform(models or {})
+        self.length = settings.window
+        self.memory_budget, self.folder = memory_budget, folder
+        self.rows: GrowingRows | None = None  # made at the first frame, when the width is known
+        self.sessions = GrowingRows(0, np.int64)
+        self.segments = GrowingRows(0, np.int64)
+        self.clock = GrowingRows(0, np.float64)  # running maximum of seconds or metres along the session
+        self.limits = GrowingRows(0, np.int64)
+        self.ring: list[np.ndarray] = []  # the last L frames' distances to every earlier frame
+        self.session, self.segment, self.since_break, self.position = 0, 0, 0, None
+        self.exclusion: Exclusion | None = None if settings.exclude is None else parse_exclusion(settings.exclude)
+
+    def new_session(self) -> None:
+        """The next frame starts a new session (another drive): the earlier sessions are eligible whole."""
+        if len(self.sessions):
+            self.session += 1
+            self.new_segment()
+
+    def new_segment(self) -> None:
+        """The next frame starts a new segment: no window spans the break."""
+        if len(self.segments):
+            self.segment += 1
+            self.since_break = 0
+
+    def update(self, descriptor: Any, timestamp: float | None = None, position: Any = None) -> Loop:
+        """Match the window ending at this frame against the eligible past, then add the frame to the past."""
+        row = frame_row(descriptor, self.transform, True).numbers.copy()
+        self._enter(row, timestamp, position)
+        frame = len(self.sessions) - 1
+        distances = self._distances_to_past(row)
+        self.ring = [*self.ring[-(self.length - 1):], distances] if self.length > 1 else [distances]
+        if self.since_break < self.length:
+            return self._loop(frame, -1, np.inf, 0.0)
+        indices, values = self._ranked(int(self.limits.rows[frame]))
+        score = loop_score(indices, values, self.settings.exclusion) if indices[0] >= 0 else 0.0
+        return self._loop(frame, int(indices[0]), float(values[0]), score)
+
+    def _enter(self, row: np.ndarray, timestamp: float | None, position: Any) -> None:
+        """The frame's row, session, segment, clock and eligible limit appended."""
+        if self.rows is None:
+            self.rows = GrowingRows(len(row), np.float32, self.memory_budget, self.folder)
+        elif len(row) != self.rows.width:
+            raise SeqvprError(f"a frame of {len(row)} values for a drive of {self.rows.width}-D frames")
+        self.exclusion = self.exclusion or parse_exclusion(DEFAULT_SECONDS if timestamp is not None
+                                                           else DEFAULT_FRAMES)
+        start = self._session_start()
+        self.clock.append(self._clock_value(timestamp, position, start))
+        self.rows.append(row)
+        self.sessions.append(self.session)
+        self.segments.append(self.segment)
+        self.since_break += 1
+        self.limits.append(self._limit(start))
+
+    def _session_start(self) -> int:
+        """The row the current session began at (the next row when it begins now)."""
+        sessions = self.sessions.rows
+        if not len(sessions) or sessions[-1] != self.session:
+            return len(sessions)
+        return int(np.searchsorted(sessions, self.session, "left"))
+
+    def _clock_value(self, timestamp: float | None, position: Any, start: int) -> float:
+        """Seconds, or metres travelled since the session began (as ``exclusion.travelled``), or 0 for frames."""
+        unit = self.exclusion.unit
+        if unit == "s":
+            if timestamp is None:
+                raise SeqvprError(f"exclusion {self.exclusion} needs each frame's timestamp")
+            value = float(timestamp)
+        elif unit == "m":
+            if position is None:
+                raise SeqvprError(f"exclusion {self.exclusion} needs each frame's position")
+            here = np.asarray(position, dtype=np.float64)
+            moved = 0.0 if start == len(self.sessions) or self.position is None else \
+                float(np.linalg.norm(here - self.position))
+            value = (self.clock.rows[-1] if start < len(self.sessions) else 0.0) + moved
+            self.position = here
+        else:
+            return 0.0
+        previous = self.clock.rows[-1] if start < len(self.sessions) else -np.inf
+        return max(value, previous)
+
+    def _limit(self, start: int) -> int:
+        """The new frame's eligible rows ``[0, limit)`` (``exclusion.eligible_limits`` for the frame just added)."""
+        frame = len(self.sessions) - 1
+        if self.exclusion.unit == "f":
+            own = frame - int(np.floor(self.exclusion.value))
+        else:
+            part = self.clock.rows[start:]
+            own = start + int(np.searchsorted(part, part[-1] - self.exclusion.value, "left"))
+        limit = max(min(own, frame), start)
+        return max(limit, int(self.limits.rows[-1])) if len(self.limits) else limit
+
+    def _distances_to_past(self, row: np.ndarray) -> np.ndarray:
+        """The new frame's distances to every earlier frame (float32, clamped as ``frame_distances``)."""
+        from seqvpr.sequences.matching import frame_distances
+
+        past = self.rows.rows[:-1]
+        if not len(past):
+            return np.zeros(0, np.float32)
+        return frame_distances(torch.from_numpy(row)[None], torch.from_numpy(np.asarray(past)))[0].numpy().copy()
+
+    def _ranked(self, limit: int) -> tuple[np.ndarray, np.ndarray]:
+        """The best eligible windows (rows, mean distances), best first: the window ending at row j averages the
+        ring's rows along the diagonal; +inf where j's window would cross a segment."""
+        length, k = self.length, self.settings.ranked()
+        if limit < length:
+            return np.full(1, -1), np.full(1, np.inf)
+        ends = np.arange(length - 1, limit)
+        sums = np.zeros(len(ends), np.float64)
+        for back in range(length):  # oldest first
+            sums += self.ring[back][ends - (length - 1) + back]
+        segments = self.segments.rows
+        means = np.where(segments[ends - length + 1] == segments[ends], sums / length, np.inf)
+        indices, values = best_k(means, k)
+        return np.where(indices >= 0, indices + length - 1, -1), values
+
+    def _loop(self, frame: int, match: int, distance: float, score: float) -> Loop:
+        sessions = self.sessions.rows
+        found = match >= 0 and np.isfinite(distance)
+        return Loop(frame, match if found else -1, distance if found else np.inf, score if found else 0.0,
+                    bool(found and score >= self.settings.accept), int(sessions[frame]),
+                    int(sessions[match]) if found else -1)
+
+
+def replay_loops(drive, settings: LoopSettings = LoopSettings(), models: dict[str, Any] | None = None,
+                 **options: Any):
+    """A drive (``loops.Drive``) fed to a ``LoopDetector`` frame by frame, a new session or segment where the
+    drive's change: the ``Loops`` that ``find_loops`` gives for it."""
+    from seqvpr.localization.loops import Loops
+
+    frames = drive.frames
+    detector = LoopDetector(settings, models, **options)
+    detector.exclusion = settings.exclusion_for(frames)
+    rows, segments = frames.descriptors, np.asarray(frames.segment_ids)
+    found = []
+    for i in range(len(frames)):
+        if i and drive.sessions[i] != drive.sessions[i - 1]:
+            detector.new_session()
+        elif i and segments[i] != segments[i - 1]:
+            detector.new_segment()
+        stamp = None if frames.timestamps is None else float(frames.timestamps[i])
+        position = None if frames.positions is None else frames.positions[i]
+        found.append(detector.update(np.asarray(rows[i : i + 1])[0], stamp, position))
+    column = lambda name, dtype: np.array([getattr(loop, name) for loop in found], dtype)  # noqa: E731
+    return Loops(drive, settings, detector.exclusion, detector.limits.rows.copy(), column("match", np.int64),
+                 column("distance", np.float64), column("score", np.float64), column("accepted", bool))
