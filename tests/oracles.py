@@ -184,3 +184,22 @@ def loops_by_plain_loop(rows, segments, limits, length):
                     found = (j, value)
         best.append(found)
     return np.array([b[0] for b in best]), np.array([b[1] for b in best])
+
+
+def loops_from_distance_matrix(distances, segments, limits, length):
+    """``loops_by_plain_loop`` over a given frame-distance matrix [N, N] (float64): for each frame, each eligible
+    window's mean along its diagonal, summed term by term; the best (lowest row on ties), or (-1, inf)."""
+    match, best = np.full(len(distances), -1), np.full(len(distances), math.inf)
+    has_window = np.array([window_start(segments, j, length, length - 1, "drop") is not None
+                           for j in range(len(distances))])
+    for i in range(len(distances)):
+        if not has_window[i] or limits[i] < length:
+            continue
+        ends = np.arange(length - 1, limits[i])
+        total = np.zeros(len(ends))
+        for k in range(length):
+            total += distances[i - k, ends - k]
+        means = np.where(has_window[ends], total / length, math.inf)
+        if np.isfinite(means).any():
+            match[i], best[i] = ends[int(np.argmin(means))], float(means.min())
+    return match, best

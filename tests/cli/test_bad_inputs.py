@@ -238,6 +238,15 @@ CASES = {
     "match: an engine seqvpr does not have": ((*M, "--engine", "tensorrt"), "'--engine'"),
     "export: a model folder that describes no images": (("export", "{w}/not_a_model", "--out", "{out}.onnx"),
                                                         "not_a_model"),
+    # --- loop closures (issue 46)
+    "loops: an exclusion without a unit": (("loops", "{w}/qry.npz", "--exclude", "30", "--out", "{out}"), "--exclude"),
+    "loops: a negative exclusion": (("loops", "{w}/qry.npz", "--exclude=-5f", "--out", "{out}"), "must not be negative"),
+    "loops: seconds for a drive without timestamps": (("loops", "{w}/ref32.npz", "--exclude", "10s", "--out", "{out}"),
+                                                      "needs timestamps"),
+    "loops: a radius in metres for a drive without positions": (("loops", "{w}/ref32.npz", "--radius", "5m", "--out",
+                                                                 "{out}"), "no positions"),
+    "loops: a method that does not step": (("loops", "{w}/qry.npz", "--method", "hmm", "--out", "{out}"), "'--method'"),
+    "loops: a window longer than the drive": (("loops", "{w}/qry.npz", "-L", "500", "--out", "{out}"), "500"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }
