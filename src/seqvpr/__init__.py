@@ -25,6 +25,8 @@ EXPORTS = {
     "MatchSettings": "seqvpr.sequences.match_settings", "SequenceSpec": "seqvpr.sequences.windows",
     "build_map": "seqvpr.maps.build", "open_map": "seqvpr.maps.files",
     "Localizer": "seqvpr.localization.localizer",
+    "loops": "seqvpr.localization.loops", "LoopSettings": "seqvpr.localization.loops",
+    "LoopDetector": "seqvpr.localization.loop_detector",
 }
 __all__ = ["SeqvprError", "__version__", *EXPORTS]
 

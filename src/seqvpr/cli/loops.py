@@ -1,6 +1,6 @@
 """``seqvpr loops``: loop closures within a drive (several drives: sessions), written as ``loops.csv``, a stamp-pair
 edge file and ``run.json``, with recall at 100 % precision and PR-AUC where ground truth exists. Parse, call the
-library (``seqvpr.api.loops``), print."""
+library (``seqvpr.localization.loops``: ``loops``), print."""
 
 from __future__ import annotations
 
@@ -51,13 +51,13 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
     """Find loop closures in SOURCES: for each frame, the best earlier frame outside --exclude by causal sequence
     matching (each source a session, in time order; earlier sessions are eligible whole). Writes loops.csv (a row
     per frame), loops_tum.txt (accepted loops as stamp pairs) and run.json."""
-    import seqvpr.api
+    from seqvpr.localization.loops import loops as find_drive_loops
     from seqvpr.io import check_out_folder
     from seqvpr.localization.loop_files import RUN_FILE, loop_summary, write_loops
 
     check_out_folder(out_dir, RUN_FILE, [*sources, *model_dirs])
     description, extraction = frame_description(options, device)
-    found, scored = seqvpr.api.loops(sources, method=method, seq_len=seq_len, exclude=exclude, exclusion=exclusion,
+    found, scored = find_drive_loops(sources, method=method, seq_len=seq_len, exclude=exclude, exclusion=exclusion,
                                      threshold=threshold, radius=radius, models=model_dirs or None,
                                      description=description, frames=frames, progress=tqdm_progress, **extraction)
     write_loops(out_dir, found, scored, {"sources": list(sources)})

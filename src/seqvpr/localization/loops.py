@@ -1,4 +1,4 @@
-"""Loop closures within a drive: for each frame, causal sequence matching against every earlier frame of the drive
+"""Loop closures within a drive (``seqvpr.cli.loops`` is its command): for each frame, causal sequence matching against every earlier frame of the drive
 outside an exclusion of the recent past (``seqvpr.data.exclusion``), and, over several sessions, against the
 earlier sessions whole. The one matching kernel does it (``sequence_topk`` with per-frame row limits: the triangle
 of the drive against itself, never the square); ``seqvpr.localization.loop_detector.LoopDetector`` does the same a
@@ -235,3 +235,43 @@ def eligible_positive(positives, limits: np.ndarray) -> np.ndarray:
     has = np.diff(indptr) > 0
     first[has] = indices[indptr[:-1][has]]  # sorted indices: a row's first positive is its smallest
     return first < limits
+
+
+def loops(
+    sources: Sequence[str] | str,
+    *,
+    method: str = "matching",
+    seq_len: int = 5,
+    exclude: str | None = None,
+    exclusion: int = 10,
+    threshold: float | None = None,
+    radius: str | None = None,
+    models: Any = None,
+    description: Any = None,
+    frames: str | None = None,
+    memory_budget: int | None = None,
+    progress: ProgressFactory | None = None,
+    **extraction: Any,
+):
+    """Loop closures over one drive, or several as sessions in time order (``seqvpr.localization.loops``): each
+    frame's best earlier frame outside ``exclude`` (``30s``, ``200f``, ``50m``) by causal sequence matching, its
+    score and acceptance, and, with ``radius`` (``25m``, ``2f``), which are right with the PR curve over the score.
+    Returns (``Loops``, ``ScoredLoops`` or None)."""
+    from seqvpr.api import load_models
+    from seqvpr.features.describe import check_extraction_settings
+
+    from seqvpr.data.ground_truth import parse_radius
+    from seqvpr.methods import check_run
+
+    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold)  # checked before anything is read
+    listed = checks.paths(sources, "sources")
+    unit = None if radius is None else parse_radius(checks.text(radius, "radius")).unit
+    check_extraction_settings(**extraction)
+    loaded = load_models(models)
+    check_run(method, loaded)
+    drive = load_drive(listed, description, loaded, frames=frames, progress=progress, **extraction)
+    if unit == "m" and drive.frames.positions is None:
+        raise SettingError(f"{drive.frames.source or drive.frames.name}: {{radius}} {radius} is in metres but the "
+                           "drive has no positions (use frames, e.g. 2f)")
+    found = find_loops(drive, settings, loaded, memory_budget=memory_budget, progress=progress)
+    return found, (score_loops(found, radius) if radius is not None else None)

@@ -263,14 +263,12 @@ def sequence_topk(
     """Top-K references per query by sequence distance, computed in query blocks (with a halo of L - 1 rows) and,
     when the budget asks for it, reference chunks (with a halo of the longest window on both sides).
 
-    ``limits`` [n_query] (non-decreasing) keeps query i to reference windows ending before row ``limits[i]`` (a drive
-    against its own past: loop closures); a block reads the reference only up to its largest limit, so a drive
-    against itself costs the triangle, never the square.
-
     With ``memory_budget`` (bytes) no block's distance matrix exceeds the budget, so the full
     n_query x n_reference matrix is never held. ``reference`` is a tensor or an array of rows; an ``np.memmap``
     is read one chunk at a time (converted to the query's dtype and device), so a map on disk is never loaded
     whole; ``chunk`` fixes the reference frames per chunk. Descriptors are used as given (normalise them before).
+    ``limits`` [n_query] (non-decreasing) keeps query i to windows ending before row ``limits[i]`` (a drive against
+    its past: loop closures), each block reading up to its largest: the triangle, never the square.
     """
     n_q, n_r = len(query), len(reference)
     q_seg, r_seg = _segments(query_segments, n_q), _segments(reference_segments, n_r)
@@ -285,8 +283,7 @@ def sequence_topk(
     rows, columns = block_shape(n_q, n_r, spec, query.element_size(), memory_budget, in_memory=_in_memory(reference))
     if chunk is not None:
         columns = max(1, min(int(chunk), n_r))
-    if limits is not None:
-        limits = check_limits(limits, n_q, n_r)
+    limits = None if limits is None else check_limits(limits, n_q, n_r)
     for begin in range(0, n_q, rows):
         end = min(begin + rows, n_q)
         starts = q_starts[begin:end]
