@@ -159,6 +159,15 @@ def _map(d: Path, capsys) -> None:
     assert run_cli(pytest.MonkeyPatch(), capsys, "map", "build", d / "a" / "ref.npz", "--out", d / "map")[0] == 0
 
 
+def _map_check(d: Path, capsys) -> None:
+    """The map opens whole, as built (one session) or grown (two), its files as map.json records them."""
+    from seqvpr.maps.files import open_map
+
+    saved = open_map(d / "map")
+    assert saved.info.count in (60, 120) and len(saved.descriptors[:]) == saved.info.count
+    assert run_cli(pytest.MonkeyPatch(), capsys, "map", "check", d / "map")[0] == 0
+
+
 M = ("match", "-r", "{d}/a/ref.npz", "-q", "{d}/a/qry.npz", "--radius", "10m", "--out", "{d}/o")
 L = ("localize", "--map", "{d}/map", "-q", "{d}/a/qry.npz", "--out", "{d}/lo")
 C = ("convert", "--to", "dbstruct", "--out", "{d}/db/route.db")
@@ -166,6 +175,8 @@ C = ("convert", "--to", "dbstruct", "--out", "{d}/db/route.db")
 WRITERS = {
     "match": (_route, (*M, "-L", "3"), (*M, "-L", "5", "--velocities", "0.9,1.1"), "o", _match_check),
     "localize": (_map, (*L, "-L", "3", "--radius", "10m"), (*L, "-L", "5"), "lo", _localize_check),
+    "map add": (_route, ("map", "build", "{d}/a/ref.npz", "--out", "{d}/map"),
+                ("map", "add", "{d}/map", "{d}/a/qry.npz"), "map", _map_check),
     "convert": (_images, (*C, "-r", "{d}/a/ref.npz", "-q", "{d}/a/qry.npz", "--radius", "10m"),
                 (*C, "-r", "{d}/ri", "-q", "{d}/qi", "--radius", "2f"), "db", _convert_check),
     "benchmark tables": (None, ("@tables", "{d}/b", "old"), ("@tables", "{d}/b", "new"), "b",

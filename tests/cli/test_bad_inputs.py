@@ -247,6 +247,13 @@ CASES = {
                                                                  "{out}"), "no positions"),
     "loops: a method that does not step": (("loops", "{w}/qry.npz", "--method", "hmm", "--out", "{out}"), "'--method'"),
     "loops: a window longer than the drive": (("loops", "{w}/qry.npz", "-L", "500", "--out", "{out}"), "500"),
+    # --- maps that grow (issue 46)
+    "map add: frames of another dimension": (("map", "add", "{w}/map", "{w}/ref32.npz"), "32-D"),
+    "map add: a source the map holds": (("map", "add", "{w}/map", "{w}/ref.npz"), "already in the map"),
+    "map add: images to a map of descriptor files": (("map", "add", "{w}/map", "{w}/imgs"), "holds descriptor files"),
+    "map add: a model the map was not built through": (("map", "add", "{w}/map", "{w}/qry.npz", "--model",
+                                                        "{w}/not_a_model"), "not_a_model"),
+    "map add: no such map": (("map", "add", "{w}/nomap", "{w}/qry.npz"), "nomap"),
     # --- the command itself
     "unknown command": (("nope",), "No such command"),
 }

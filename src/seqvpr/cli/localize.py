@@ -188,7 +188,8 @@ def _report(options: dict[str, Any], localizer, run, gt, k_values) -> None:
     scores = score_replay(run, gt, k_values) if gt is not None else None
     summary = _summary(options, localizer, run, scores)
     with atomic_folder(Path(options["out_dir"]), RUN_FILE) as tmp:
-        write_stream(tmp / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None)
+        write_stream(tmp / "stream.csv", run, localizer.saved.frames, correct_best(run, gt) if gt is not None else None,
+                     localizer.saved.sessions_of_rows)
         if scores is not None:
             _write_page(tmp / "report", summary, run, gt, localizer)
         (tmp / RUN_FILE).write_text(json.dumps(summary, indent=2))

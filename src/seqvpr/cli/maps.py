@@ -231,7 +231,45 @@ def info(map_dir: str, as_json: bool) -> None:
     for source in values["sources"]:
         click.echo(f"  source {source['source']} ({source['name']}): rows {source['first']}.."
                    f"{source['first'] + source['frames'] - 1}")
+    _echo_sessions(saved.info)
     _echo_shards(map_dir)
+
+
+def _echo_sessions(info) -> None:
+    """The map's sessions: name, frames, sources, when added."""
+    from seqvpr.maps.parts import sessions_of
+
+    sessions = sessions_of(info)
+    click.echo(f"{'sessions:':17}{len(sessions)}")
+    for session in sessions:
+        sources = ", ".join(info.sources[i].source for i in session["sources"])
+        click.echo(f"  session {session['name']}: {session['frames']} frames from row {session['first']}, "
+                   f"added {session['added'] or '-'} ({sources})")
+
+
+@map_group.command(name="add", cls=SectionedCommand, sections=("Input", "Descriptors", "Compute"))
+@click.argument("map_dir", type=click.Path())
+@click.argument("sources", nargs=-1, required=True)
+@option("Input", "--session", help="The name of the session the sources become.  [default: session-N]")
+@option("Input", "--frames", help="Keep source frames START:STOP of every source (e.g. 17:2000).")
+@option("Descriptors", "--model", "model_dirs", type=click.Path(), multiple=True,
+        help="The model(s) the map was built through (the map refuses others).")
+@section("Descriptors", extraction_options)
+@option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@section("Input", bag_topic_options("sources"))
+@locks_output("map_dir")
+def add(map_dir: str, sources: tuple[str, ...], session: str | None, frames: str | None,
+        model_dirs: tuple[str, ...], device: str, **options: Any) -> None:
+    """Append SOURCES to the map MAP_DIR as one new session, described as the map's frames were: only the new rows
+    are written (the map's own are linked), a frame index gains them, and the grown map replaces the old as one."""
+    from seqvpr.maps.grow import add_to_map
+
+    _, extraction = frame_description(options, device)
+    grown = add_to_map(map_dir, list(sources), session, _models(model_dirs, device), device=device,
+                       progress=tqdm_progress, frames=frames, **extraction)
+    added = grown.info.sessions[-1]
+    click.echo(f"{map_dir}: session {added['name']} added, {added['frames']} frames (rows {added['first']}.."
+               f"{added['first'] + added['frames'] - 1}); the map now holds {grown.info.count} frames")
 
 
 @map_group.command(name="check")

@@ -44,11 +44,13 @@ def write_predictions(
     distances: np.ndarray,
     correct: np.ndarray,
     has_positive: np.ndarray,
+    sessions: list[str] | None = None,
 ) -> None:
-    """Write one row per query; ``references`` hold source frame indices (-1 entries are dropped)."""
+    """Write one row per query; ``references`` hold source frame indices (-1 entries are dropped); with ``sessions``
+    (a map's), a last column names the session of each query's best map frame."""
     with atomic_write(path, newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(COLUMNS)
+        writer.writerow([*COLUMNS, *(["reference_session"] if sessions is not None else [])])
         for i in range(len(query_frames)):
             ok = references[i] >= 0
             writer.writerow(
@@ -58,6 +60,7 @@ def write_predictions(
                     " ".join(str(int(r)) for r in references[i][ok]),
                     " ".join(f"{d:.6g}" for d in distances[i][ok]),
                     (str(int(correct[i])) if has_positive[i] else ""),
+                    *([sessions[i]] if sessions is not None else []),
                 ]
             )
 
@@ -124,8 +127,9 @@ def save_match_predictions(path: str | Path, result: MatchResult, gt: GroundTrut
     refs = np.where(top.indices[rows] >= 0, ref_frames[np.maximum(top.indices[rows], 0)], -1)
     names = result.query.frame_names()
     correct = gt.contains(rows, top.indices[rows, 0])
+    sessions = getattr(result.reference, "sessions_of_rows", None)  # a saved map's: each row's session
     write_predictions(path, result.query.frame_index[rows], [names[i] for i in rows], refs, top.distances[rows],
-                      correct, gt.has_positive()[rows])
+                      correct, gt.has_positive()[rows], sessions(top.indices[rows, 0]) if sessions else None)
 
 
 CORRESPONDENCE_COLUMNS = ("query", "position", "query_frame", "reference_frame", "correct")

@@ -162,20 +162,24 @@ def latency_percentiles(run: Replay) -> dict[str, dict[str, float]]:
 
 
 STREAM_COLUMNS = ("frame", "query_frame", "timestamp", "status", "score", "localised_row", "localised_frame", "x", "y",
-                  "latitude", "longitude", "best_row", "best_frame", "kept", *(f"{s}_ms" for s in STAGES), "correct")
+                  "latitude", "longitude", "best_row", "best_frame", "kept", *(f"{s}_ms" for s in STAGES), "correct",
+                  "best_session")
 
 
-def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.ndarray | None = None) -> None:
+def write_stream(path: str | Path, run: Replay, reference: Traversal, right: np.ndarray | None = None,
+                 sessions_of=None) -> None:
     """One row per query frame: status and score; the localised map frame (as a map row and as a frame of its
     source, the numbering ``predictions.csv`` uses) and its position (and latitude/longitude when the map's
     positions are UTM), empty unless the frame is localised; the
-    best-scoring map frame whatever the status (empty while warming up); latencies; whether the best is right."""
+    best-scoring map frame whatever the status (empty while warming up); latencies; whether the best is right; the
+    session of the best map frame (``sessions_of(rows)``: the map's, ``SavedMap.sessions_of_rows``)."""
     with atomic_write(path, newline="") as handle:
         out = csv.writer(handle)
         out.writerow(STREAM_COLUMNS)
         latlon = None if reference.positions is None else utm_to_latlon(reference.positions, reference.crs)
-        for i in range(len(run.best)):
-            out.writerow(_stream_row(run, reference, latlon, right, i))
+        sessions = sessions_of or (lambda rows: [""] * len(rows))
+        for i, session in enumerate(sessions(np.asarray(run.best))):
+            out.writerow([*_stream_row(run, reference, latlon, right, i), session])
 
 
 def _stream_row(run: Replay, reference: Traversal, latlon: np.ndarray | None, right: np.ndarray | None, i: int) -> list:

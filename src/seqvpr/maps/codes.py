@@ -127,13 +127,30 @@ def _coder(rows, kind: str, m: int, seed: int):
         ranges = [(block.min(axis=0), block.max(axis=0)) for _, block in row_chunks(rows)]  # one pass
         low, high = np.min([r[0] for r in ranges], axis=0), np.max([r[1] for r in ranges], axis=0)
         step = np.maximum((high - low) / 255.0, np.finfo(np.float32).tiny).astype(np.float32)
-        return (lambda block: np.clip(np.rint((block - low) / step), 0, 255).astype(np.uint8)), \
-            np.stack([low.astype(np.float32), step])
+        side = np.stack([low.astype(np.float32), step])
+        return coder_of("sq8", side), side
     import faiss
 
     quantizer = _train_product_quantizer(rows, m, seed)
     centroids = faiss.vector_to_array(quantizer.centroids).reshape(m, 256, rows.shape[1] // m)
     return (lambda block: quantizer.compute_codes(np.ascontiguousarray(block)).astype(np.uint8)), centroids
+
+
+def coder_of(storage: str, side: np.ndarray | None):
+    """The encoder a stored map was written with, from its side array: what encodes rows added to it
+    (``seqvpr.maps.grow``) exactly as its own rows were."""
+    kind, _ = parse_storage(storage)
+    if kind in PLAIN:
+        return lambda block: block.astype(kind)
+    if kind == "sq8":
+        low, step = side[0], side[1]
+        return lambda block: np.clip(np.rint((block - low) / step), 0, 255).astype(np.uint8)
+    import faiss
+
+    m, _, sub = side.shape
+    quantizer = faiss.ProductQuantizer(m * sub, m, 8)
+    faiss.copy_array_to_vector(np.ascontiguousarray(side, dtype=np.float32).ravel(), quantizer.centroids)
+    return lambda block: quantizer.compute_codes(np.ascontiguousarray(block, dtype=np.float32)).astype(np.uint8)
 
 
 def _train_product_quantizer(rows, m: int, seed: int):

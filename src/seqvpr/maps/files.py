@@ -43,10 +43,12 @@ from seqvpr.identity import check_digest, combined_identity, seal_files
 from seqvpr.io import atomic_folder
 from seqvpr.maps.codes import SIDE_FILES, decoded_rows, parse_storage, row_chunks, stored_shape, write_encoded
 from seqvpr.maps.names import FramePaths, open_names, write_names
+from seqvpr.maps.parts import is_plain_name, part_records, session_of_rows, stored_parts
 
 MAP_FORMAT = "seqvpr-map"
 MAP_VERSION = 2  # 2: map.json records each file's digest and the map's identity
-READABLE_VERSIONS = (1, 2)  # a version-1 map (no identity) still opens, unproven, with a warning
+GROWN_VERSION = 3  # 3: a map grown by ``map add``: its rows in parts, its sessions
+READABLE_VERSIONS = (1, 2, 3)  # a version-1 map (no identity) still opens, unproven, with a warning
 INFO_FILE = "map.json"
 DESCRIPTORS_FILE = "descriptors.npy"
 OPTIONAL_COLUMNS = ("positions", "timestamps", "headings")
@@ -84,6 +86,8 @@ class MapInfo:
     crs: str | None = None  # the positions' coordinate system (``seqvpr.data.geo``); None: no positions
     identity: str | None = None  # the map's content identity: a hash of its row files' digests (``files``)
     files: dict[str, str] | None = None  # each data file's content digest (``seqvpr.identity``); index files too
+    parts: tuple[tuple[str, int], ...] | None = None  # a grown map's row files and counts (``seqvpr.maps.parts``)
+    sessions: tuple[dict[str, Any], ...] | None = None  # what each ``map add`` appended (``seqvpr.maps.grow``)
 
     def to_json(self) -> dict[str, Any]:
         values = asdict(self)
@@ -175,35 +179,6 @@ def check_names(names: Sequence[str] | None, folder: str | Path) -> None:
 PER_FRAME_FILES = ("segments.npy", "frame_index.npy", "sources.npy", *(f"{c}.npy" for c in OPTIONAL_COLUMNS))
 
 
-def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[str, Any]) -> MapInfo:
-    """Rows ``[lo, hi)`` of an opened map as a map of their own in ``folder`` (which must not exist): every stored
-    file sliced as stored (codes stay the same codes), the side files copied, ``map.json`` last with ``shard``
-    (and its own digests and identity); its info returned."""
-    import shutil
-
-    folder.mkdir(parents=True)
-    stored = load_npy(saved.folder / DESCRIPTORS_FILE, mmap_mode="r")
-    np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
-    for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
-        if (saved.folder / name).is_file():
-            shutil.copyfile(saved.folder / name, folder / name)
-    rows = {}
-    for name in PER_FRAME_FILES:
-        if (saved.folder / name).is_file():
-            rows[name] = load_npy(saved.folder / name)[lo:hi]
-    kept, remapped = np.unique(rows["sources.npy"], return_inverse=True)
-    rows["sources.npy"] = remapped.astype(np.int32)
-    for name, values in rows.items():
-        np.save(folder / name, values)
-    if saved.frames.names is not None:
-        write_names(saved.frames.names[lo:hi], lambda name: open(folder / name, "wb"))
-    sources = tuple(MapSource(saved.info.sources[int(k)].source, saved.info.sources[int(k)].name,
-                              int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
-                    for i, k in enumerate(kept))
-    info = replace(saved.info, count=hi - lo, sources=sources, index=None, shard=shard)
-    return write_sealed_info(folder, info)
-
-
 @dataclass(frozen=True)
 class SavedMap:
     """An opened map: its info, its descriptors memory-mapped (never read whole) and its frames as a Traversal
@@ -240,6 +215,10 @@ class SavedMap:
     def __len__(self) -> int:
         return self.info.count
 
+    def sessions_of_rows(self, rows: np.ndarray) -> list[str]:
+        """The session each map row came in with (``seqvpr.maps.grow``; "" for -1)."""
+        return session_of_rows(self.info, rows)
+
 
 def read_map_info(folder: str | Path) -> MapInfo:
     """``map.json`` of a map folder, checked: a missing file, another format or an unknown version is one line."""
@@ -262,6 +241,9 @@ def read_map_info(folder: str | Path) -> MapInfo:
     try:
         values["sources"] = tuple(MapSource(**s) for s in values["sources"])
         values["columns"] = tuple(values.get("columns", ()))
+        if values.get("parts") is not None:
+            values["parts"] = part_records(values["parts"], values.get("count"), path)
+        values["sessions"] = None if values.get("sessions") is None else tuple(dict(v) for v in values["sessions"])
         info = MapInfo(**with_crs(values))
     except (TypeError, KeyError, AttributeError) as error:
         raise SeqvprError(f"{path}: malformed map description ({type(error).__name__}: {error})") from None
@@ -278,12 +260,6 @@ def check_manifest(info: MapInfo, path: Path) -> None:
     for name in filter(None, named):
         if not is_plain_name(name):
             raise SeqvprError(f"{path}: names the file {name!r}, which is not inside the map folder")
-
-
-def is_plain_name(name: object) -> bool:
-    """A file name with no folder part (so it stays inside the folder that names it)."""
-    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name \
-        and "\0" not in name
 
 
 def verify_map_files(folder: Path, info: MapInfo, fresh: bool = False) -> None:
@@ -324,14 +300,21 @@ def open_map(folder: str | Path) -> SavedMap:
     frames = Traversal(folder.name, column("frame_index", (info.count,), "int64"),
                        column("segments", (info.count,), "int64"), descriptors, paths, source=str(folder),
                        names=names, crs=info.crs, **optional)
-    return SavedMap(folder, info, frames)
+    return SavedMap(folder, info, frames, storage="parts" if info.parts else None)
+
+
+def stored_rows(folder: Path, info: MapInfo):
+    """The map's rows as stored (floats or codes): one memory-mapped array, or a grown map's parts chained."""
+    if info.parts:
+        return stored_parts(folder, info, lambda name, shape, dtype: _load_column(folder, name, shape, dtype, True))
+    shape, dtype = stored_shape(info.dtype, info.count, info.dim)
+    return _load_column(folder, DESCRIPTORS_FILE, shape, dtype, mmap=True)
 
 
 def _stored_rows(folder: Path, info: MapInfo):
     """The map's descriptor rows: the memory-mapped array, or its codes decoded on access (``codes``)."""
     kind, m = parse_storage(info.dtype, info.dim)
-    shape, dtype = stored_shape(info.dtype, info.count, info.dim)
-    stored = _load_column(folder, DESCRIPTORS_FILE, shape, dtype, mmap=True)
+    stored = stored_rows(folder, info)
     side = None
     if kind == "sq8":
         side = _load_column(folder, SIDE_FILES[kind], (2, info.dim), "float32")

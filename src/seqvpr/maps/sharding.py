@@ -15,11 +15,14 @@ import numpy as np
 from seqvpr.data.traversal import Traversal
 from seqvpr.errors import SettingError
 from seqvpr.identity import DigestWriter, combined_identity
+from seqvpr.arrays import load_npy
 from seqvpr.io import atomic_folder, atomic_write, check_output_apart
+from seqvpr.maps.names import write_names
 from seqvpr.maps.codes import SIDE_FILES, fit_encoder, parse_storage, stored_shape
 from seqvpr.maps.files import (
     DESCRIPTORS_FILE, INFO_FILE, SHARDS_FILE, SHARDS_FORMAT, SHARDS_VERSION, MapInfo, MapSource, ShardedMap,
-    ShardRecord, completed_info, open_map, open_sharded_map, write_frame_table, write_map, write_map_rows,
+    ShardRecord, completed_info, open_map, open_sharded_map, write_frame_table, write_map, PER_FRAME_FILES, stored_rows,
+    write_sealed_info,
 )
 
 if TYPE_CHECKING:
@@ -182,3 +185,32 @@ def _index_like(source: SavedMap, shard_folder: Path) -> None:
     method, windows = ("smoothing", 0) if over == "frames" else (over.split(":")[0], int(over.split(":")[1]))
     add_index(open_map(shard_folder), parse_index_spec(record["spec"]), int(record.get("seed", 0)), None, windows,
               method, (record.get("model") or {}).get("folder"))
+
+
+def write_map_rows(saved: SavedMap, lo: int, hi: int, folder: Path, shard: dict[str, Any]) -> MapInfo:
+    """Rows ``[lo, hi)`` of an opened map as a map of their own in ``folder`` (which must not exist): every stored
+    file sliced as stored (codes stay the same codes), the side files copied, ``map.json`` last with ``shard``
+    (and its own digests and identity); its info returned."""
+    import shutil
+
+    folder.mkdir(parents=True)
+    stored = stored_rows(saved.folder, saved.info)
+    np.save(folder / DESCRIPTORS_FILE, np.ascontiguousarray(stored[lo:hi]))
+    for name in SIDE_FILES.values():  # a frame index is not carried over: a shard is matched exactly
+        if (saved.folder / name).is_file():
+            shutil.copyfile(saved.folder / name, folder / name)
+    rows = {}
+    for name in PER_FRAME_FILES:
+        if (saved.folder / name).is_file():
+            rows[name] = load_npy(saved.folder / name)[lo:hi]
+    kept, remapped = np.unique(rows["sources.npy"], return_inverse=True)
+    rows["sources.npy"] = remapped.astype(np.int32)
+    for name, values in rows.items():
+        np.save(folder / name, values)
+    if saved.frames.names is not None:
+        write_names(saved.frames.names[lo:hi], lambda name: open(folder / name, "wb"))
+    sources = tuple(MapSource(saved.info.sources[int(k)].source, saved.info.sources[int(k)].name,
+                              int(np.argmax(remapped == i)), int(np.count_nonzero(remapped == i)))
+                    for i, k in enumerate(kept))
+    info = replace(saved.info, count=hi - lo, sources=sources, index=None, shard=shard)
+    return write_sealed_info(folder, info)
