@@ -98,3 +98,24 @@ def test_what_does_not_fit_the_map_is_one_line(files):
     raises_one_line("already in the map", add_to_map, files / "m", [str(files / "a.npz")])
     raises_one_line("outside the sq8 map's value range", add_to_map, files / "m", [str(files / "c.npz")])
     assert folder_bytes(files / "m") == before
+
+
+def test_a_frame_index_gains_the_new_rows_and_a_window_index_is_refused(files):
+    import seqvpr
+    from seqvpr.maps.index import IndexSpec, add_index
+
+    add_index(build_map([str(files / "a.npz")], files / "m"), IndexSpec("flat"))
+    grown = add_to_map(files / "m", [str(files / "b.npz")])
+    assert grown.info.index["ntotal"] == 90 and grown.info.index["map"] == grown.info.identity
+    exact = seqvpr.match(grown, str(files / "b.npz"), "matching", seq_len=3, k=5)
+    listed = seqvpr.match(open_map(files / "m"), str(files / "b.npz"), "matching", seq_len=3, k=5, shortlist=90)
+    np.testing.assert_array_equal(listed.topk.indices[:, 0], exact.topk.indices[:, 0])
+    add_index(build_map([str(files / "a.npz")], files / "w"), IndexSpec("flat"), windows=3)
+    raises_one_line("index is over windows", add_to_map, files / "w", [str(files / "b.npz")])
+
+
+def test_a_sharded_map_takes_no_map_add(files):
+    from seqvpr.maps import build_sharded_map
+
+    build_sharded_map([str(files / "a.npz")], files / "s", 2, overlap=4)
+    raises_one_line("a sharded map takes no map add", add_to_map, files / "s", [str(files / "b.npz")])
