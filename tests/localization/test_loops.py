@@ -105,3 +105,25 @@ def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, lengt
     np.testing.assert_allclose(streamed.distance[found], offline.distance[found], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(streamed.score, offline.score, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(streamed.accepted, offline.accepted)
+
+
+def test_a_detector_saved_and_restored_mid_drive_goes_on_as_if_never_stopped(tmp_path):
+    from seqvpr.localization.loop_detector import LoopDetector
+
+    rng = np.random.default_rng(1)
+    rows, stamps = rng.normal(size=(80, 8)).astype(np.float32), np.cumsum(rng.uniform(0.5, 1.5, 80))
+    settings_ = LoopSettings(seq_len=4, exclude="10s")
+    whole = LoopDetector(settings_)
+    expected = [whole.update(row, stamp) for row, stamp in zip(rows, stamps)]
+    first = LoopDetector(settings_, memory_budget=512, folder=tmp_path)
+    got = [first.update(row, stamp) for row, stamp in zip(rows[:37], stamps[:37])]
+    first.save_state(tmp_path / "state.npz")
+    second = LoopDetector(settings_)
+    second.restore(tmp_path / "state.npz")
+    got += [second.update(row, stamp) for row, stamp in zip(rows[37:], stamps[37:])]
+    assert [(g.match, g.accepted) for g in got] == [(e.match, e.accepted) for e in expected]
+    np.testing.assert_allclose([g.score for g in got], [e.score for e in expected], rtol=1e-6)
+    other = LoopDetector(LoopSettings(seq_len=5, exclude="10s"))
+    raises_one_line("other settings", other.restore, tmp_path / "state.npz")
+    (tmp_path / "junk.npz").write_bytes(b"junk")
+    raises_one_line("junk.npz", second.restore, tmp_path / "junk.npz")

@@ -31,6 +31,8 @@ from seqvpr.sequences.topk import best_k
 
 #: bytes of past rows kept in memory before they go to a memory-mapped file
 DEFAULT_BUDGET = 1024**3
+LOOP_STATE_FORMAT = "seqvpr-loop-state"
+LOOP_STATE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,16 @@ class GrowingRows:
         self.data[self.count] = row
         self.count += 1
 
+    def extend(self, rows: np.ndarray) -> None:
+        """Append several rows at once."""
+        capacity = len(self.data)
+        while capacity < self.count + len(rows):
+            capacity *= 2
+        if capacity != len(self.data):
+            self._grow(capacity)
+        self.data[self.count : self.count + len(rows)] = rows
+        self.count += len(rows)
+
     def _grow(self, capacity: int) -> None:
         shape = (capacity, self.width) if self.width else (capacity,)
         if capacity * max(self.width, 1) * self.dtype.itemsize <= self.budget:
@@ -101,6 +113,76 @@ class LoopDetector:
         self.ring: list[np.ndarray] = []  # the last L frames' distances to every earlier frame
         self.session, self.segment, self.since_break, self.position = 0, 0, 0, None
         self.exclusion: Exclusion | None = None if settings.exclude is None else parse_exclusion(settings.exclude)
+
+    def key(self) -> dict[str, Any]:
+        """What a saved state depends on: the settings' meaning and the exclusion in force."""
+        settings = self.settings
+        return {"method": settings.method, "length": self.length, "exclusion": settings.exclusion,
+                "threshold": settings.accept, "exclude": None if self.exclusion is None else str(self.exclusion)}
+
+    def save_state(self, path: str | Path) -> None:
+        """The grown past and where the drive stands (rows, sessions, segments, clock, limits, the last L distance
+        rows, counters), written atomically as ``.npz``: ``restore`` goes on from it after a restart."""
+        import json
+
+        from seqvpr.io import atomic_write
+
+        count = len(self.sessions)
+        ring = np.zeros((len(self.ring), max(count - 1, 0)), np.float32)
+        for row, distances in zip(ring, self.ring):
+            row[: len(distances)] = distances
+        header = {"format": LOOP_STATE_FORMAT, "version": LOOP_STATE_VERSION, "settings": self.key(),
+                  "session": self.session, "segment": self.segment, "since_break": self.since_break}
+        arrays = {"rows": self.rows.rows if self.rows is not None else np.zeros((0, 0), np.float32),
+                  "sessions": self.sessions.rows, "segments": self.segments.rows, "clock": self.clock.rows,
+                  "limits": self.limits.rows, "ring": ring, "ring_lengths": np.array([len(r) for r in self.ring]),
+                  "position": np.asarray(self.position if self.position is not None else [], np.float64)}
+        with atomic_write(path, "wb") as handle:
+            np.savez(handle, header=np.array(json.dumps(header)), **arrays)
+
+    def restore(self, path: str | Path) -> None:
+        """Go on from a state ``save_state`` wrote with these settings; a damaged file, another format or other
+        settings is one line naming it, and the detector stays as it was."""
+        import json
+
+        from seqvpr.arrays import open_npz
+        from seqvpr.errors import reading
+
+        with reading(path, "a loop detector state"):
+            with open_npz(path) as data:
+                header = json.loads(str(data["header"]))
+                arrays = {k: data[k] for k in data.files if k != "header"}
+        if not isinstance(header, dict) or header.get("format") != LOOP_STATE_FORMAT or \
+                header.get("version") != LOOP_STATE_VERSION:
+            raise SeqvprError(f"{path}: not a loop detector state of this seqvpr (format {LOOP_STATE_FORMAT} "
+                              f"version {LOOP_STATE_VERSION})")
+        saved = header.get("settings") or {}
+        if saved.get("exclude") is not None and self.exclusion is None:
+            self.exclusion = parse_exclusion(saved["exclude"])
+        if saved != self.key():
+            raise SeqvprError(f"{path}: saved with other settings ({saved}; these: {self.key()})")
+        self._load_arrays(path, arrays)
+        self.session, self.segment, self.since_break = (int(header[k]) for k in ("session", "segment", "since_break"))
+
+    def _load_arrays(self, path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+        """The saved past, checked: one count across the per-frame arrays, finite rows, a ring that fits."""
+        count = len(arrays["sessions"])
+        rows, ring, lengths = arrays["rows"], arrays["ring"], arrays["ring_lengths"]
+        sound = all(len(arrays[k]) == count for k in ("segments", "clock", "limits")) and \
+            (count == 0 or (rows.ndim == 2 and len(rows) == count and np.isfinite(rows).all())) and \
+            len(ring) == len(lengths) <= self.length and (lengths <= max(count - 1, 0)).all()
+        if not sound:
+            raise SeqvprError(f"{path}: a loop detector state whose arrays do not agree (damaged?)")
+        self.rows = None
+        for name in ("sessions", "segments", "clock", "limits"):
+            grown = GrowingRows(0, getattr(self, name).dtype)
+            grown.extend(arrays[name])
+            setattr(self, name, grown)
+        if count:
+            self.rows = GrowingRows(rows.shape[1], np.float32, self.memory_budget, self.folder)
+            self.rows.extend(rows)
+        self.ring = [np.array(row[:n]) for row, n in zip(ring, lengths.tolist())]
+        self.position = arrays["position"] if len(arrays["position"]) else None
 
     def new_session(self) -> None:
         """The next frame starts a new session (another drive): the earlier sessions are eligible whole."""
