@@ -41,13 +41,15 @@ Examples:
 @option("Ground truth and scoring", "--radius",
         help="A match within this of the frame is right (25m with positions, 2f by frame index); adds the PR "
              "curve, recall at 100 % precision and PR-AUC.")
+@option("Output", "--report", is_flag=True, help="Also write DIR/report/index.html: the trajectory with the "
+        "accepted loops as edges (right green, wrong red) and the PR curve.")
 @section("Descriptors", extraction_options)
 @option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
 @section("Input", bag_topic_options("sources"))
 @locks_output("out_dir")
 def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: str, seq_len: int,
           model_dirs: tuple[str, ...], exclude: str | None, threshold: float | None, exclusion: int,
-          radius: str | None, device: str, **options: Any) -> None:
+          radius: str | None, report: bool, device: str, **options: Any) -> None:
     """Find loop closures in SOURCES: for each frame, the best earlier frame outside --exclude by causal sequence
     matching (each source a session, in time order; earlier sessions are eligible whole). Writes loops.csv (a row
     per frame), loops_tum.txt (accepted loops as stamp pairs) and run.json."""
@@ -60,9 +62,9 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
     found, scored = find_drive_loops(sources, method=method, seq_len=seq_len, exclude=exclude, exclusion=exclusion,
                                      threshold=threshold, radius=radius, models=model_dirs or None,
                                      description=description, frames=frames, progress=tqdm_progress, **extraction)
-    write_loops(out_dir, found, scored, {"sources": list(sources)})
+    write_loops(out_dir, found, scored, {"sources": list(sources)}, report)
     click.echo(summary_text(loop_summary(found, scored)))
-    click.echo(f"wrote {out_dir}")
+    click.echo(f"wrote {out_dir}" + (f" (report: {out_dir}/report/index.html)" if report else ""))
 
 
 def summary_text(summary: dict[str, Any]) -> str:

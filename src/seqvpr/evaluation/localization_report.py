@@ -17,7 +17,7 @@ from typing import Any
 from seqvpr.evaluation.localization_plots import (  # noqa: F401  (LocalisationTrace re-exported)
     BY_NAME, LocalizationTrace, category_counts, plot_map_view, plot_over_time,
 )
-from seqvpr.evaluation.report import page_html, summary_html
+from seqvpr.evaluation.report import figure_html, page_html, summary_html
 from seqvpr.io import atomic_folder
 
 
@@ -120,18 +120,11 @@ def _figure_sections(trace: LocalizationTrace, threshold: float, source: str, fo
     sections = []
     if trace.map_positions is not None:
         plot_map_view(trace, folder / "map.png")
-        sections += ["<h2>On the map</h2>", _figure("map.png", "estimates on the map", (
+        sections += ["<h2>On the map</h2>", figure_html("map.png", "estimates on the map", (
             "The map's positions (grey), the query's true positions (blue, where known), and each frame's estimate "
             "at its map frame's position, coloured by status."))]
     plot_over_time(trace, threshold, source, folder / "localisation.png")
-    sections += ["<h2>Over time</h2>", _figure("localisation.png", "estimate, score and latency over time", (
+    sections += ["<h2>Over time</h2>", figure_html("localisation.png", "estimate, score and latency over time", (
         "Top: the map frame of each estimate against the true one. Middle: the score against the threshold "
         f"({threshold:.4g}: {source}). Bottom: milliseconds per frame."))]
     return sections
-
-
-def _figure(src: str, alt: str, caption: str) -> str:
-    """One full-width figure with its caption."""
-    return (f'<figure class="wide"><img src="{src}" alt="{html.escape(alt, quote=True)}" style="max-width:100%">'
-            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-

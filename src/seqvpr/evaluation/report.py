@@ -261,6 +261,12 @@ def files_html(files: Sequence[tuple[str, str]], n_thumbnails: int) -> str:
     return '<ul class="files">\n' + "\n".join(items) + "\n</ul>"
 
 
+def figure_html(src: str, alt: str, caption: str) -> str:
+    """One full-width figure with its caption."""
+    return (f'<figure class="wide"><img src="{src}" alt="{html.escape(alt, quote=True)}" style="max-width:100%">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+
 def page_html(title: str, sections: Sequence[str]) -> str:
     """The whole page around the sections: inline CSS only, no scripts, nothing fetched from the network."""
     body = "\n".join(sections)

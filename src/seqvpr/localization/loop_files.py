@@ -48,13 +48,35 @@ def loop_summary(loops: Loops, scored: ScoredLoops | None) -> dict[str, Any]:
     return summary
 
 
-def write_loops(out: str | Path, loops: Loops, scored: ScoredLoops | None, record: dict[str, Any]) -> Path:
-    """The run's folder at ``out``, replacing an earlier run's (never a folder of something else)."""
+def write_loops(out: str | Path, loops: Loops, scored: ScoredLoops | None, record: dict[str, Any],
+                report: bool = False) -> Path:
+    """The run's folder at ``out``, replacing an earlier run's (never a folder of something else); with ``report``,
+    ``report/index.html`` too (the trajectory with its loops, the PR curve)."""
     with atomic_folder(out, RUN_FILE) as tmp:
         write_loops_csv(tmp / LOOPS_FILE, loops, scored)
         write_edges(tmp / EDGES_FILE, loops)
-        (tmp / RUN_FILE).write_text(json.dumps({**record, **loop_summary(loops, scored)}, indent=2) + "\n")
+        summary = loop_summary(loops, scored)
+        if report:
+            write_report(tmp / "report", loops, scored, summary)
+        (tmp / RUN_FILE).write_text(json.dumps({**record, **summary}, indent=2) + "\n")
     return Path(out)
+
+
+def write_report(folder: Path, loops: Loops, scored: ScoredLoops | None, summary: dict[str, Any]) -> Path:
+    """The loop page: the drive with its accepted loops (by position where it has positions) and the measures."""
+    from seqvpr.evaluation.loop_report import LoopTrace, write_loop_report
+
+    frames = loops.drive.frames
+    positioned = frames.positions is not None
+    where = np.asarray(frames.positions, dtype=np.float64)[:, :2] if positioned else np.zeros((len(frames), 2))
+    trace = LoopTrace(where, loops.match, loops.accepted, None if scored is None else scored.correct,
+                      None if scored is None else scored.pr.precision, None if scored is None else scored.pr.recall,
+                      positioned)
+    keys = ("frames", "with_candidates", "accepted", "true_revisits", "accepted_correct", "recall_at_100_precision",
+            "pr_auc", "exclude", "threshold")
+    metrics = [(key.replace("_", " "), str(summary[key])) for key in keys if key in summary]
+    text = f"{summary['method']} L={summary['seq_len']} over {len(summary['sessions'])} session(s)"
+    return write_loop_report(folder, title="seqvpr loops", summary=text, trace=trace, metrics=metrics)
 
 
 def write_loops_csv(path: Path, loops: Loops, scored: ScoredLoops | None) -> None:
