@@ -246,6 +246,8 @@ CASES = {
     "loops: a radius in metres for a drive without positions": (("loops", "{w}/ref32.npz", "--radius", "5m", "--out",
                                                                  "{out}"), "no positions"),
     "loops: a method that does not step": (("loops", "{w}/qry.npz", "--method", "hmm", "--out", "{out}"), "'--method'"),
+    "loops: a shortlist index that must be trained": (("loops", "{w}/qry.npz", "--shortlist", "5", "--shortlist-index",
+                                                       "ivf:16", "--out", "{out}"), "--shortlist-index"),
     "loops: a window longer than the drive": (("loops", "{w}/qry.npz", "-L", "500", "--out", "{out}"), "500"),
     # --- maps that grow (issue 46)
     "map add: frames of another dimension": (("map", "add", "{w}/map", "{w}/ref32.npz"), "32-D"),

@@ -79,8 +79,10 @@ def test_loop_settings_refuse_a_method_that_does_not_step_and_a_bad_exclusion():
 
 @settings(max_examples=30, deadline=None)
 @given(st.integers(2, 30), st.integers(1, 3), st.integers(1, 4), st.sampled_from(["0f", "3f", "2s", "1.5m"]),
-       st.integers(0, 2**31 - 1))
-def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, length, exclude, seed):
+       st.booleans(), st.integers(0, 2**31 - 1))
+def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, length, exclude, shortlisted, seed):
+    """Exhaustive, and through a flat shortlist as wide as the drive (searched a block at a time offline, a frame
+    at a time streaming)."""
     from seqvpr.localization.loop_detector import replay_loops
 
     rng = np.random.default_rng(seed)
@@ -92,7 +94,8 @@ def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, lengt
                                positions=np.cumsum(rng.normal(size=(n, 2)), axis=0), timestamps=part.timestamps,
                                source=part.name))
     drive = make_drive(parts)
-    settings_ = LoopSettings(seq_len=length, exclude=exclude)
+    settings_ = LoopSettings(seq_len=length, exclude=exclude, shortlist=n * n_sessions if shortlisted else 0,
+                             shortlist_index="flat")
     try:
         offline = find_loops(drive, settings_)
     except Exception as error:
@@ -107,12 +110,13 @@ def test_the_streaming_detector_gives_what_find_loops_gives(n, n_sessions, lengt
     np.testing.assert_array_equal(streamed.accepted, offline.accepted)
 
 
-def test_a_detector_saved_and_restored_mid_drive_goes_on_as_if_never_stopped(tmp_path):
+@pytest.mark.parametrize("shortlist", [0, 6])
+def test_a_detector_saved_and_restored_mid_drive_goes_on_as_if_never_stopped(tmp_path, shortlist):
     from seqvpr.localization.loop_detector import LoopDetector
 
     rng = np.random.default_rng(1)
     rows, stamps = rng.normal(size=(80, 8)).astype(np.float32), np.cumsum(rng.uniform(0.5, 1.5, 80))
-    settings_ = LoopSettings(seq_len=4, exclude="10s")
+    settings_ = LoopSettings(seq_len=4, exclude="10s", shortlist=shortlist)  # an HNSW shortlist's graph is saved
     whole = LoopDetector(settings_)
     expected = [whole.update(row, stamp) for row, stamp in zip(rows, stamps)]
     first = LoopDetector(settings_, memory_budget=512, folder=tmp_path)
@@ -123,7 +127,8 @@ def test_a_detector_saved_and_restored_mid_drive_goes_on_as_if_never_stopped(tmp
     got += [second.update(row, stamp) for row, stamp in zip(rows[37:], stamps[37:])]
     assert [(g.match, g.accepted) for g in got] == [(e.match, e.accepted) for e in expected]
     np.testing.assert_allclose([g.score for g in got], [e.score for e in expected], rtol=1e-6)
-    other = LoopDetector(LoopSettings(seq_len=5, exclude="10s"))
+    assert sum(g.match >= 0 for g in got) > 40
+    other = LoopDetector(LoopSettings(seq_len=5, exclude="10s", shortlist=shortlist))
     raises_one_line("other settings", other.restore, tmp_path / "state.npz")
     (tmp_path / "junk.npz").write_bytes(b"junk")
     raises_one_line("junk.npz", second.restore, tmp_path / "junk.npz")

@@ -71,3 +71,12 @@ def test_the_command_writes_what_the_library_finds(shared_data, tmp_path, monkey
     assert record["pr_auc"] == round(scored.pr.auc, 6) and f"PR-AUC {scored.pr.auc:.3f}" in out
     accepted = [line for line in open(tmp_path / "run" / "loops_tum.txt") if not line.startswith("#")]
     assert len(accepted) == int(library.accepted.sum())
+
+
+@pytest.mark.parametrize("name", ["nordland", "gardens"])
+def test_a_shortlist_of_twenty_finds_what_the_exhaustive_pass_finds(drives, name):
+    drive, radius = drives[name]
+    exhaustive = find_loops(drive, LoopSettings(seq_len=10, exclude="100f"))
+    shortlisted = find_loops(drive, LoopSettings(seq_len=10, exclude="100f", shortlist=20))
+    assert (shortlisted.match == exhaustive.match).mean() >= 0.99
+    assert score_loops(shortlisted, radius).pr.auc >= score_loops(exhaustive, radius).pr.auc - 0.01

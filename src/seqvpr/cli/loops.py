@@ -21,6 +21,7 @@ Examples:
   seqvpr loops run.bag --topic /camera/image_raw --exclude 30s --out loops/
   seqvpr loops monday/ tuesday/ --descriptor efficientnet-lite0 -L 10 --radius 15m --out loops/
   seqvpr loops drive.npz --exclude 200f --radius 2f --out loops/
+  seqvpr loops long_drive.npz --shortlist 10 --out loops/
 """
 
 
@@ -38,6 +39,12 @@ Examples:
 @option("Loops", "--threshold", type=FINITE, help="Score a loop needs to be accepted.  [default: the method's, 0.1]")
 @option("Loops", "--exclusion", type=NONNEGATIVE, default=10, show_default=True,
         help="Frames around the best that are not 'another place' for the score.")
+@option("Loops", "--shortlist", type=NONNEGATIVE, default=0, show_default=True,
+        help="For long drives: each frame's candidates are the windows its frames' S nearest eligible frames place "
+             "(a frame index that grows with the drive), re-ranked exactly: O(N S) instead of every earlier window "
+             "(0).")
+@option("Loops", "--shortlist-index", default="hnsw:32", show_default=True,
+        help="The growing frame index of --shortlist: hnsw:M (approximate, fast) or flat (exact).")
 @option("Ground truth and scoring", "--radius",
         help="A match within this of the frame is right (25m with positions, 2f by frame index); adds the PR "
              "curve, recall at 100 % precision and PR-AUC.")
@@ -49,7 +56,7 @@ Examples:
 @locks_output("out_dir")
 def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: str, seq_len: int,
           model_dirs: tuple[str, ...], exclude: str | None, threshold: float | None, exclusion: int,
-          radius: str | None, report: bool, device: str, **options: Any) -> None:
+          shortlist: int, shortlist_index: str, radius: str | None, report: bool, device: str, **options: Any) -> None:
     """Find loop closures in SOURCES: for each frame, the best earlier frame outside --exclude by causal sequence
     matching (each source a session, in time order; earlier sessions are eligible whole). Writes loops.csv (a row
     per frame), loops_tum.txt (accepted loops as stamp pairs) and run.json."""
@@ -60,6 +67,7 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
     check_out_folder(out_dir, RUN_FILE, [*sources, *model_dirs])
     description, extraction = frame_description(options, device)
     found, scored = find_drive_loops(sources, method=method, seq_len=seq_len, exclude=exclude, exclusion=exclusion,
+                                     shortlist=shortlist, shortlist_index=shortlist_index,
                                      threshold=threshold, radius=radius, models=model_dirs or None,
                                      description=description, frames=frames, progress=tqdm_progress, **extraction)
     write_loops(out_dir, found, scored, {"sources": list(sources)}, report)
@@ -70,7 +78,9 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
 def summary_text(summary: dict[str, Any]) -> str:
     """The run in a few lines."""
     lines = [f"frames {summary['frames']} in {len(summary['sessions'])} session(s), {summary['method']} L="
-             f"{summary['seq_len']}, exclude {summary['exclude']}: {summary['accepted']} loops accepted "
+             f"{summary['seq_len']}" + (f" (shortlist {summary['shortlist']['per_frame']}, {summary['shortlist']['index']})"
+                                 if "shortlist" in summary else "") +
+             f", exclude {summary['exclude']}: {summary['accepted']} loops accepted "
              f"(score >= {summary['threshold']:g})"]
     if "radius" in summary:
         lines.append(f"within {summary['radius']}: {summary['true_revisits']} frames revisit, "

@@ -33,6 +33,8 @@ from seqvpr.sequences.topk import best_k
 DEFAULT_BUDGET = 1024**3
 LOOP_STATE_FORMAT = "seqvpr-loop-state"
 LOOP_STATE_VERSION = 1
+STATE_ARRAYS = ("rows", "sessions", "segments", "clock", "limits", "ring", "ring_lengths", "position", "starts",
+                "neighbours", "index", "index_rows")
 
 
 @dataclass(frozen=True)
@@ -110,6 +112,9 @@ class LoopDetector:
         self.segments = GrowingRows(0, np.int64)
         self.clock = GrowingRows(0, np.float64)  # running maximum of seconds or metres along the session
         self.limits = GrowingRows(0, np.int64)
+        self.starts = GrowingRows(0, np.int64)  # each frame's window start (-1: none)
+        self.neighbours = GrowingRows(settings.shortlist, np.int64)  # with a shortlist: each frame's nearest rows
+        self.index: Any = None  # with a shortlist: the GrowingIndex over the eligible past
         self.ring: list[np.ndarray] = []  # the last L frames' distances to every earlier frame
         self.session, self.segment, self.since_break, self.position = 0, 0, 0, None
         self.exclusion: Exclusion | None = None if settings.exclude is None else parse_exclusion(settings.exclude)
@@ -118,7 +123,8 @@ class LoopDetector:
         """What a saved state depends on: the settings' meaning and the exclusion in force."""
         settings = self.settings
         return {"method": settings.method, "length": self.length, "exclusion": settings.exclusion,
-                "threshold": settings.accept, "exclude": None if self.exclusion is None else str(self.exclusion)}
+                "threshold": settings.accept, "exclude": None if self.exclusion is None else str(self.exclusion),
+                "shortlist": settings.shortlist, "shortlist_index": settings.shortlist_index}
 
     def save_state(self, path: str | Path) -> None:
         """The grown past and where the drive stands (rows, sessions, segments, clock, limits, the last L distance
@@ -136,7 +142,10 @@ class LoopDetector:
         arrays = {"rows": self.rows.rows if self.rows is not None else np.zeros((0, 0), np.float32),
                   "sessions": self.sessions.rows, "segments": self.segments.rows, "clock": self.clock.rows,
                   "limits": self.limits.rows, "ring": ring, "ring_lengths": np.array([len(r) for r in self.ring]),
-                  "position": np.asarray(self.position if self.position is not None else [], np.float64)}
+                  "position": np.asarray(self.position if self.position is not None else [], np.float64),
+                  "starts": self.starts.rows, "neighbours": self.neighbours.rows,
+                  "index": self.index.to_bytes() if self.index is not None else np.zeros(0, np.uint8),
+                  "index_rows": np.array(self.index.added if self.index is not None else 0)}
         with atomic_write(path, "wb") as handle:
             np.savez(handle, header=np.array(json.dumps(header)), **arrays)
 
@@ -166,23 +175,41 @@ class LoopDetector:
 
     def _load_arrays(self, path: str | Path, arrays: dict[str, np.ndarray]) -> None:
         """The saved past, checked: one count across the per-frame arrays, finite rows, a ring that fits."""
+        if not set(STATE_ARRAYS) <= set(arrays):
+            raise SeqvprError(f"{path}: a loop detector state without {', '.join(sorted(set(STATE_ARRAYS) - set(arrays)))}")
         count = len(arrays["sessions"])
         rows, ring, lengths = arrays["rows"], arrays["ring"], arrays["ring_lengths"]
-        sound = all(len(arrays[k]) == count for k in ("segments", "clock", "limits")) and \
+        shortlist = self.settings.shortlist
+        sound = all(len(arrays[k]) == count for k in ("segments", "clock", "limits", "starts")) and \
+            (not shortlist or len(arrays["neighbours"]) == count) and \
             (count == 0 or (rows.ndim == 2 and len(rows) == count and np.isfinite(rows).all())) and \
             len(ring) == len(lengths) <= self.length and (lengths <= max(count - 1, 0)).all()
         if not sound:
             raise SeqvprError(f"{path}: a loop detector state whose arrays do not agree (damaged?)")
         self.rows = None
-        for name in ("sessions", "segments", "clock", "limits"):
-            grown = GrowingRows(0, getattr(self, name).dtype)
+        for name in ("sessions", "segments", "clock", "limits", "starts", "neighbours"):
+            grown = GrowingRows(getattr(self, name).width, getattr(self, name).dtype)
             grown.extend(arrays[name])
             setattr(self, name, grown)
         if count:
             self.rows = GrowingRows(rows.shape[1], np.float32, self.memory_budget, self.folder)
             self.rows.extend(rows)
+            self.index = self._restored_index(path, arrays, rows)
         self.ring = [np.array(row[:n]) for row, n in zip(ring, lengths.tolist())]
         self.position = arrays["position"] if len(arrays["position"]) else None
+
+    def _restored_index(self, path: str | Path, arrays: dict[str, np.ndarray], rows: np.ndarray):
+        """The shortlist's index as saved (None without a shortlist)."""
+        if not self.settings.shortlist:
+            return None
+        from seqvpr.localization.loop_shortlist import GrowingIndex, check_shortlist_index
+
+        index = GrowingIndex(check_shortlist_index(self.settings.shortlist_index), rows)
+        try:
+            index.load_bytes(arrays["index"], int(arrays["index_rows"]))
+        except (ValueError, RuntimeError):
+            raise SeqvprError(f"{path}: a loop detector state whose shortlist index is damaged") from None
+        return index
 
     def new_session(self) -> None:
         """The next frame starts a new session (another drive): the earlier sessions are eligible whole."""
@@ -201,6 +228,8 @@ class LoopDetector:
         row = frame_row(descriptor, self.transform, True).numbers.copy()
         self._enter(row, timestamp, position)
         frame = len(self.sessions) - 1
+        if self.settings.shortlist:
+            return self._shortlisted(frame)
         distances = self._distances_to_past(row)
         self.ring = [*self.ring[-(self.length - 1):], distances] if self.length > 1 else [distances]
         if self.since_break < self.length:
@@ -224,6 +253,7 @@ class LoopDetector:
         self.segments.append(self.segment)
         self.since_break += 1
         self.limits.append(self._limit(start))
+        self.starts.append(len(self.sessions) - self.length if self.since_break >= self.length else -1)
 
     def _session_start(self) -> int:
         """The row the current session began at (the next row when it begins now)."""
@@ -271,6 +301,30 @@ class LoopDetector:
         if not len(past):
             return np.zeros(0, np.float32)
         return frame_distances(torch.from_numpy(row)[None], torch.from_numpy(np.asarray(past)))[0].numpy().copy()
+
+    def _shortlisted(self, frame: int) -> Loop:
+        """The frame's nearest eligible rows found and kept; the candidates its window's frames place re-ranked
+        exactly (``loop_shortlist``: as ``find_loops`` with a shortlist does a block at a time)."""
+        from seqvpr.localization.loop_shortlist import GrowingIndex, check_shortlist_index, rerank_block
+        from seqvpr.localization.loops import causal_spec
+        from seqvpr.sequences.rerank import frame_shortlist
+
+        rows, limits = self.rows.rows, self.limits.rows
+        if self.index is None:
+            self.index = GrowingIndex(check_shortlist_index(self.settings.shortlist_index), rows)
+        self.index.grow_to(int(limits[frame]), rows)
+        self.neighbours.append(self.index.nearest_eligible(frame, frame + 1, limits, self.settings.shortlist)[0])
+        if self.since_break < self.length:
+            return self._loop(frame, -1, np.inf, 0.0)
+        starts = self.starts.rows
+        candidates = frame_shortlist(self.neighbours.rows, starts[frame : frame + 1], causal_spec(self.settings),
+                                     frame + 1)
+        candidates.indices[candidates.indices >= limits[frame]] = -1
+        top = rerank_block(torch.from_numpy(np.asarray(rows)), np.asarray(rows), starts, frame, self.length,
+                           candidates, self.settings.ranked())
+        indices, values = top.indices[0], top.distances[0]
+        score = loop_score(indices, values, self.settings.exclusion) if indices[0] >= 0 else 0.0
+        return self._loop(frame, int(indices[0]), float(values[0]), score)
 
     def _ranked(self, limit: int) -> tuple[np.ndarray, np.ndarray]:
         """The best eligible windows (rows, mean distances), best first: the window ending at row j averages the

@@ -37,6 +37,8 @@ def loop_summary(loops: Loops, scored: ScoredLoops | None) -> dict[str, Any]:
                      for s, name in enumerate(loops.drive.session_names)],
         "with_candidates": int((loops.match >= 0).sum()), "accepted": int(loops.accepted.sum()),
     }
+    if settings.shortlist:
+        summary["shortlist"] = {"per_frame": settings.shortlist, "index": settings.shortlist_index}
     if scored is not None:
         summary.update({
             "radius": scored.radius, "true_revisits": int(scored.revisit.sum()),

@@ -39,13 +39,17 @@ class LoopSettings:
     """How loops are found: ``method`` and ``seq_len`` (causal windows), the recent past excluded (``exclude``:
     ``30s``, ``200f``, ``50m``; None: 30 s with timestamps, else 100 frames), the score's ``exclusion`` (frames
     around the best that are not another place) and the score a loop needs to be accepted (``threshold``; None:
-    the method's default)."""
+    the method's default). With ``shortlist`` S each frame's candidates are the windows its frames' S nearest
+    eligible frames place, found in a ``shortlist_index`` that grows with the drive (``flat`` or ``hnsw:M``), and
+    re-ranked exactly: O(N S) for long drives instead of the exhaustive triangle (0)."""
 
     method: str = "matching"
     seq_len: int = 5
     exclude: str | Exclusion | None = None
     exclusion: int = 10
     threshold: float | None = None
+    shortlist: int = 0
+    shortlist_index: str = "hnsw:32"
 
     def __post_init__(self) -> None:
         methods = loop_methods()
@@ -58,6 +62,11 @@ class LoopSettings:
             object.__setattr__(self, "exclude", parse_exclusion(self.exclude))
         if self.threshold is not None:
             object.__setattr__(self, "threshold", checks.finite(self.threshold, "threshold"))
+        object.__setattr__(self, "shortlist", checks.whole(self.shortlist, "shortlist", 0))
+        if self.shortlist:
+            from seqvpr.localization.loop_shortlist import check_shortlist_index
+
+            check_shortlist_index(checks.text(self.shortlist_index, "shortlist_index"))
 
     @property
     def window(self) -> int:
@@ -160,7 +169,8 @@ def loop_limits(drive: Drive, exclusion: Exclusion) -> np.ndarray:
 def find_loops(drive: Drive, settings: LoopSettings = LoopSettings(), models: Mapping[str, Any] | None = None, *,
                memory_budget: int | None = None, progress: ProgressFactory | None = None) -> Loops:
     """Every frame's best earlier frame outside the exclusion, by causal sequence matching in one blocked pass over
-    the triangle; ``models`` may hold a SeqMatchNet transform (``seqmatchnet``)."""
+    the triangle (or, with the settings' ``shortlist``, among the windows a growing frame index places);
+    ``models`` may hold a SeqMatchNet transform (``seqmatchnet``)."""
     from seqvpr.sequences.match_settings import DEFAULT_BUDGET
     from seqvpr.sequences.matching import sequence_topk
 
@@ -168,6 +178,12 @@ def find_loops(drive: Drive, settings: LoopSettings = LoopSettings(), models: Ma
     exclusion = settings.exclusion_for(drive.frames)
     limits = loop_limits(drive, exclusion)
     tick = progress(len(rows), "loops") if progress else None
+    if settings.shortlist:
+        from seqvpr.localization.loop_shortlist import shortlisted_topk
+
+        top = shortlisted_topk(rows, segments, causal_spec(settings), settings.ranked(), limits, settings.shortlist,
+                               settings.shortlist_index, tick)
+        return loops_from(drive, settings, exclusion, limits, top.indices, top.distances)
     top = sequence_topk(rows, rows, causal_spec(settings), settings.ranked(), segments, segments,
                         memory_budget=memory_budget or DEFAULT_BUDGET, progress=tick, limits=limits)
     return loops_from(drive, settings, exclusion, limits, top.indices, top.distances)
@@ -245,6 +261,8 @@ def loops(
     exclude: str | None = None,
     exclusion: int = 10,
     threshold: float | None = None,
+    shortlist: int = 0,
+    shortlist_index: str = "hnsw:32",
     radius: str | None = None,
     models: Any = None,
     description: Any = None,
@@ -256,14 +274,15 @@ def loops(
     """Loop closures over one drive, or several as sessions in time order (``seqvpr.localization.loops``): each
     frame's best earlier frame outside ``exclude`` (``30s``, ``200f``, ``50m``) by causal sequence matching, its
     score and acceptance, and, with ``radius`` (``25m``, ``2f``), which are right with the PR curve over the score.
-    Returns (``Loops``, ``ScoredLoops`` or None)."""
+    With ``shortlist`` S, each frame's candidates come from a frame index that grows with the drive
+    (``shortlist_index``: ``hnsw:M`` or ``flat``), O(N S). Returns (``Loops``, ``ScoredLoops`` or None)."""
     from seqvpr.api import load_models
     from seqvpr.features.describe import check_extraction_settings
 
     from seqvpr.data.ground_truth import parse_radius
     from seqvpr.methods import check_run
 
-    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold)  # checked before anything is read
+    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold, shortlist, shortlist_index)  # checked before anything is read
     listed = checks.paths(sources, "sources")
     unit = None if radius is None else parse_radius(checks.text(radius, "radius")).unit
     check_extraction_settings(**extraction)

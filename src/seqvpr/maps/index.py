@@ -140,15 +140,13 @@ def build_frame_index(descriptors: np.ndarray, spec: IndexSpec, seed: int = 0, p
     sample of ``TRAIN_PER_LIST`` rows a list. With a ``partial`` folder, the index is saved there once trained and
     every ``CHECKPOINT_ROWS`` rows, under ``key`` (what it is built over and how), and a build interrupted with the
     same key goes on from its last save: the same index as one uninterrupted build (rows are added in order)."""
-    import faiss
-
     n, dim = descriptors.shape
     spec = resolved_spec(spec, n, dim)
     check_index_spec(spec, n, dim)
     key = {**(key or {}), "spec": str(spec), "seed": seed, "count": int(n), "dim": int(dim)}
     index, done = resumed_index(partial, key) if partial is not None else (None, 0)
     if index is None:
-        index = _empty_index(faiss, spec, dim)
+        index = empty_index(spec, dim)
         if spec.kind == "ivf":
             train = progress(1, f"train {spec} on {min(n, TRAIN_PER_LIST * spec.nlist)} rows") if progress else None
             index.cp.seed = seed
@@ -233,7 +231,10 @@ def check_index_spec(spec: IndexSpec, n: int, dim: int) -> None:
                           f"frames; the map has {n} (use ivf:NLIST without pq)")
 
 
-def _empty_index(faiss, spec: IndexSpec, dim: int):
+def empty_index(spec: IndexSpec, dim: int):
+    """An empty faiss index of ``spec`` (IVF still to be trained)."""
+    import faiss
+
     if spec.kind == "flat":
         return faiss.IndexFlatL2(dim)
     if spec.kind == "hnsw":
