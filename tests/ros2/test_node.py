@@ -258,3 +258,34 @@ def test_bad_play_input_is_one_line(tmp_path, dds, monkeypatch, capsys):
                        ((bag, "--rate", "0"), "--rate")]:
         code, _, err = run_cli(monkeypatch, capsys, "play", *args, "--wait", "0")
         assert code == 2 and len(error_lines(err)) == 1 and said in error_lines(err)[0], err
+
+
+def test_the_node_publishes_the_loops_seqvpr_loops_finds_and_keeps_its_past_in_the_state(drive, shared_data,
+                                                                                          dds, tmp_path):
+    """Gardens Point's day walk then its night walk as one bag (the night half revisits the day half): the node's
+    published loop closures are the accepted rows of ``seqvpr loops`` on the same bag, and its state holds the
+    drive so far."""
+    root, _ = drive
+    images = [p for side in ("day_left", "night_right")
+              for p in sorted((shared_data / "gardenspoint_walking" / side).glob("*.jpg"))]
+    write_bag(tmp_path / "revisit", images, *fixes(len(images)), ros1=False, compressed=True)
+    seqvpr("loops", tmp_path / "revisit", "--exclude", "100f", "--threshold", "0.02", "--out", tmp_path / "loops")
+    with open(tmp_path / "loops" / "loops.csv", newline="") as handle:
+        accepted = [(int(r["frame"]), int(r["match"])) for r in csv.DictReader(handle) if r["accepted"] == "1"]
+    assert len(accepted) >= 5
+    loops, state = Recorder("/seqvpr/loop", STATUS), tmp_path / "node.npz"
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--loops", "--loop-exclude", "100f",
+                        "--loop-threshold", "0.02", "--state", state)
+    try:
+        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", tmp_path / "revisit", "--rate", "5", "--wait",
+                        "30"], env=dds, cwd=ROOT, check=True, capture_output=True, timeout=300)
+        published = [status_values(s.message) for s in loops.wait_for(len(accepted), 120)]
+        time.sleep(1.0)  # nothing more comes
+    finally:
+        _, err = stop(node)
+        loops.close()
+    assert [(int(v["frame"]), int(v["match"])) for v in published] == accepted
+    assert all(s.message.status[0].name == "seqvpr loop" for s in loops.samples)
+    assert len(loops.samples) == len(accepted) and f"{len(accepted)} loop closures published" in err
+    with np.load(tmp_path / "node.loops.npz", allow_pickle=False) as saved:
+        assert len(saved["rows"]) == len(images) and len(saved["stamps"]) == len(images)

@@ -76,6 +76,7 @@ def demo(out_dir, quick, seed, n_frames, condition, epochs, no_train, device, en
                       echo=lambda text: click.echo(text))
     click.echo(f"test route, correct within {settings.radius_m:g} m:")
     click.echo(demo_recall_table(result.runs))
+    click.echo(result.loops.text())
     click.echo("seconds: " + ", ".join(f"{stage} {value:.0f}" for stage, value in result.seconds.items()))
     click.echo(f"report: {result.report}")
     world = out / "world"

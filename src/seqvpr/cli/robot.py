@@ -12,18 +12,20 @@ import click
 
 from seqvpr.cli.help import SectionedCommand, option
 from seqvpr.cli.localize import localizer_options
-from seqvpr.cli.options import NONNEGATIVE_FLOAT, OUT_FILE, POSITIVE
-from seqvpr.errors import SeqvprError
+from seqvpr.cli.options import FINITE, FLAGS, NONNEGATIVE, NONNEGATIVE_FLOAT, OUT_FILE, POSITIVE
+from seqvpr.errors import SeqvprError, SettingError
 
-NODE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Topics", "Output", "Compute")
+NODE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Loops", "Topics", "Output", "Compute")
 DOMAIN = click.IntRange(0, 232)
+LOOP_FLAGS = {"exclude": "--loop-exclude", "threshold": "--loop-threshold", "shortlist": "--loop-shortlist"}
 
 
 @click.command("node", cls=SectionedCommand, sections=NODE_SECTIONS, epilog="""\b
 Examples:
   seqvpr node --map maps/campus --topic /camera/image_raw/compressed --gps-topic /fix
   seqvpr node --map maps/campus --no-drop --state node.npz      # a replay: every frame; state kept on shutdown
-  seqvpr node --map maps/campus --state node.npz --restore      # go on where the last run stopped""")
+  seqvpr node --map maps/campus --state node.npz --restore      # go on where the last run stopped
+  seqvpr node --map maps/campus --loops --loop-exclude 60s      # also publish loop closures on /seqvpr/loop""")
 @option("Input", "--map", "map_dir", required=True, type=click.Path(), help="A map folder (seqvpr map build).")
 @localizer_options
 @option("Topics", "--topic", "camera", default="/camera/image_raw", show_default=True,
@@ -38,6 +40,14 @@ Examples:
 @option("Output", "--frame-id", default="map", show_default=True, help="The frame_id of the published pose.")
 @option("Output", "--state", type=OUT_FILE, help="Save the localiser's state here on SIGTERM or SIGINT.")
 @option("Localiser", "--restore", is_flag=True, help="Start from the state saved in --state.")
+@option("Loops", "--loops", is_flag=True, help="Also find loop closures within the drive (its frames as described "
+        "for the map, causal windows of --seq-len) and publish the accepted ones on /seqvpr/loop (DiagnosticArray, "
+        "status 'seqvpr loop'); with --state, the drive so far is kept in STATE.loops.npz.")
+@option("Loops", "--loop-exclude", help="The recent past a loop may not come from (30s, 200f, 50m).  [default: 30s]")
+@option("Loops", "--loop-threshold", type=FINITE, help="Score a loop needs.  [default: 0.1]")
+@option("Loops", "--loop-shortlist", type=NONNEGATIVE, default=0, show_default=True,
+        help="Candidates from each frame's S nearest earlier frames (a growing HNSW index): a per-frame cost that "
+             "stays flat over hours of driving (0: every earlier window).")
 def node(**options: Any) -> None:
     """Localise a live camera topic: each frame's estimate on /seqvpr/pose (PoseWithCovarianceStamped, not while
     warming up or lost) and /seqvpr/status (DiagnosticArray); /seqvpr/reset (std_msgs/Empty) restarts it."""
@@ -46,7 +56,7 @@ def node(**options: Any) -> None:
     from seqvpr.ros2.dds import Bus, require_cyclonedds
     from seqvpr.ros2.camera import camera_type
     from seqvpr.ros2.messages import NAVSATFIX, ODOMETRY
-    from seqvpr.ros2.node import POSE_TOPIC, RESET_TOPIC, STATUS_TOPIC, LocalizerNode, NodeSettings
+    from seqvpr.ros2.node import LOOP_TOPIC, POSE_TOPIC, RESET_TOPIC, STATUS_TOPIC, LocalizerNode, NodeSettings
 
     require_cyclonedds()
     if options["gps_topic"] and options["odom_topic"]:
@@ -61,7 +71,8 @@ def node(**options: Any) -> None:
     fix_topic = options["gps_topic"] or options["odom_topic"]
     settings = NodeSettings(options["camera"], camera_type(options["camera"], options["image_type"]), fix_topic,
                             (NAVSATFIX if options["gps_topic"] else ODOMETRY) if fix_topic else None, options["no_drop"],
-                            options["frame_id"], Path(options["state"]) if options["state"] else None)
+                            options["frame_id"], Path(options["state"]) if options["state"] else None,
+                            node_loop_settings(options))
     bus = Bus(options["domain"])
     running = LocalizerNode(localizer, bus, settings)
     if options["restore"]:
@@ -70,14 +81,32 @@ def node(**options: Any) -> None:
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     policy = "every frame in order" if settings.keep_all else "the newest frame when behind"
+    loops = f", {LOOP_TOPIC}" if settings.loops else ""
     click.echo(f"seqvpr node: {options['map_dir']} ({localizer.saved.info.count} frames, {localizer.settings.method}); "
                f"listening on {settings.camera} ({settings.camera_type}, {policy}) in domain {bus.domain}; publishing "
                f"{POSE_TOPIC if running.track is not None else '(no pose: the map has no positions)'} and "
-               f"{STATUS_TOPIC}; {RESET_TOPIC} restarts", err=True)
+               f"{STATUS_TOPIC}{loops}; {RESET_TOPIC} restarts", err=True)
     running.run(stop)
     saved = f"; state saved to {settings.state}" if settings.state else ""
+    found = f"; {running.loops_found} loop closures published" if settings.loops else ""
     click.echo(f"seqvpr node: stopped after {running.processed} frames ({running.inbox.received} received, "
-               f"{running.inbox.dropped} dropped, {running.malformed} malformed){saved}", err=True)
+               f"{running.inbox.dropped} dropped, {running.malformed} malformed){found}{saved}", err=True)
+
+
+def node_loop_settings(options: dict[str, Any]):
+    """The node's loop settings (None without --loops): causal windows of the localiser's length over the rows it
+    describes."""
+    from seqvpr.localization.loops import LoopSettings
+
+    if not options["loops"]:
+        if options["loop_exclude"] or options["loop_threshold"] is not None or options["loop_shortlist"]:
+            raise SeqvprError("--loop-exclude, --loop-threshold and --loop-shortlist need --loops")
+        return None
+    try:
+        return LoopSettings("matching", options["seq_len"], options["loop_exclude"],
+                            threshold=options["loop_threshold"], shortlist=options["loop_shortlist"])
+    except SettingError as error:  # the node spells the loop settings with --loop-
+        raise SeqvprError(error.naming({**FLAGS, **LOOP_FLAGS})) from None
 
 
 @click.command("play", epilog="""\b

@@ -85,13 +85,30 @@ class MethodRun:
     evaluation: Evaluation
 
 
+@dataclass(frozen=True)
+class LoopRun:
+    """Loop closures over the test route driven twice (by day, then under the query's condition) as two sessions of
+    one drive: the settings and the figures (``seqvpr.localization.loop_files.loop_summary``)."""
+
+    summary: dict
+
+    def text(self) -> str:
+        """The demo's loop row."""
+        s = self.summary
+        return (f"loop closures (day drive, then {s['drive']} drive, L={s['seq_len']}, exclude {s['exclude']}): "
+                f"{s['true_revisits']} of {s['frames']} frames revisit, {s['accepted']} loops accepted, "
+                f"{s['accepted_correct']} right; recall at 100% precision {s['recall_at_100_precision']:.3f}, "
+                f"PR-AUC {s['pr_auc']:.3f}")
+
+
 @dataclass
 class DemoResult:
-    """What the demo produced: the method runs, the report page, and seconds per stage."""
+    """What the demo produced: the method runs, the loop closures, the report page, and seconds per stage."""
 
     runs: list[MethodRun]
     report: Path
     seconds: dict[str, float] = field(default_factory=dict)
+    loops: LoopRun | None = None
 
 
 def render_world(out: Path, settings: DemoSettings, progress: ProgressFactory | None = None) -> dict[str, Path]:
@@ -235,6 +252,7 @@ def run_demo(
     reference, query = world["test_reference"], world["test_query"]
     gt = ground_truth(reference, query, Radius(settings.radius_m, "m"))
     runs = untrained_runs(reference, query, gt, settings)
+    loops = loop_run(reference, query, settings)
     lap("match")
     if settings.train:
         echo(f"training SeqMatchNet on the training route ({settings.epochs} epochs)...")
@@ -246,7 +264,7 @@ def run_demo(
     page = write_report(
         out / "report",
         title="seqvpr demo: sequence-based place recognition on a synthetic route",
-        summary=report_summary(settings, world),
+        summary=report_summary(settings, world) + "\n\n" + loops.text(),
         methods=[method_result(run) for run in runs],
         distance_views=[distance_view(runs[0], gt), distance_view(best, gt)],
         examples=query_examples([runs[0], best], gt, settings.examples),
@@ -254,7 +272,19 @@ def run_demo(
                       f"method by R@1 (green: within {settings.radius_m:g} m)",
     )
     lap("report")
-    return DemoResult(runs, page, seconds)
+    return DemoResult(runs, page, seconds, loops)
+
+
+def loop_run(reference: Traversal, query: Traversal, settings: DemoSettings) -> LoopRun:
+    """``seqvpr loops`` over the reference drive and then the query drive as two sessions of one drive (the second
+    revisits the first; its own past is excluded as far back as a drive is long, so its loops close on the first);
+    a loop is right within the demo's radius."""
+    from seqvpr.localization.loop_files import loop_summary
+    from seqvpr.localization.loops import LoopSettings, find_loops, make_drive, score_loops
+
+    drive = make_drive([reference, query], ["day", settings.condition])
+    found = find_loops(drive, LoopSettings(seq_len=max(settings.lengths), exclude=f"{len(reference)}f"))
+    return LoopRun({**loop_summary(found, score_loops(found, f"{settings.radius_m:g}m")), "drive": settings.condition})
 
 
 #: the other matchers, run at the longest L: (row name, method, velocities); OpenSeqSLAM2's range for its searches

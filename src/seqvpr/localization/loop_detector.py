@@ -34,13 +34,14 @@ DEFAULT_BUDGET = 1024**3
 LOOP_STATE_FORMAT = "seqvpr-loop-state"
 LOOP_STATE_VERSION = 1
 STATE_ARRAYS = ("rows", "sessions", "segments", "clock", "limits", "ring", "ring_lengths", "position", "starts",
-                "neighbours", "index", "index_rows")
+                "neighbours", "index", "index_rows", "stamps")
 
 
 @dataclass(frozen=True)
 class Loop:
     """One frame's loop: its row in the drive, the best eligible earlier frame (``match``, -1 when none), its
-    sequence distance, the score and whether it is accepted; the sessions of both."""
+    sequence distance, the score and whether it is accepted; the sessions and timestamps of both (NaN: none given,
+    or no match)."""
 
     frame: int
     match: int
@@ -49,6 +50,8 @@ class Loop:
     accepted: bool
     session: int
     match_session: int
+    stamp: float = float("nan")
+    match_stamp: float = float("nan")
 
 
 class GrowingRows:
@@ -113,6 +116,7 @@ class LoopDetector:
         self.clock = GrowingRows(0, np.float64)  # running maximum of seconds or metres along the session
         self.limits = GrowingRows(0, np.int64)
         self.starts = GrowingRows(0, np.int64)  # each frame's window start (-1: none)
+        self.stamps = GrowingRows(0, np.float64)  # each frame's timestamp (NaN: none given)
         self.neighbours = GrowingRows(settings.shortlist, np.int64)  # with a shortlist: each frame's nearest rows
         self.index: Any = None  # with a shortlist: the GrowingIndex over the eligible past
         self.ring: list[np.ndarray] = []  # the last L frames' distances to every earlier frame
@@ -143,7 +147,7 @@ class LoopDetector:
                   "sessions": self.sessions.rows, "segments": self.segments.rows, "clock": self.clock.rows,
                   "limits": self.limits.rows, "ring": ring, "ring_lengths": np.array([len(r) for r in self.ring]),
                   "position": np.asarray(self.position if self.position is not None else [], np.float64),
-                  "starts": self.starts.rows, "neighbours": self.neighbours.rows,
+                  "starts": self.starts.rows, "neighbours": self.neighbours.rows, "stamps": self.stamps.rows,
                   "index": self.index.to_bytes() if self.index is not None else np.zeros(0, np.uint8),
                   "index_rows": np.array(self.index.added if self.index is not None else 0)}
         with atomic_write(path, "wb") as handle:
@@ -180,14 +184,14 @@ class LoopDetector:
         count = len(arrays["sessions"])
         rows, ring, lengths = arrays["rows"], arrays["ring"], arrays["ring_lengths"]
         shortlist = self.settings.shortlist
-        sound = all(len(arrays[k]) == count for k in ("segments", "clock", "limits", "starts")) and \
+        sound = all(len(arrays[k]) == count for k in ("segments", "clock", "limits", "starts", "stamps")) and \
             (not shortlist or len(arrays["neighbours"]) == count) and \
             (count == 0 or (rows.ndim == 2 and len(rows) == count and np.isfinite(rows).all())) and \
             len(ring) == len(lengths) <= self.length and (lengths <= max(count - 1, 0)).all()
         if not sound:
             raise SeqvprError(f"{path}: a loop detector state whose arrays do not agree (damaged?)")
         self.rows = None
-        for name in ("sessions", "segments", "clock", "limits", "starts", "neighbours"):
+        for name in ("sessions", "segments", "clock", "limits", "starts", "neighbours", "stamps"):
             grown = GrowingRows(getattr(self, name).width, getattr(self, name).dtype)
             grown.extend(arrays[name])
             setattr(self, name, grown)
@@ -249,6 +253,7 @@ class LoopDetector:
         start = self._session_start()
         self.clock.append(self._clock_value(timestamp, position, start))
         self.rows.append(row)
+        self.stamps.append(np.nan if timestamp is None else float(timestamp))
         self.sessions.append(self.session)
         self.segments.append(self.segment)
         self.since_break += 1
@@ -342,11 +347,12 @@ class LoopDetector:
         return np.where(indices >= 0, indices + length - 1, -1), values
 
     def _loop(self, frame: int, match: int, distance: float, score: float) -> Loop:
-        sessions = self.sessions.rows
+        sessions, stamps = self.sessions.rows, self.stamps.rows
         found = match >= 0 and np.isfinite(distance)
         return Loop(frame, match if found else -1, distance if found else np.inf, score if found else 0.0,
                     bool(found and score >= self.settings.accept), int(sessions[frame]),
-                    int(sessions[match]) if found else -1)
+                    int(sessions[match]) if found else -1, float(stamps[frame]),
+                    float(stamps[match]) if found else float("nan"))
 
 
 def replay_loops(drive, settings: LoopSettings = LoopSettings(), models: dict[str, Any] | None = None,

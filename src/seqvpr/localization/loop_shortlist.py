@@ -5,9 +5,9 @@ map's shortlist does), and the candidates are re-ranked by the exact sequence di
 the sequence family's ``candidate_distances``). With an exact index (``flat``) and S at least the drive's length
 it equals the exhaustive pass.
 
-Query frames are searched a block at a time against the rows eligible for the block's last frame; each frame then
-keeps its S nearest among the rows eligible for it, so a frame's shortlist never depends on the block it falls in
-(the search asks for as many more results as rows became eligible within the block).
+Query frames are searched a block at a time against the rows eligible for the block's first frame, and compared
+exactly with the few rows that become eligible within the block; each frame keeps its S nearest among the rows
+eligible for it (with an exact index, whatever block it falls in).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from seqvpr.results import TopK
 
 #: query frames searched against the index at a time, at most
 BLOCK = 1024
-#: rows that may become eligible within one block (a block ends sooner where more would)
+#: rows that may become eligible within one block (a block ends sooner where more would): compared exactly
 EXTRA = 256
 
 
@@ -91,17 +91,26 @@ class GrowingIndex:
             self.added = count
 
     def nearest_eligible(self, a: int, b: int, limits: np.ndarray, width: int) -> np.ndarray:
-        """Frames a..b-1's ``width`` nearest rows among those eligible for each ([b - a, width], -1 pads)."""
+        """Frames a..b-1's ``width`` nearest rows among those eligible for each ([b - a, width], -1 pads): the
+        index (grown to the rows eligible for frame a) searched, merged with the exact distances to the few rows
+        that become eligible within the block."""
         from seqvpr.maps.index import search_frames
+        from seqvpr.sequences.topk import best_of
 
-        self.grow_to(int(limits[b - 1]))
-        wanted = min(width + int(limits[b - 1] - limits[a]), self.added)
-        if not wanted:
-            return np.full((b - a, width), -1, np.int64)
-        found, _ = search_frames(self.index, np.asarray(self.rows[a:b], dtype=np.float32), wanted)
-        eligible = (found >= 0) & (found < limits[a:b, None])
-        order = np.argsort(~eligible, axis=1, kind="stable")[:, :width]  # eligible first, nearest first
-        kept = np.take_along_axis(np.where(eligible, found, -1), order, axis=1)
+        queries = np.asarray(self.rows[a:b], dtype=np.float32)
+        self.grow_to(int(limits[a]))
+        if self.added:
+            found, distances = search_frames(self.index, queries, min(width, self.added))
+        else:
+            found, distances = np.full((b - a, 0), -1, np.int64), np.zeros((b - a, 0))
+        newest = np.arange(int(limits[a]), int(limits[b - 1]))
+        if len(newest):
+            near = euclidean(queries, np.asarray(self.rows[newest], np.float32))
+            eligible = newest[None, :] < limits[a:b, None]
+            found = np.concatenate([found, np.where(eligible, newest[None, :], -1)], axis=1)
+            distances = np.concatenate([distances, np.where(eligible, near.astype(np.float64), np.inf)], axis=1)
+        distances = np.where(found >= 0, distances, np.inf)
+        kept, _ = best_of(found, distances, width) if found.shape[1] else (found, distances)
         return np.pad(kept, ((0, 0), (0, width - kept.shape[1])), constant_values=-1)
 
     def to_bytes(self) -> np.ndarray:
@@ -117,6 +126,12 @@ class GrowingIndex:
         if index.ntotal != added or index.d != self.index.d:
             raise ValueError("the saved index does not hold the rows it names")
         self.index, self.added = index, added
+
+
+def euclidean(queries: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Euclidean distances [n, m] of two sets of rows, by one product (as a flat index computes them)."""
+    squared = (queries**2).sum(1)[:, None] + (rows**2).sum(1)[None, :] - 2.0 * queries @ rows.T
+    return np.sqrt(np.maximum(squared, 0.0))
 
 
 def rerank_block(rows: torch.Tensor, array: np.ndarray, starts: np.ndarray, a: int, length: int,

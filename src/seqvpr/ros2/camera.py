@@ -158,11 +158,12 @@ def pose_of(estimate, misses: int, track: Track, stamp: Any, frame_id: str):
                    pose=message("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=covariance))
 
 
-def status_of(values: dict[str, Any], level: int, text: str, stamp: Any, frame_id: str, hardware_id: str):
-    """A DiagnosticArray of one DiagnosticStatus named ``seqvpr localiser``: ``level``, ``text`` and ``values``
-    (key-value texts; floats written exactly, ``repr``)."""
+def status_of(values: dict[str, Any], level: int, text: str, stamp: Any, frame_id: str, hardware_id: str,
+              name: str = "seqvpr localiser"):
+    """A DiagnosticArray of one DiagnosticStatus named ``name``: ``level``, ``text`` and ``values`` (key-value
+    texts; floats written exactly, ``repr``)."""
     pairs = [message("diagnostic_msgs/msg/KeyValue", key=k, value=_text(v)) for k, v in values.items()]
-    status = message("diagnostic_msgs/msg/DiagnosticStatus", level=level, name="seqvpr localiser", message=text,
+    status = message("diagnostic_msgs/msg/DiagnosticStatus", level=level, name=name, message=text,
                      hardware_id=hardware_id, values=pairs)
     return message(STATUS, header=header(stamp, frame_id), status=[status])
 

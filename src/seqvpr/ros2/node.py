@@ -5,6 +5,12 @@ the ``Localizer``, and the estimate goes out as a pose (``/seqvpr/pose``) and a 
 A receiving thread takes samples as they arrive and hands them to the localiser through an ``Inbox``: by default
 the newest frame waits and an older one still waiting is dropped (counted), so the node answers for the latest
 frame when it falls behind; with ``keep_all`` (``--no-drop``) every frame is processed in order, as a replay must.
+
+With loop detection (``NodeSettings.loops``, ``--loops``) each described frame also goes to a ``LoopDetector``
+(``seqvpr.localization.loop_detector``) over the drive so far, and each accepted loop closure is published on
+``/seqvpr/loop``: a DiagnosticArray whose one status, ``seqvpr loop``, holds the frame's and its match's stamps,
+rows and sessions, the distance and the score (standard messages only: no package to build on the robot). Its grown
+past is saved beside the localiser's state (``STATE.loops.npz``).
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from seqvpr.ros2.camera import (
 )
 from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, message, outgoing
 
-POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset"
+POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC, LOOP_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset", "/seqvpr/loop"
 #: the stamp of what has none (a frame whose bytes do not decode)
 ZERO_STAMP = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
 
@@ -38,7 +44,8 @@ ZERO_STAMP = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
 class NodeSettings:
     """What the node listens to and how: the camera topic and its message type, an optional NavSatFix or Odometry
     topic (its distance to the estimate goes in the status), every frame or the newest (``keep_all``), the frame id
-    of what it publishes, and where its state is saved on shutdown (None: not saved)."""
+    of what it publishes, where its state is saved on shutdown (None: not saved), and how loop closures are found
+    (None: not looked for)."""
 
     camera: str
     camera_type: str
@@ -47,6 +54,7 @@ class NodeSettings:
     keep_all: bool = False
     frame_id: str = "map"
     state: Path | None = None
+    loops: Any = None  # LoopSettings
 
 
 class Inbox:
@@ -101,6 +109,12 @@ class LocalizerNode:
         outputs = EVERY_SAMPLE if settings.keep_all else DEFAULT
         self.pose_writer = bus.writer(POSE_TOPIC, POSE, outputs)
         self.status_writer = bus.writer(STATUS_TOPIC, STATUS, outputs)
+        self.loops, self.loops_found = None, 0
+        if settings.loops is not None:
+            from seqvpr.localization.loop_detector import LoopDetector
+
+            self.loops = LoopDetector(settings.loops)
+            self.loop_writer = bus.writer(LOOP_TOPIC, STATUS, outputs)
 
     def warm_up(self) -> None:
         """Pay the one-off costs before the first frame, not on it: the message codecs (built on first use), the
@@ -128,10 +142,20 @@ class LocalizerNode:
         """Go on from a saved state (the localiser's, and the time-gap rule's last stamp and steps)."""
         extra = self.localizer.restore(path)
         self.gaps.load(extra.get("time_gaps", {}))
+        if self.loops is not None and loop_state_path(path).is_file():
+            self.loops.restore(loop_state_path(path))
 
     def save(self) -> None:
         if self.settings.state is not None:
             self.localizer.save_state(self.settings.state, {"time_gaps": self.gaps.state()})
+            if self.loops is not None:
+                self.loops.save_state(loop_state_path(self.settings.state))
+
+    def restart(self) -> None:
+        """A new segment: the localiser's window and the loop detector's start again."""
+        self.localizer.reset()
+        if self.loops is not None:
+            self.loops.new_segment()
 
     def run(self, stop: threading.Event) -> None:
         """Process frames until ``stop`` is set; then save the state (when asked)."""
@@ -142,7 +166,7 @@ class LocalizerNode:
             while not stop.is_set():
                 reset, item = self.inbox.get(0.1)
                 if reset:
-                    self.localizer.reset()
+                    self.restart()
                 if item is not None:
                     self.handle(*item)
         finally:
@@ -191,18 +215,38 @@ class LocalizerNode:
             return self._report_malformed(value, str(error))
         stamp = stamp_seconds(value)
         if self.gaps.starts_segment(stamp):
-            self.localizer.reset()
+            self.restart()
         estimate = self.localizer.update(image, stamp)
         self.processed += 1
+        loop = self._find_loop(estimate, stamp, value.header.stamp)
         pose = pose_of(estimate, self.localizer.misses, self.track, value.header.stamp, self.settings.frame_id) \
             if self.track is not None else None
         if pose is not None:
             self.pose_writer.write(outgoing(POSE, pose))
         values = self._values(estimate, value, arrived)
+        if loop is not None:
+            values.update({"loop_match": loop.match if loop.match >= 0 else "", "loop_score": loop.score,
+                           "loop_accepted": int(loop.accepted)})
         text = estimate.status if not self.last_error else f"{estimate.status}; last malformed frame: {self.last_error}"
         self.status_writer.write(outgoing(STATUS, status_of(values, LEVELS[estimate.status], text, value.header.stamp,
                                                             self.settings.frame_id, self._hardware_id())))
         return values
+
+    def _find_loop(self, estimate: Any, stamp: float | None, header_stamp: Any):
+        """The frame's loop closure (None without loop detection, or for a frame the keyframe gate skipped): the
+        localiser's own described row goes to the detector; an accepted loop is published on ``/seqvpr/loop``."""
+        if self.loops is None or not estimate.kept:
+            return None
+        loop = self.loops.update(self.localizer.last_kept.numbers, stamp)
+        if loop.accepted:
+            self.loops_found += 1
+            values = {"frame": loop.frame, "stamp": loop.stamp, "match": loop.match, "match_stamp": loop.match_stamp,
+                      "session": loop.session, "match_session": loop.match_session, "distance": loop.distance,
+                      "score": loop.score, "threshold": self.loops.settings.accept}
+            self.loop_writer.write(outgoing(STATUS, status_of(values, 0, "loop closure", header_stamp,
+                                                              self.settings.frame_id, self._hardware_id(),
+                                                              "seqvpr loop")))
+        return loop
 
     def _report_malformed(self, value: Any, error: str) -> dict[str, Any]:
         self.malformed += 1
@@ -244,6 +288,12 @@ class LocalizerNode:
 
     def _hardware_id(self) -> str:
         return str(self.localizer.saved.folder)
+
+
+def loop_state_path(state: Path) -> Path:
+    """Where the loop detector's state goes beside the localiser's: ``node.npz`` -> ``node.loops.npz``."""
+    state = Path(state)
+    return state.with_name(state.name.removesuffix(".npz") + ".loops.npz")
 
 
 def _valid(samples: list) -> list[Received]:
