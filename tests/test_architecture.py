@@ -24,8 +24,9 @@ LAYERS = {
     "seqvpr.matchers": 4,
     "seqvpr.training": 5,
     "seqvpr.methods": 6,
-    "seqvpr.experiments": 7, "seqvpr.maps": 7, "seqvpr.api": 7,
+    "seqvpr.maps": 7, "seqvpr.api": 7,
     "seqvpr.localization": 8,
+    "seqvpr.experiments": 9,  # the demo and the ablations compose everything below (ARCHITECTURE: cli -> experiments -> localization)
     "seqvpr.ros2": 9,
     "seqvpr.cli": 10,
 }
