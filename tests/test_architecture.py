@@ -26,7 +26,7 @@ LAYERS = {
     "seqvpr.methods": 6,
     "seqvpr.maps": 7, "seqvpr.api": 7,
     "seqvpr.localization": 8,
-    "seqvpr.experiments": 9,  # the demo and the ablations compose everything below (ARCHITECTURE: cli -> experiments -> localization)
+    "seqvpr.experiments": 9,  # cli -> experiments -> localization (ARCHITECTURE.md)
     "seqvpr.ros2": 9,
     "seqvpr.cli": 10,
 }
