@@ -65,3 +65,14 @@ def test_a_report_without_ground_truth_has_no_pr_curve(tmp_path):
     page = (tmp_path / "run" / "report" / "index.html").read_text()
     assert 'src="loops.png"' in page and "pr.png" not in page
     assert not (tmp_path / "run" / "report" / "pr.png").exists()
+
+
+def test_over_several_sessions_each_edge_names_the_two_sessions(tmp_path):
+    one = revisiting_drive().frames
+    first, second = one.select(np.arange(60)), one.select(np.arange(60, 90))
+    drive = make_drive([first, second], ["day drive", "night"])  # stamps 0..29.5 then 30..44.5: time order kept
+    loops = find_loops(drive, LoopSettings(seq_len=5, exclude="10s", threshold=0.2))
+    write_loops(tmp_path / "run", loops, None, {})
+    lines = open(tmp_path / "run" / "loops_tum.txt").read().splitlines()
+    assert "session" in lines[0] and len(lines) > 10
+    assert all(line.split()[3:] == ["night", "day_drive"] for line in lines[1:])

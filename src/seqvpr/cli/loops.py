@@ -4,6 +4,7 @@ library (``seqvpr.localization.loops``: ``loops``), print."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import click
@@ -72,7 +73,7 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
                                      description=description, frames=frames, progress=tqdm_progress, **extraction)
     write_loops(out_dir, found, scored, {"sources": list(sources)}, report)
     click.echo(summary_text(loop_summary(found, scored)))
-    click.echo(f"wrote {out_dir}" + (f" (report: {out_dir}/report/index.html)" if report else ""))
+    click.echo(f"wrote {out_dir}" + (f" (report: {Path(out_dir) / 'report' / 'index.html'})" if report else ""))
 
 
 def summary_text(summary: dict[str, Any]) -> str:

@@ -3,8 +3,9 @@
     DIR/loops.csv       one row per frame: frame, frame_name, session, match, match_name, match_session, distance,
                         score, accepted, correct (empty without ground truth)
     DIR/loops_tum.txt   the accepted loops as stamp pairs (``stamp stamp score``; frame rows where the drive has
-                        no timestamps): a loop closure carries no relative pose, and a back-end's own front end
-                        (scan or image registration) turns a pair of stamps into a pose-graph edge
+                        no timestamps; over several sessions, the two sessions' names follow): a loop closure
+                        carries no relative pose, and a back-end's own front end (scan or image registration)
+                        turns a pair of stamps into a pose-graph edge
     DIR/run.json        settings, sessions, counts, recall at 100 % precision, PR-AUC and the PR curve
 """
 
@@ -98,11 +99,21 @@ def write_loops_csv(path: Path, loops: Loops, scored: ScoredLoops | None) -> Non
 
 
 def write_edges(path: Path, loops: Loops) -> None:
-    """Accepted loops as ``stamp_frame stamp_match score`` lines (frame rows without timestamps)."""
-    stamps = loops.drive.frames.timestamps
+    """Accepted loops as ``stamp_frame stamp_match score`` lines (frame rows without timestamps); over several
+    sessions, each line ends with the two sessions' names too (their clocks may overlap)."""
+    stamps, sessions, names = loops.drive.frames.timestamps, loops.drive.sessions, loops.drive.session_names
     key = (lambda row: f"{float(stamps[row]):.9f}") if stamps is not None else str  # noqa: E731
+    several = len(names) > 1
     with open(path, "w") as handle:
         what = "timestamps (s)" if stamps is not None else "frame rows (the drive has no timestamps)"
-        handle.write(f"# seqvpr loop closures: {what} of the frame and of its match, and the score\n")
+        handle.write(f"# seqvpr loop closures: {what} of the frame and of its match, and the score"
+                     + (", then the session of each" if several else "") + "\n")
         for i in np.flatnonzero(loops.accepted).tolist():
-            handle.write(f"{key(i)} {key(int(loops.match[i]))} {loops.score[i]:.6f}\n")
+            match = int(loops.match[i])
+            tail = f" {_token(names[sessions[i]])} {_token(names[sessions[match]])}" if several else ""
+            handle.write(f"{key(i)} {key(match)} {loops.score[i]:.6f}{tail}\n")
+
+
+def _token(name: str) -> str:
+    """A session's name as one whitespace-free token."""
+    return "_".join(str(name).split()) or "_"
