@@ -268,6 +268,8 @@ class LocalizerNode:
             "frame": estimate.frame, "stamp": stamp_text(value), "state": estimate.status,
             "map_index": "" if estimate.index is None else estimate.index, "map_frame": name(estimate.index),
             "best_index": "" if estimate.best is None else estimate.best, "best_frame": name(estimate.best),
+            "best_session": "" if estimate.best is None else self.localizer.saved.sessions_of_rows(
+                np.array([estimate.best]))[0],
             "score": estimate.score, "threshold": self.localizer.threshold,
             **{f"{stage}_ms": float(ms) for stage, ms in estimate.latency.items()},
             "latency_ms": (time.perf_counter() - arrived) * 1e3,
