@@ -174,7 +174,10 @@ def find_loops(drive: Drive, settings: LoopSettings = LoopSettings(), models: Ma
     from seqvpr.sequences.match_settings import DEFAULT_BUDGET
     from seqvpr.sequences.matching import sequence_topk
 
+    from seqvpr.sequences.windows import check_length
+
     rows, segments = loop_rows(drive, settings, models)
+    check_length(settings.window, segments, drive.frames.source or drive.frames.name)
     exclusion = settings.exclusion_for(drive.frames)
     limits = loop_limits(drive, exclusion)
     tick = progress(len(rows), "loops") if progress else None
