@@ -170,8 +170,8 @@ def test_train_jist_writes_a_loadable_model(jist_run):
 def test_match_with_a_jist_model_equals_the_library(world, jist_run, tmp_path):
     out, _, _ = jist_run
     stdout, _ = invoke("match", "-r", world["test_reference"], "-q", world["test_query"], "--radius", "25m",
-                       "--model", out, "--k", "1,5,10", "--json", "--out", tmp_path / "m")
-    result = json.loads(stdout)
+                       "--model", out, "--k", "1,5,10", "--json", "--out", tmp_path / "m", "--engine", "torch")
+    result = json.loads(stdout)  # the oracle runs torch: ONNX Runtime's agreement is tests/features/test_engines.py's
     ref, qry = load_traversal(world["test_reference"], "reference"), load_traversal(world["test_query"], "query")
     model = load_jist(out)  # oracle: the model's frames, pooled by its SeqGeM, searched exactly
     ref, qry = (describe_with_jist(model, t, 64, 48) for t in (ref, qry))
