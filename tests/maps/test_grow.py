@@ -1,5 +1,6 @@
 """Maps that grow: a map built from A and grown by B (``map add``) holds what a map built from A and B at once holds
-(rows, names, positions, segments, sources) and matches alike, for float32, float16 and sq8; a failure while the
+(rows, names, positions, segments, sources; a frame index extended, a window index rebuilt) and matches alike,
+for float32, float16 and sq8; a failure while the
 grown map is committed leaves the old map byte for byte; what does not fit the map is one line."""
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def test_what_does_not_fit_the_map_is_one_line(files):
     assert folder_bytes(files / "m") == before
 
 
-def test_a_frame_index_gains_the_new_rows_and_a_window_index_is_refused(files):
+def test_a_frame_index_gains_the_new_rows_and_a_window_index_is_rebuilt(files):
     import seqvpr
     from seqvpr.maps.index import IndexSpec, add_index
 
@@ -111,7 +112,15 @@ def test_a_frame_index_gains_the_new_rows_and_a_window_index_is_refused(files):
     listed = seqvpr.match(open_map(files / "m"), str(files / "b.npz"), "matching", seq_len=3, k=5, shortlist=90)
     np.testing.assert_array_equal(listed.topk.indices[:, 0], exact.topk.indices[:, 0])
     add_index(build_map([str(files / "a.npz")], files / "w"), IndexSpec("flat"), windows=3)
-    raises_one_line("index is over windows", add_to_map, files / "w", [str(files / "b.npz")])
+    grown = add_to_map(files / "w", [str(files / "b.npz")])
+    add_index(build_map([str(files / "a.npz"), str(files / "b.npz")], files / "ab"), IndexSpec("flat"), windows=3)
+    whole = open_map(files / "ab")
+    assert grown.info.index["ntotal"] == whole.info.index["ntotal"] and grown.info.index["map"] == grown.info.identity
+    np.testing.assert_array_equal(np.load(files / "w" / "index_rows.npy"), np.load(files / "ab" / "index_rows.npy"))
+    for saved in (grown, whole):  # the rebuilt index finds what the whole map's finds
+        found = seqvpr.match(saved, str(files / "b.npz"), "smoothing", seq_len=3, k=5)  # through the index
+        np.testing.assert_array_equal(found.topk.indices, seqvpr.match(
+            whole, str(files / "b.npz"), "smoothing", seq_len=3, k=5).topk.indices)
 
 
 def test_a_sharded_map_takes_no_map_add(files):

@@ -140,7 +140,7 @@ def write_grown(saved: SavedMap, whole, added, session: str) -> None:
         _write_part(tmp / part, new_frames.descriptors, saved)
         info = grown_info(saved.info, whole, new_info, part, session)
         write_frame_table(whole, info, whole.image_names(), lambda name: open(tmp / name, "wb"))
-        _seal(tmp, replace(info, index=_extended_index(saved, tmp, new_frames.descriptors)), kept)
+        _seal(tmp, replace(info, index=_grown_index(saved, tmp, new_frames.descriptors, whole)), kept)
         open_map(tmp)  # what a reader will do, before the map replaces anything
         keep_users_files(saved.folder, tmp)
         commit_folder(tmp, saved.folder, INFO_FILE)
@@ -204,21 +204,44 @@ def grown_info(info: MapInfo, whole, new_info: MapInfo, part: str, session: str)
                    version=GROWN_VERSION)
 
 
-def _extended_index(saved: SavedMap, tmp: Path, rows) -> dict[str, Any] | None:
-    """The map's frame index with the new rows added (faiss ``add``: the ids go on from the map's count), written
-    in ``tmp``; its record (None without an index). An index over windows is refused: its vectors would need
-    rebuilding."""
+def _grown_index(saved: SavedMap, tmp: Path, rows, whole) -> dict[str, Any] | None:
+    """The map's index for the grown map, written in ``tmp``; its record (None without an index). A frame index is
+    extended by the new rows; an index over windows is rebuilt (a window at the old map's end now reaches into the
+    new rows only where a segment continues, but its vectors and their row list are made again as one)."""
     record = saved.info.index
     if not record:
         return None
+    if record.get("over") != "frames":
+        return _rebuilt_window_index(saved, tmp, whole, record)
+    return _extended_index(saved, tmp, rows, record)
+
+
+def _rebuilt_window_index(saved: SavedMap, tmp: Path, whole, record: dict[str, Any]) -> dict[str, Any]:
+    """The index over windows built again over the grown map's frames, with its spec, seed and model."""
+    import faiss
+
+    from seqvpr.identity import seal_files
+    from seqvpr.maps.index import INDEX_FILE, ROWS_FILE, build_frame_index, index_model, parse_index_spec
+    from seqvpr.maps.index import window_vectors
+
+    started = time.perf_counter()
+    method, length = record["over"].split(":")
+    described = window_vectors(whole.descriptors, whole.segment_ids, int(length), method, index_model(saved))
+    index = build_frame_index(described.vectors, parse_index_spec(record["spec"]), int(record.get("seed", 0)))
+    faiss.write_index(index, str(tmp / INDEX_FILE))
+    np.save(tmp / ROWS_FILE, described.rows)
+    digests = seal_files(tmp, [INDEX_FILE, ROWS_FILE])
+    return {**record, "ntotal": int(index.ntotal), "map": None, "digest": digests[INDEX_FILE],
+            "rows_digest": digests[ROWS_FILE], "build_seconds": round(time.perf_counter() - started, 2)}
+
+
+def _extended_index(saved: SavedMap, tmp: Path, rows, record: dict[str, Any]) -> dict[str, Any]:
+    """The map's frame index with the new rows added (faiss ``add``: the ids go on from the map's count)."""
     import faiss
 
     from seqvpr.identity import seal_files
     from seqvpr.maps.index import ADD_BLOCK, INDEX_FILE
 
-    if record.get("over") != "frames":
-        raise SeqvprError(f"{saved.folder}: its index is over windows ({record.get('over')}); map add extends frame "
-                          "indexes: build the map with every source instead")
     index = faiss.read_index(str(saved.folder / INDEX_FILE))
     for start, block in row_chunks(rows, ADD_BLOCK):
         index.add(np.ascontiguousarray(block, dtype=np.float32))
@@ -229,9 +252,9 @@ def _extended_index(saved: SavedMap, tmp: Path, rows) -> dict[str, Any] | None:
 def _seal(tmp: Path, info: MapInfo, kept: dict[str, str]) -> MapInfo:
     """``map.json`` last: the kept files' digests as recorded, the new files' read once, the identity over all."""
     from seqvpr.identity import combined_identity, seal_files
-    from seqvpr.maps.index import INDEX_FILE
+    from seqvpr.maps.index import INDEX_FILE, ROWS_FILE
 
-    new = [p.name for p in tmp.iterdir() if p.name not in kept and p.name not in (INFO_FILE, INDEX_FILE)]
+    new = [p.name for p in tmp.iterdir() if p.name not in kept and p.name not in (INFO_FILE, INDEX_FILE, ROWS_FILE)]
     files = {**kept, **seal_files(tmp, sorted(new))}
     sealed = replace(info, files=files, identity=combined_identity(files))
     if sealed.index:
