@@ -3,7 +3,8 @@ as the map's own frames were (its descriptor settings and models; another is ref
 map holds. The new rows go into a file of their own (``seqvpr.maps.parts``): the map's row files are hard-linked
 into the new version, so adding N frames writes and digests N rows, never the map again. The frame table (segments,
 source frames, columns, names) is written anew (a few bytes a frame). A frame index over frames is extended by
-the new rows; a map with an index over windows is refused (its vectors pool windows: build it with every source).
+the new rows; an index over windows is rebuilt over the grown map (its vectors pool windows), with its spec, seed
+and model.
 
 The new version is built in a temporary folder beside the map and swapped in by one atomic exchange, under the
 map's lock: a failed or killed ``map add`` leaves the map as it was, byte for byte.
