@@ -27,6 +27,7 @@ LAYERS = {
     "seqvpr.maps": 7, "seqvpr.api": 7,
     "seqvpr.localization": 8,
     "seqvpr.experiments": 9,  # cli -> experiments -> localization (ARCHITECTURE.md)
+    "seqvpr.viewer": 9,  # reads every output seqvpr writes: runs, localisations, maps
     "seqvpr.ros2": 9,
     "seqvpr.cli": 10,
 }

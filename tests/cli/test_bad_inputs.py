@@ -248,6 +248,9 @@ CASES = {
     "loops: a method that does not step": (("loops", "{w}/qry.npz", "--method", "hmm", "--out", "{out}"), "'--method'"),
     "loops: a shortlist index that must be trained": (("loops", "{w}/qry.npz", "--shortlist", "5", "--shortlist-index",
                                                        "ivf:16", "--out", "{out}"), "--shortlist-index"),
+    "view: a folder seqvpr did not write": (("view", "{w}/imgs", "--out", "{out}"), "not a folder seqvpr wrote"),
+    "view: no such folder": (("view", "{w}/nowhere", "--out", "{out}"), "no such folder"),
+    "view: a localisation beside a match": (("view", "{w}/imgs", "{w}/imgs", "--out", "{out}"), "not a folder"),
     "loops: a window longer than the drive": (("loops", "{w}/qry.npz", "-L", "500", "--out", "{out}"), "500"),
     # --- maps that grow (issue 46)
     "map add: frames of another dimension": (("map", "add", "{w}/map", "{w}/ref32.npz"), "32-D"),

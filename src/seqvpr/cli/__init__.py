@@ -26,7 +26,7 @@ COMMANDS = {
     "import": "seqvpr.cli.published:import_command", "map": "seqvpr.cli.maps:map_group",
     "localize": "seqvpr.cli.localize:localize", "convert": "seqvpr.cli.convert:convert",
     "doctor": "seqvpr.cli.doctor:doctor", "node": "seqvpr.cli.robot:node", "play": "seqvpr.cli.robot:play",
-    "export": "seqvpr.cli.export:export", "loops": "seqvpr.cli.loops:loops",
+    "export": "seqvpr.cli.export:export", "loops": "seqvpr.cli.loops:loops", "view": "seqvpr.cli.view:view",
 }
 
 

@@ -1,0 +1,17 @@
+"""The interactive viewer (``seqvpr view``): seqvpr's output folders read back (``seqvpr.viewer.runs``), their
+frames' thumbnails (``seqvpr.viewer.thumbs``) and one self-contained HTML page (``seqvpr.viewer.page``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+
+def view_page(runs: Sequence[str | Path], out: str | Path, progress: Any = None) -> Path:
+    """The page of ``runs`` (match folders over one pair, or one localisation, or one map) written to ``out``
+    (``out/index.html`` and its thumbnails); its path."""
+    from seqvpr.viewer.page import write_view
+    from seqvpr.viewer.runs import read_views
+
+    return write_view(read_views([Path(r) for r in runs]), out, progress)
