@@ -130,6 +130,14 @@
     drawSecond();
   }
 
+  function zoomAtSelection(factor) {
+    // the keys zoom about the selected query and its top-1: what is being looked at stays in view
+    const top = matchOf(S.sel);
+    S.cy = (S.sel + 0.5) / Math.max(nQuery, 1);
+    if (top >= 0) S.cx = (top + 0.5) / Math.max(nRef, 1);
+    zoomMatrix(factor);
+  }
+
   // ---- timeline: a localisation's score and status ---------------------------------------------------------
   function timelineX(i) { return 8 + (i + 0.5) * (second.width - 16) / Math.max(nQuery, 1); }
   function drawTimeline() {
@@ -256,7 +264,7 @@
   }
   window.addEventListener('keydown', (e) => {
     const keys = { ArrowRight: () => step(1, false), ArrowLeft: () => step(-1, false), n: () => step(1, true),
-                   p: () => step(-1, true), '+': () => zoomMatrix(2), '-': () => zoomMatrix(0.5) };
+                   p: () => step(-1, true), '+': () => zoomAtSelection(2), '-': () => zoomAtSelection(0.5) };
     if (keys[e.key]) { e.preventDefault(); keys[e.key](); }
   });
 
