@@ -98,6 +98,12 @@ STATUS_NOTE = (
 )
 
 
+#: every run's report points at the interactive page ``seqvpr view RUN`` writes beside it
+VIEWER_LINK = ('<h2>Step through it</h2><p><a href="../view/index.html">The interactive view</a>: every frame with '
+               "its image, its estimate and the map frame it matched, the timeline to scrub, keys to step through the "
+               "failures. <code>seqvpr view RUN</code> writes it (RUN/view/index.html, offline, no server).</p>")
+
+
 def write_localization_report(
     out_dir: Path, *, title: str, summary: str, trace: LocalizationTrace, threshold: float, threshold_source: str,
     metrics: Sequence[tuple[str, str]],
@@ -111,6 +117,7 @@ def write_localization_report(
                     status_table_html(category_counts(trace.categories())),
                     f'<p class="legend">{html.escape(STATUS_NOTE)}</p>']
         sections += _figure_sections(trace, threshold, threshold_source, tmp)
+        sections.append(VIEWER_LINK)
         (tmp / "index.html").write_text(page_html(title, sections), encoding="utf-8")
     return Path(out_dir) / "index.html"
 
