@@ -289,3 +289,41 @@ def test_the_node_publishes_the_loops_seqvpr_loops_finds_and_keeps_its_past_in_t
     assert len(loops.samples) == len(accepted) and f"{len(accepted)} loop closures published" in err
     with np.load(tmp_path / "node.loops.npz", allow_pickle=False) as saved:
         assert len(saved["rows"]) == len(images) and len(saved["stamps"]) == len(images)
+
+
+def test_the_node_publishes_each_matched_map_frames_thumbnail_and_a_latched_route(drive, shared_data, dds,
+                                                                                   tmp_path):
+    """A map of Gardens Point's day images (a metre a frame): while localised or uncertain, the node publishes the
+    matched map frame's thumbnail, byte for byte the file the status names; the route reaches a late subscriber."""
+    import shutil
+
+    from seqvpr.ros2.dds import LATCHED
+    from seqvpr.ros2.messages import COMPRESSED, PATH
+
+    root, _ = drive
+    day = tmp_path / "day"
+    shutil.copytree(shared_data / "gardenspoint_walking" / "day_left", day)
+    names = sorted(p.name for p in day.glob("*.jpg"))
+    (day / "positions.csv").write_text("name,easting,northing\n" + "".join(f"{n},0,{i}\n" for i, n in enumerate(names)))
+    seqvpr("map", "build", day, "--out", tmp_path / "map")
+    statuses, images = Recorder("/seqvpr/status", STATUS), Recorder("/seqvpr/match/compressed", COMPRESSED)
+    node = start_seqvpr(dds, "node", "--map", tmp_path / "map", *NODE, "--no-drop", "--publish-images")
+    try:
+        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20", "--wait",
+                        "30"], env=dds, cwd=ROOT, check=True, capture_output=True, timeout=300)
+        got = [status_values(s.message) for s in statuses.wait_for(200, 120)]
+        shown = [v for v in got if v["state"] in ("localised", "uncertain")]
+        published = images.wait_for(len(shown), 60)
+        route = Recorder("/seqvpr/route", PATH, profile=LATCHED)  # joins after the node published it
+        paths = route.wait_for(1, 30)
+        route.close()
+    finally:
+        stop(node)
+        statuses.close()
+        images.close()
+    assert len(shown) > 10 and len(published) == len(shown)
+    for values, sample in zip(shown, published):
+        assert bytes(sample.message.data) == Path(values["match_image"]).read_bytes()
+        assert sample.message.format == "jpeg"
+    assert len(paths) == 1 and len(paths[0].message.poses) == 200
+    assert [p.pose.position.y for p in paths[0].message.poses] == list(map(float, range(200)))

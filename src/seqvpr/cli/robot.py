@@ -40,6 +40,10 @@ Examples:
 @option("Output", "--frame-id", default="map", show_default=True, help="The frame_id of the published pose.")
 @option("Output", "--state", type=OUT_FILE, help="Save the localiser's state here on SIGTERM or SIGINT.")
 @option("Localiser", "--restore", is_flag=True, help="Start from the state saved in --state.")
+@option("Output", "--publish-images", is_flag=True,
+        help="Also publish the matched map frame's thumbnail (CompressedImage) on /seqvpr/match/compressed while "
+             "localised or uncertain, from the map's source images (made once, cached); the map's route is on "
+             "/seqvpr/route (nav_msgs/Path, latched) either way.")
 @option("Loops", "--loops", is_flag=True, help="Also find loop closures within the drive (its frames as described "
         "for the map, causal windows of --seq-len) and publish the accepted ones on /seqvpr/loop (DiagnosticArray, "
         "status 'seqvpr loop'); with --state, the drive so far is kept in STATE.loops.npz.")
@@ -72,7 +76,7 @@ def node(**options: Any) -> None:
     settings = NodeSettings(options["camera"], camera_type(options["camera"], options["image_type"]), fix_topic,
                             (NAVSATFIX if options["gps_topic"] else ODOMETRY) if fix_topic else None, options["no_drop"],
                             options["frame_id"], Path(options["state"]) if options["state"] else None,
-                            node_loop_settings(options))
+                            node_loop_settings(options), options["publish_images"])
     bus = Bus(options["domain"])
     running = LocalizerNode(localizer, bus, settings)
     if options["restore"]:

@@ -7,6 +7,7 @@ import io
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -137,6 +138,23 @@ def header(stamp: Any, frame_id: str):
     """A std_msgs/Header with the camera frame's stamp."""
     return message("std_msgs/msg/Header", stamp=message("builtin_interfaces/msg/Time", sec=int(stamp.sec),
                                                         nanosec=int(stamp.nanosec)), frame_id=frame_id)
+
+
+_ZERO = SimpleNamespace(sec=0, nanosec=0)  # the stamp of what is of no one moment (the route)
+
+
+def route_of(track: Track, frame_id: str):
+    """The map's route as a nav_msgs/Path: one pose a map frame, facing the direction of travel there (stamp 0:
+    the route is not of any one moment)."""
+    poses = []
+    for (x, y), yaw in zip(track.positions.tolist(), track.headings.tolist()):
+        half = yaw / 2 if math.isfinite(yaw) else 0.0
+        pose = message("geometry_msgs/msg/Pose", position=message("geometry_msgs/msg/Point", x=float(x), y=float(y),
+                                                                  z=0.0),
+                       orientation=message("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(half),
+                                           w=math.cos(half)))
+        poses.append(message("geometry_msgs/msg/PoseStamped", header=header(_ZERO, frame_id), pose=pose))
+    return message("nav_msgs/msg/Path", header=header(_ZERO, frame_id), poses=poses)
 
 
 def pose_of(estimate, misses: int, track: Track, stamp: Any, frame_id: str):

@@ -33,10 +33,12 @@ def domain_id(given: int | None = None) -> int:
 
 @dataclass(frozen=True)
 class Profile:
-    """A QoS profile as ROS 2 names its parts: reliable or best effort, keep last ``depth`` (0: keep all)."""
+    """A QoS profile as ROS 2 names its parts: reliable or best effort, keep last ``depth`` (0: keep all), volatile
+    or transient-local (``latched``: a late subscriber still gets the last ``depth`` samples)."""
 
     reliable: bool
     depth: int
+    latched: bool = False
 
     def qos(self):
         from cyclonedds.core import Policy, Qos
@@ -45,7 +47,8 @@ class Profile:
         reliability = Policy.Reliability.Reliable(duration(seconds=1)) if self.reliable else \
             Policy.Reliability.BestEffort
         history = Policy.History.KeepLast(self.depth) if self.depth else Policy.History.KeepAll
-        return Qos(reliability, history, Policy.Durability.Volatile)
+        durability = Policy.Durability.TransientLocal if self.latched else Policy.Durability.Volatile
+        return Qos(reliability, history, durability)
 
 
 #: ROS 2's sensor-data profile (rmw_qos_profile_sensor_data): best effort, keep last 5
@@ -54,6 +57,8 @@ SENSOR_DATA = Profile(False, 5)
 DEFAULT = Profile(True, 10)
 #: every sample, none lost (a replay's subscriber: ``seqvpr node --no-drop``; ``seqvpr play``'s publishers)
 EVERY_SAMPLE = Profile(True, 0)
+#: a latched topic (ROS 2's transient-local): the map's route, published once, reaches subscribers that join later
+LATCHED = Profile(True, 1, latched=True)
 
 
 class Bus:
@@ -100,9 +105,9 @@ class Recorder:
     """Every sample of a topic as it arrives (a reliable, keep-all subscriber read by a thread of its own): what
     ``ros2 topic echo`` shows, kept for a test or a benchmark to read."""
 
-    def __init__(self, topic: str, msgtype: str, domain: int | None = None) -> None:
+    def __init__(self, topic: str, msgtype: str, domain: int | None = None, profile: Profile = EVERY_SAMPLE) -> None:
         self.bus = Bus(domain)
-        self.reader = self.bus.reader(topic, msgtype, EVERY_SAMPLE)
+        self.reader = self.bus.reader(topic, msgtype, profile)
         self.samples: list[Received] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._take, name=f"seqvpr-record{topic}", daemon=True)

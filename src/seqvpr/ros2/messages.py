@@ -20,7 +20,8 @@ IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
 NAVSATFIX, ODOMETRY = "sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry"
 POSE, STATUS, EMPTY = "geometry_msgs/msg/PoseWithCovarianceStamped", "diagnostic_msgs/msg/DiagnosticArray", \
     "std_msgs/msg/Empty"
-MESSAGE_TYPES = (IMAGE, COMPRESSED, NAVSATFIX, ODOMETRY, POSE, STATUS, EMPTY)
+PATH = "nav_msgs/msg/Path"
+MESSAGE_TYPES = (IMAGE, COMPRESSED, NAVSATFIX, ODOMETRY, POSE, STATUS, EMPTY, PATH)
 
 
 @functools.cache

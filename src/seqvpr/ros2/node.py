@@ -29,13 +29,14 @@ import numpy as np
 
 from seqvpr.errors import SeqvprError
 from seqvpr.localization.localizer import Localizer
-from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, SENSOR_DATA, Bus
+from seqvpr.ros2.dds import DEFAULT, EVERY_SAMPLE, LATCHED, SENSOR_DATA, Bus
 from seqvpr.ros2.camera import (
     LEVELS, WARN, TimeGaps, Track, camera_image, fix_in_map, pose_of, stamp_seconds, stamp_text, status_of,
 )
-from seqvpr.ros2.messages import EMPTY, POSE, STATUS, Received, encode, message, outgoing
+from seqvpr.ros2.messages import COMPRESSED, EMPTY, PATH, POSE, STATUS, Received, encode, message, outgoing
 
 POSE_TOPIC, STATUS_TOPIC, RESET_TOPIC, LOOP_TOPIC = "/seqvpr/pose", "/seqvpr/status", "/seqvpr/reset", "/seqvpr/loop"
+MATCH_TOPIC, ROUTE_TOPIC = "/seqvpr/match/compressed", "/seqvpr/route"
 #: the stamp of what has none (a frame whose bytes do not decode)
 ZERO_STAMP = message("builtin_interfaces/msg/Time", sec=0, nanosec=0)
 
@@ -55,6 +56,7 @@ class NodeSettings:
     frame_id: str = "map"
     state: Path | None = None
     loops: Any = None  # LoopSettings
+    publish_images: bool = False
 
 
 class Inbox:
@@ -109,6 +111,8 @@ class LocalizerNode:
         outputs = EVERY_SAMPLE if settings.keep_all else DEFAULT
         self.pose_writer = bus.writer(POSE_TOPIC, POSE, outputs)
         self.status_writer = bus.writer(STATUS_TOPIC, STATUS, outputs)
+        self.route_writer = bus.writer(ROUTE_TOPIC, PATH, LATCHED) if self.track is not None else None
+        self.match_writer = bus.writer(MATCH_TOPIC, COMPRESSED, outputs) if settings.publish_images else None
         self.loops, self.loops_found = None, 0
         if settings.loops is not None:
             from seqvpr.localization.loop_detector import LoopDetector
@@ -160,6 +164,10 @@ class LocalizerNode:
     def run(self, stop: threading.Event) -> None:
         """Process frames until ``stop`` is set; then save the state (when asked)."""
         readers = self._subscribe()  # only now: a frame that came before anyone took it would wait, then be dropped
+        if self.route_writer is not None:  # once, latched: RViz or Foxglove joining later still draw it
+            from seqvpr.ros2.camera import route_of
+
+            self.route_writer.write(outgoing(PATH, route_of(self.track, self.settings.frame_id)))
         receiver = threading.Thread(target=self._receive, args=(stop, *readers), name="seqvpr-receive", daemon=True)
         receiver.start()
         try:
@@ -224,6 +232,7 @@ class LocalizerNode:
         if pose is not None:
             self.pose_writer.write(outgoing(POSE, pose))
         values = self._values(estimate, value, arrived)
+        values["match_image"] = self._publish_match(estimate, value.header.stamp)
         if loop is not None:
             values.update({"loop_match": loop.match if loop.match >= 0 else "", "loop_score": loop.score,
                            "loop_accepted": int(loop.accepted)})
@@ -231,6 +240,25 @@ class LocalizerNode:
         self.status_writer.write(outgoing(STATUS, status_of(values, LEVELS[estimate.status], text, value.header.stamp,
                                                             self.settings.frame_id, self._hardware_id())))
         return values
+
+    def _publish_match(self, estimate: Any, stamp: Any) -> str | None:
+        """With ``publish_images``, the matched map frame's thumbnail (``seqvpr.viewer.thumbs``: made once per image,
+        cached) on ``/seqvpr/match/compressed`` while localised or uncertain; its file, for the status (None: no
+        image published)."""
+        if self.match_writer is None or estimate.status not in ("localised", "uncertain") or estimate.best is None:
+            return None
+        from seqvpr.ros2.camera import header
+        from seqvpr.viewer.thumbs import cached_thumbnail, thumbnail_cache
+
+        row = estimate.index if estimate.status == "localised" else estimate.best
+        images = self.localizer.saved.frames.image_paths
+        thumb = cached_thumbnail(images[row], thumbnail_cache()) if images is not None else None
+        if thumb is None:
+            return None
+        data = np.frombuffer(thumb.read_bytes(), np.uint8)
+        self.match_writer.write(outgoing(COMPRESSED, message(COMPRESSED, header=header(stamp, self.settings.frame_id),
+                                                                  format="jpeg", data=data)))
+        return str(thumb)
 
     def _find_loop(self, estimate: Any, stamp: float | None, header_stamp: Any):
         """The frame's loop closure (None without loop detection, or for a frame the keyframe gate skipped): the
