@@ -50,9 +50,21 @@
   })();
   function pointOf(q) { return fit(qryXY[q]); }
 
-  function drawRoute() {
-    const g = route.getContext('2d');
-    g.clearRect(0, 0, route.width, route.height);
+  // what does not change with the selection is drawn once into a layer, and the selection over a copy of it
+  const layers = {};
+  function layer(name, key, canvas, paint) {
+    if (!layers[name] || layers[name].key !== key) {
+      const off = document.createElement('canvas');
+      off.width = canvas.width; off.height = canvas.height;
+      paint(off.getContext('2d'));
+      layers[name] = { key, canvas: off };
+    }
+    const g = canvas.getContext('2d');
+    g.clearRect(0, 0, canvas.width, canvas.height);
+    g.drawImage(layers[name].canvas, 0, 0);
+    return g;
+  }
+  function paintRoute(g) {
     g.fillStyle = C.ref;
     for (const p of refXY) { const [x, y] = fit(p); g.fillRect(x - 1, y - 1, 2, 2); }
     for (let q = 0; q < qryXY.length; q++) {
@@ -60,6 +72,9 @@
       g.fillStyle = C[outcome(q)];
       g.fillRect(x - 1.5, y - 1.5, 3, 3);
     }
+  }
+  function drawRoute() {
+    const g = layer('route', S.method, route, paintRoute);
     const top = matchOf(S.sel);
     if (query && top >= 0 && refXY[top]) {
       const [x0, y0] = fit(qryXY[S.sel]), [x1, y1] = fit(refXY[top]);
@@ -99,8 +114,13 @@
     return [v.ox + (r + 0.5) * v.sx, v.oy + (q + 0.5) * v.sy];
   }
   function drawMatrix() {
-    const g = second.getContext('2d'), v = matrixView(), m = D.methods[S.method];
-    g.clearRect(0, 0, second.width, second.height);
+    const v = matrixView();
+    const g = layer('matrix', [S.method, S.zoom, S.cx, S.cy].join(), second, paintMatrix);
+    g.strokeStyle = C.sel; g.lineWidth = 1;
+    g.strokeRect(0, v.oy + S.sel * v.sy, second.width, Math.max(v.sy, 1));
+  }
+  function paintMatrix(g) {
+    const v = matrixView(), m = D.methods[S.method];
     const q0 = Math.max(0, Math.floor(-v.oy / v.sy)), q1 = Math.min(nQuery, Math.ceil((second.height - v.oy) / v.sy));
     const cw = Math.max(v.sx, 1), ch = Math.max(v.sy, 1);
     if (D.positives) {
@@ -117,8 +137,6 @@
       }
     }
     g.globalAlpha = 1;
-    g.strokeStyle = C.sel; g.lineWidth = 1;
-    g.strokeRect(0, v.oy + S.sel * v.sy, second.width, ch);
   }
   function zoomMatrix(factor, atX, atY) {
     const v = matrixView();
@@ -141,9 +159,14 @@
   // ---- timeline: a localisation's score and status ---------------------------------------------------------
   function timelineX(i) { return 8 + (i + 0.5) * (second.width - 16) / Math.max(nQuery, 1); }
   function drawTimeline() {
-    const g = second.getContext('2d'), st = D.stream, h = second.height - 30;
-    const scores = st.score.filter((s) => s !== null), top = Math.max(1e-9, st.threshold || 0, ...scores);
-    g.clearRect(0, 0, second.width, second.height);
+    const g = layer('timeline', 0, second, paintTimeline);
+    g.strokeStyle = C.sel; g.beginPath(); g.moveTo(timelineX(S.sel), 0); g.lineTo(timelineX(S.sel), second.height);
+    g.stroke();
+  }
+  function paintTimeline(g) {
+    const st = D.stream, h = second.height - 30;
+    const scores = st.score.filter((s) => s !== null);
+    const top = scores.reduce((a, b) => Math.max(a, b), Math.max(1e-9, st.threshold || 0));
     for (let i = 0; i < nQuery; i++) {
       g.fillStyle = C[outcome(i)];
       g.fillRect(timelineX(i) - 1, h + 8, Math.max(2, (second.width - 16) / nQuery), 14);
@@ -161,8 +184,6 @@
       g.strokeStyle = '#ff8f00'; g.setLineDash([4, 4]); g.beginPath(); g.moveTo(0, y); g.lineTo(second.width, y);
       g.stroke(); g.setLineDash([]);
     }
-    g.strokeStyle = C.sel; g.beginPath(); g.moveTo(timelineX(S.sel), 0); g.lineTo(timelineX(S.sel), second.height);
-    g.stroke();
   }
   function frameAtX(x) {
     return Math.min(nQuery - 1, Math.max(0, Math.floor((x - 8) * nQuery / (second.width - 16))));
