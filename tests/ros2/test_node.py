@@ -309,8 +309,9 @@ def test_the_node_publishes_each_matched_map_frames_thumbnail_and_a_latched_rout
     statuses, images = Recorder("/seqvpr/status", STATUS), Recorder("/seqvpr/match/compressed", COMPRESSED)
     node = start_seqvpr(dds, "node", "--map", tmp_path / "map", *NODE, "--no-drop", "--publish-images")
     try:
-        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20", "--wait",
-                        "30"], env=dds, cwd=ROOT, check=True, capture_output=True, timeout=300)
+        played = subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", root / "night_right", "--rate", "20",
+                                 "--wait", "30", "--record", tmp_path / "rec"], env=dds, cwd=ROOT, check=True,
+                                capture_output=True, text=True, timeout=300)
         got = [status_values(s.message) for s in statuses.wait_for(200, 120)]
         shown = [v for v in got if v["state"] in ("localised", "uncertain")]
         published = images.wait_for(len(shown), 60)
@@ -327,3 +328,13 @@ def test_the_node_publishes_each_matched_map_frames_thumbnail_and_a_latched_rout
         assert sample.message.format == "jpeg"
     assert len(paths) == 1 and len(paths[0].message.poses) == 200
     assert [p.pose.position.y for p in paths[0].message.poses] == list(map(float, range(200)))
+    # the recording (seqvpr play --record) opens in seqvpr view as a localisation: its statuses, in order
+    assert "on /seqvpr/status" in played.stdout and "on /seqvpr/match/compressed" in played.stdout
+    from seqvpr.viewer.runs import read_views
+
+    view = read_views([tmp_path / "rec"])
+    assert view.kind == "localize" and len(view.reference.names) == 200
+    recorded = view.stream["rows"]
+    assert 190 <= len(recorded) <= 200
+    column = view.stream["columns"].index("state")
+    assert [r[column] for r in recorded] == [v["state"] for v in got[: len(recorded)]]

@@ -12,7 +12,7 @@ import click
 
 from seqvpr.cli.help import SectionedCommand, option
 from seqvpr.cli.localize import localizer_options
-from seqvpr.cli.options import FINITE, FLAGS, NONNEGATIVE, NONNEGATIVE_FLOAT, OUT_FILE, POSITIVE
+from seqvpr.cli.options import FINITE, FLAGS, NONNEGATIVE, NONNEGATIVE_FLOAT, OUT_FILE, OUT_FOLDER, POSITIVE
 from seqvpr.errors import SeqvprError, SettingError
 
 NODE_SECTIONS = ("Input", "Method", "Map", "Localiser", "Loops", "Topics", "Output", "Compute")
@@ -126,6 +126,8 @@ Examples:
 @click.option("--wait", type=NONNEGATIVE_FLOAT, default=2.0, show_default=True,
               help="Seconds to wait for a subscriber to the camera topic before the first frame (0: none).")
 @click.option("--domain", type=DOMAIN, help="DDS domain  [default: $ROS_DOMAIN_ID, else 0].")
+@click.option("--record", type=OUT_FOLDER, help="Also record what the node publishes (status, pose, loops, "
+              "matched images) into this ROS 2 bag folder; seqvpr view opens it as a localisation.")
 def play(**options: Any) -> None:
     """Publish a bag's camera topic (and position topic) live over DDS at its recorded rate, as ros2 bag play."""
     from seqvpr.cli.progress import tqdm_progress
@@ -139,6 +141,13 @@ def play(**options: Any) -> None:
     if options["gps_topic"] and options["odom_topic"]:
         raise SeqvprError("give --gps-topic or --odom-topic, not both")
     topics = BagTopics(options["topic"], options["gps_topic"], options["odom_topic"])
+    recording = None
+    if options["record"]:
+        from seqvpr.io import check_out_folder
+        from seqvpr.ros2.record import BAG_MARKER, NodeRecording
+
+        check_out_folder(options["record"], BAG_MARKER, [options["bag"]], "--record")
+        recording = NodeRecording(options["domain"])
     played = play_bag(options["bag"], topics, Bus(options["domain"]), options["rate"], options["frames"],
                       options["wait"],
                       tqdm_progress)
@@ -146,3 +155,7 @@ def play(**options: Any) -> None:
     click.echo(f"played {played.frames} frames of {played.camera_topic}"
                + (f" and {played.fixes} fixes of {played.position_topic}" if played.position_topic else "")
                + f" in {played.seconds:.1f} s{heard}")
+    if recording is not None:
+        counts = recording.finish(options["record"])
+        click.echo(f"recorded {', '.join(f'{n} on {t}' for t, n in counts.items() if n) or 'nothing'} into "
+                   f"{options['record']}")

@@ -76,11 +76,14 @@ def run_kind(folder: Path) -> str:
         raise SeqvprError(f"{folder}: no such folder")
     if (folder / "map.json").is_file():
         return "map"
+    if (folder / "metadata.yaml").is_file():
+        return "recording"
     if (folder / "stream.csv").is_file() and (folder / "run.json").is_file():
         return "localize"
     if (folder / "predictions.csv").is_file() and (folder / "run.json").is_file():
         return "match"
-    raise SeqvprError(f"{folder}: not a folder seqvpr wrote (no map.json, no match or localize run.json)")
+    raise SeqvprError(f"{folder}: not a folder seqvpr wrote (no map.json, no match or localize run.json, no "
+                      "recorded bag)")
 
 
 def read_views(folders: list[Path]) -> View:
@@ -93,6 +96,8 @@ def read_views(folders: list[Path]) -> View:
         return read_map_view(Path(folders[0]))
     if kinds[0] == "localize":
         return read_localize_view(Path(folders[0]))
+    if kinds[0] == "recording":
+        return read_recording_view(Path(folders[0]))
     return read_match_views([Path(f) for f in folders])
 
 
@@ -221,6 +226,45 @@ def read_localize_view(folder: Path) -> View:
               "correct": [row(r.get("correct")) for r in rows], "threshold": record.get("threshold"),
               "columns": list(rows[0]), "rows": [list(r.values()) for r in rows]}
     return View("localize", f"localisation: {folder.name}", reference, query, stream=stream, notes=notes)
+
+
+def read_recording_view(folder: Path) -> View:
+    """A node's recorded ``/seqvpr/status`` (``seqvpr play --record``) as a localisation: each status's values a
+    row, the map named by its hardware id (where it still is) for the route and the matched frames."""
+    statuses = recorded_statuses(folder)
+    if not statuses:
+        raise SeqvprError(f"{folder}: a bag with no /seqvpr/status message (not a recording of seqvpr node)")
+    notes: list[str] = []
+    reference, _ = source_side(statuses[0][0], "reference", None, notes)
+    columns = list(dict.fromkeys(k for _, values in statuses for k in values))
+    rows = [[values.get(c, "") for c in columns] for _, values in statuses]
+    number = lambda v: float(v) if v not in ("", "nan", None) else None  # noqa: E731
+    row = lambda v: int(v) if v not in ("", None) else -1  # noqa: E731
+    stream = {"status": [v.get("state", "") for _, v in statuses], "score": [number(v.get("score")) for _, v in statuses],
+              "localised": [row(v.get("map_index")) for _, v in statuses],
+              "best": [row(v.get("best_index")) for _, v in statuses], "correct": [-1] * len(statuses),
+              "threshold": number(statuses[0][1].get("threshold")), "columns": columns, "rows": rows}
+    query = Side(str(folder), [v.get("stamp", str(i)) for i, (_, v) in enumerate(statuses)])
+    return View("localize", f"recorded node: {folder.name}", reference, query, stream=stream, notes=notes)
+
+
+def recorded_statuses(folder: Path) -> list[tuple[str, dict[str, str]]]:
+    """The bag's ``/seqvpr/status`` messages in order: (hardware id, key-values), malformed frames' reports left
+    out (they carry no estimate)."""
+    from rosbags.highlevel import AnyReader
+
+    from seqvpr.errors import reading
+
+    found = []
+    with reading(folder, "a recorded bag"):
+        with AnyReader([folder]) as reader:
+            connections = [c for c in reader.connections if c.topic == "/seqvpr/status"]
+            for connection, _, raw in reader.messages(connections=connections):
+                status = reader.deserialize(raw, connection.msgtype).status[0]
+                values = {kv.key: kv.value for kv in status.values}
+                if values.get("frame", "") != "":
+                    found.append((status.hardware_id, values))
+    return found
 
 
 def read_map_view(folder: Path) -> View:
