@@ -29,8 +29,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SEQVPR = [sys.executable, "-m", "seqvpr.cli"]
 
 
-def write_images(folder: Path, n: int, seed: int, noise: float) -> None:
-    """``n`` small JPEG frames of a smooth random 'route' (frame i looks like its neighbours), a metre apart."""
+def write_images(folder: Path, n: int, seed: int, noise: float, detours: bool = False) -> None:
+    """``n`` small JPEG frames of a smooth random 'route' (frame i looks like its neighbours), a metre apart; with
+    ``detours``, one stretch of 20 frames in 200 shows somewhere else (queries that fail)."""
     from PIL import Image
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -42,6 +43,8 @@ def write_images(folder: Path, n: int, seed: int, noise: float) -> None:
         at = i / 8.0
         lo = int(at)
         strip = (1 - (at - lo)) * base[lo] + (at - lo) * base[lo + 1]
+        if detours and (i // 20) % 10 == 3:
+            strip = base[own.integers(len(base))]
         pixels = np.repeat(strip[None], 36, axis=0) + noise * own.random((36, 48, 3))
         image = Image.fromarray(np.clip(pixels * 200, 0, 255).astype(np.uint8)).resize((96, 72))
         name = f"{i:06d}.jpg"
@@ -96,7 +99,7 @@ def main() -> None:
     shutil.rmtree(work, ignore_errors=True)
     print(cpu_model(), flush=True)
     write_images(work / "ref", args.frames, 1, 0.05)
-    write_images(work / "qry", args.frames, 2, 1.2)  # noisy enough that some queries fail
+    write_images(work / "qry", args.frames, 2, 0.3, detours=True)
     match = timed([*SEQVPR, "match", "-r", str(work / "ref"), "-q", str(work / "qry"), "--radius", "5m", "-L", "5",
                    "--out", str(work / "run")])
     first = timed([*SEQVPR, "view", str(work / "run"), "--out", str(work / "page")])
