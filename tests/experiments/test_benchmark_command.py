@@ -66,6 +66,13 @@ def test_benchmark_prints_both_tables_and_reports_a_failed_length_in_its_row(mon
     assert (tmp_path / "b" / "results.md").read_text().count("failed") >= len(long)
     code, again, stderr = run_cli(monkeypatch, capsys, "benchmark", config, "--out", tmp_path / "b")
     assert code == 0 and again == stdout  # a re-run into the same folder reuses the trained model
+    from seqvpr.viewer import view_page
+    from seqvpr.viewer.runs import read_views
+
+    view = read_views([tmp_path / "b"])  # seqvpr view BENCHMARK: the dataset's runs at the main L, side by side
+    assert sorted(m.name.split(" ")[0] for m in view.methods) == sorted(f"{m}-L5" for m in main)
+    assert view.query is not None and len(view.query.names) == 100 and view.positives is not None
+    assert view_page([tmp_path / "b"], tmp_path / "page").is_file()
 
 
 def test_robotics_figures_and_frame_precision_reach_the_csv_and_the_detail_table(monkeypatch, capsys, route, tmp_path):

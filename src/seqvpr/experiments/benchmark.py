@@ -440,7 +440,10 @@ def run_benchmark(
         for method, length in plan:
             echo(f"{spec.name}: {method} L={length}")
             try:
-                evaluation = evaluate_match(runner.run(method, length), gt, config.ks)
+                result = runner.run(method, length)
+                evaluation = evaluate_match(result, gt, config.ks)
+                save_viewable_run(out / spec.name / "runs" / f"{method}-L{length}", result, gt, spec, method,
+                                  length == config.seq_len)
                 rows.append(Row(spec.name, method, length, evaluation))
             except NotApplicable as error:
                 rows.append(Row(spec.name, method, length, None, str(error), applicable=False))
@@ -449,6 +452,24 @@ def run_benchmark(
                 echo(f"{spec.name}: {method} L={length} failed: {one_line(error)}")
     write_provenance(out, provenance)
     return rows
+
+
+def save_viewable_run(folder: Path, result, gt, spec: DatasetSpec, method: str, main: bool) -> None:
+    """One method's test-split predictions and the settings that name its traversals, as ``match --out`` writes
+    them: ``seqvpr view BENCHMARK`` opens a dataset's runs side by side (``main``: at the benchmark's main L)."""
+    import json
+
+    from seqvpr.evaluation.predictions import save_match_predictions
+    from seqvpr.io import atomic_folder
+
+    settings = result.settings
+    record = {"benchmark_main": main, "settings": {
+        "reference": spec.reference, "query": spec.query, "frames": spec.test, "radius": spec.radius,
+        "method": method, "descriptor": spec.descriptor,
+        "sequence": {"length": settings.sequence.length, "align": settings.sequence.align}}}
+    with atomic_folder(folder, "run.json") as tmp:
+        save_match_predictions(tmp / "predictions.csv", result, gt)
+        (tmp / "run.json").write_text(json.dumps(record, indent=2) + "\n")
 
 
 def one_line(error: BaseException) -> str:

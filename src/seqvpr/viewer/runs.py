@@ -82,14 +82,18 @@ def run_kind(folder: Path) -> str:
         return "localize"
     if (folder / "predictions.csv").is_file() and (folder / "run.json").is_file():
         return "match"
+    if (folder / "run.json").is_file() and benchmark_runs(folder):
+        return "benchmark"
     raise SeqvprError(f"{folder}: not a folder seqvpr wrote (no map.json, no match or localize run.json, no "
                       "recorded bag)")
 
 
 def read_views(folders: list[Path]) -> View:
-    """One page's view of the folders: several match runs over the same traversals side by side, or one
-    localisation or one map."""
+    """One page's view of the folders: several match runs over the same traversals side by side (a benchmark's
+    runs of its first dataset), or one localisation, recording or map."""
     kinds = [run_kind(f) for f in folders]
+    if kinds == ["benchmark"]:
+        return read_match_views(benchmark_runs(Path(folders[0])))
     if len(folders) > 1 and set(kinds) != {"match"}:
         raise SeqvprError("several folders are compared as match runs only; view a localisation or a map alone")
     if kinds[0] == "map":
@@ -99,6 +103,17 @@ def read_views(folders: list[Path]) -> View:
     if kinds[0] == "recording":
         return read_recording_view(Path(folders[0]))
     return read_match_views([Path(f) for f in folders])
+
+
+def benchmark_runs(folder: Path) -> list[Path]:
+    """A benchmark folder's runs at its main L, of its first dataset (``experiments.benchmark``:
+    ``DATASET/runs/METHOD-LN``); every run of that dataset where none is marked main."""
+    for dataset in sorted(p for p in Path(folder).iterdir() if (p / "runs").is_dir()):
+        runs = sorted(r for r in (dataset / "runs").iterdir() if (r / "predictions.csv").is_file())
+        main = [r for r in runs if read_run_json(r).get("benchmark_main")]
+        if runs:
+            return main or runs
+    return []
 
 
 def read_run_json(folder: Path) -> dict[str, Any]:
