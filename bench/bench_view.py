@@ -85,6 +85,9 @@ def browser_figures(page: Path, blank: Path) -> dict[str, float]:
                            ("empty frame", "0")):
             driver.execute_script("seqvprView.select(100)")
             figures[name] = float(np.median([driver.execute_async_script(painted % call) for _ in range(50)]))
+        zoom = "const t0 = performance.now(); seqvprView.zoomMatrix(arguments[0]); return performance.now() - t0;"
+        figures["zoom 4, tiles made"] = driver.execute_script(zoom, 4)
+        figures["pan, tiles kept"] = float(np.median([driver.execute_script(zoom, 1.0001) for _ in range(20)]))
         return figures
     finally:
         driver.quit()
@@ -111,9 +114,11 @@ def main() -> None:
     print(f"| frames | match s (yardstick) | view s, thumbnails made | view s, thumbnails cached | page MB |")
     print(f"| {args.frames:,} x {args.frames:,} | {match:.1f} | {first:.1f} | {second:.1f} | "
           f"{page.stat().st_size / 1e6:.1f} |")
-    print("| open s | blank page of its size s | step ms | next failure ms | empty frame ms |")
+    print("| open s | blank page of its size s | step ms | next failure ms | empty frame ms | zoom x4 ms (tiles "
+          "made) | redraw ms (tiles kept) |")
     print(f"| {figures['open']:.2f} | {figures['open blank']:.2f} | {figures['step']:.1f} | "
-          f"{figures['next failure']:.1f} | {figures['empty frame']:.1f} |")
+          f"{figures['next failure']:.1f} | {figures['empty frame']:.1f} | {figures['zoom 4, tiles made']:.1f} | "
+          f"{figures['pan, tiles kept']:.1f} |")
 
 
 if __name__ == "__main__":

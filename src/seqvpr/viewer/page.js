@@ -113,27 +113,55 @@
     const v = matrixView();
     return [v.ox + (r + 0.5) * v.sx, v.oy + (q + 0.5) * v.sy];
   }
+  // the band is drawn in tiles of TILE x TILE pixels at the zoom level 2^t just below the zoom, each made once and
+  // kept, then scaled into place: panning and stepping only copy tiles, so a 10k x 10k match stays smooth
+  const TILE = 256, tiles = new Map(), MAX_TILES = 600;
   function drawMatrix() {
-    const v = matrixView();
-    const g = layer('matrix', [S.method, S.zoom, S.cx, S.cy].join(), second, paintMatrix);
+    const v = matrixView(), t = Math.max(0, Math.floor(Math.log2(S.zoom) + 1e-9)), f = S.zoom / 2 ** t;
+    const g = second.getContext('2d');
+    g.clearRect(0, 0, second.width, second.height);
+    g.imageSmoothingEnabled = false;
+    const size = TILE * f;
+    const i0 = Math.max(0, Math.floor(-v.ox / size)), i1 = Math.ceil((second.width - v.ox) / size);
+    const j0 = Math.max(0, Math.floor(-v.oy / size)), j1 = Math.ceil((second.height - v.oy) / size);
+    const across = Math.ceil(second.width * 2 ** t / TILE), down = Math.ceil(second.height * 2 ** t / TILE);
+    for (let i = i0; i < Math.min(i1, across); i++) {
+      for (let j = j0; j < Math.min(j1, down); j++) g.drawImage(tile(t, i, j), v.ox + i * size, v.oy + j * size, size, size);
+    }
     g.strokeStyle = C.sel; g.lineWidth = 1;
     g.strokeRect(0, v.oy + S.sel * v.sy, second.width, Math.max(v.sy, 1));
   }
-  function paintMatrix(g) {
-    const v = matrixView(), m = D.methods[S.method];
-    const q0 = Math.max(0, Math.floor(-v.oy / v.sy)), q1 = Math.min(nQuery, Math.ceil((second.height - v.oy) / v.sy));
-    const cw = Math.max(v.sx, 1), ch = Math.max(v.sy, 1);
+  function tile(t, i, j) {
+    const key = `${S.method}/${t}/${i}/${j}`;
+    let found = tiles.get(key);
+    if (found) { tiles.delete(key); tiles.set(key, found); return found; }  // most recently used last
+    found = document.createElement('canvas');
+    found.width = found.height = TILE;
+    paintTile(found.getContext('2d'), t, i, j);
+    tiles.set(key, found);
+    if (tiles.size > MAX_TILES) tiles.delete(tiles.keys().next().value);
+    return found;
+  }
+  function paintTile(g, t, i, j) {
+    const sx = (second.width / Math.max(nRef, 1)) * 2 ** t, sy = (second.height / Math.max(nQuery, 1)) * 2 ** t;
+    const x0 = i * TILE, y0 = j * TILE, m = D.methods[S.method];
+    const q0 = Math.max(0, Math.floor(y0 / sy)), q1 = Math.min(nQuery, Math.ceil((y0 + TILE) / sy));
+    const r0 = Math.floor(x0 / sx) - 1, r1 = Math.ceil((x0 + TILE) / sx) + 1;
+    const cw = Math.max(sx, 1), ch = Math.max(sy, 1);
     if (D.positives) {
       g.fillStyle = C.band;
-      for (let q = q0; q < q1; q++) for (const r of D.positives[q] || []) g.fillRect(v.ox + r * v.sx, v.oy + q * v.sy, cw, ch);
+      for (let q = q0; q < q1; q++) for (const r of D.positives[q] || []) {
+        if (r >= r0 && r <= r1) g.fillRect(r * sx - x0, q * sy - y0, cw, ch);
+      }
     }
     for (let q = q0; q < q1; q++) {
       const refs = m.refs[q];
       for (let k = refs.length - 1; k >= 0; k--) {
-        if (refs[k] < 0) continue;
+        const r = refs[k];
+        if (r < r0 || r > r1) continue;
         g.fillStyle = k === 0 ? C[outcome(q)] : C.cell;
         g.globalAlpha = k === 0 ? 1 : 0.25 + 0.5 * (1 - k / refs.length);
-        g.fillRect(v.ox + refs[k] * v.sx, v.oy + q * v.sy, cw, ch);
+        g.fillRect(r * sx - x0, q * sy - y0, cw, ch);
       }
     }
     g.globalAlpha = 1;
