@@ -96,7 +96,8 @@ class LoopRun:
         """The demo's loop row."""
         s = self.summary
         return (f"loop closures (day drive, then {s['drive']} drive, L={s['seq_len']}, exclude {s['exclude']}): "
-                f"{s['true_revisits']} of {s['frames']} frames revisit, {s['accepted']} loops accepted, "
+                f"{s['true_revisits']} of {s['frames']} frames revisit, {s['accepted']} loop"
+                f"{'' if s['accepted'] == 1 else 's'} accepted, "
                 f"{s['accepted_correct']} right; recall at 100% precision {s['recall_at_100_precision']:.3f}, "
                 f"PR-AUC {s['pr_auc']:.3f}")
 
