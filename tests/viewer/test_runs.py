@@ -65,3 +65,13 @@ def test_what_is_not_a_seqvpr_output_or_holds_no_query_is_one_line(runs, tmp_pat
     cli(monkeypatch, capsys, "match", "-r", runs / "qry.npz", "-q", runs / "ref.npz", "--radius", "2f", "-L", "3",
         "--out", other)
     raises_one_line("other traversals", read_views, [other, tmp_path / "run"])
+
+
+def test_the_page_never_lands_on_a_run_but_may_go_in_its_own_view_folder(runs, tmp_path, monkeypatch, capsys):
+    cli(monkeypatch, capsys, "match", "-r", runs / "ref.npz", "-q", runs / "qry.npz", "--radius", "2f", "-L", "3",
+        "--out", tmp_path / "run")
+    raises_one_line("write it elsewhere", view_page, [tmp_path / "run"], tmp_path / "run")
+    raises_one_line("write it elsewhere", view_page, [tmp_path / "run"], tmp_path / "run" / "report")
+    raises_one_line("write it elsewhere", view_page, [tmp_path / "run"], tmp_path)
+    assert view_page([tmp_path / "run"], tmp_path / "run" / "view").is_file()
+

@@ -30,12 +30,9 @@ Examples:
 def view(runs: tuple[str, ...], out_dir: str | None, open_page: bool) -> None:
     """Write an interactive page of RUNS: the route with each query's outcome, the selected frame beside its top-K
     (every run side by side), the distances or the timeline; keyboard stepping through frames and failures."""
-    from seqvpr.io import check_output_apart
     from seqvpr.viewer import view_page
 
     out = Path(out_dir) if out_dir else default_out(Path(runs[0]))
-    if out_dir:
-        check_output_apart(out, list(runs))
     page = view_page([Path(r) for r in runs], out, progress=tqdm_progress)
     click.echo(f"wrote {page}")
     if open_page:

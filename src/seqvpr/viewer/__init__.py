@@ -10,8 +10,12 @@ from typing import Any
 
 def view_page(runs: Sequence[str | Path], out: str | Path, progress: Any = None) -> Path:
     """The page of ``runs`` (match folders over one pair, or one localisation, or one map) written to ``out``
-    (``out/index.html`` and its thumbnails); its path."""
+    (``out/index.html`` and its thumbnails); its path. ``out`` is apart from every run, except that a run's own
+    ``RUN/view`` is where its page goes by default (the run's report links there)."""
+    from seqvpr.io import check_output_apart
     from seqvpr.viewer.page import write_view
     from seqvpr.viewer.runs import read_views
 
+    own = Path(out).resolve()
+    check_output_apart(out, [r for r in runs if (Path(r) / "view").resolve() != own], "the page's folder")
     return write_view(read_views([Path(r) for r in runs]), out, progress)
