@@ -26,7 +26,8 @@ EXPORTS = {
     "build_map": "seqvpr.maps.build", "open_map": "seqvpr.maps.files",
     "Localizer": "seqvpr.localization.localizer",
     "loops": "seqvpr.localization.loops", "LoopSettings": "seqvpr.localization.loops",
-    "LoopDetector": "seqvpr.localization.loop_detector",
+    "LoopDetector": "seqvpr.localization.loop_detector", "add_to_map": "seqvpr.maps.grow",
+    "view_page": "seqvpr.viewer",
 }
 __all__ = ["SeqvprError", "__version__", *EXPORTS]
 
