@@ -291,21 +291,29 @@ def test_the_node_publishes_the_loops_seqvpr_loops_finds_and_keeps_its_past_in_t
         assert len(saved["rows"]) == len(images) and len(saved["stamps"]) == len(images)
 
 
+@pytest.mark.parametrize("kept", ["sources", "map"])
 def test_the_node_publishes_each_matched_map_frames_thumbnail_and_a_latched_route(drive, shared_data, dds,
-                                                                                   tmp_path):
-    """A map of Gardens Point's day images (a metre a frame): while localised or uncertain, the node publishes the
-    matched map frame's thumbnail, byte for byte the file the status names; the route reaches a late subscriber."""
+                                                                                   tmp_path, kept):
+    """A map of Gardens Point's day walk (a metre a frame): while localised or uncertain, the node publishes the
+    matched map frame's thumbnail, byte for byte what the status names: made from the map's source images (a map
+    of image files), or kept in the map (a map of the day bag built with --thumbnails: its frames are no files);
+    the route reaches a late subscriber; the recording opens in the viewer."""
     import shutil
 
+    from seqvpr.maps.thumbnails import map_thumbnail
     from seqvpr.ros2.dds import LATCHED
     from seqvpr.ros2.messages import COMPRESSED, PATH
 
     root, _ = drive
-    day = tmp_path / "day"
-    shutil.copytree(shared_data / "gardenspoint_walking" / "day_left", day)
-    names = sorted(p.name for p in day.glob("*.jpg"))
-    (day / "positions.csv").write_text("name,easting,northing\n" + "".join(f"{n},0,{i}\n" for i, n in enumerate(names)))
-    seqvpr("map", "build", day, "--out", tmp_path / "map")
+    if kept == "sources":
+        day = tmp_path / "day"
+        shutil.copytree(shared_data / "gardenspoint_walking" / "day_left", day)
+        names = sorted(p.name for p in day.glob("*.jpg"))
+        (day / "positions.csv").write_text("name,easting,northing\n" + "".join(f"{n},0,{i}\n"
+                                                                                for i, n in enumerate(names)))
+        seqvpr("map", "build", day, "--out", tmp_path / "map")
+    else:
+        seqvpr("map", "build", root / "day_left", "--thumbnails", "--out", tmp_path / "map")
     statuses, images = Recorder("/seqvpr/status", STATUS), Recorder("/seqvpr/match/compressed", COMPRESSED)
     node = start_seqvpr(dds, "node", "--map", tmp_path / "map", *NODE, "--no-drop", "--publish-images")
     try:
@@ -324,10 +332,13 @@ def test_the_node_publishes_each_matched_map_frames_thumbnail_and_a_latched_rout
         images.close()
     assert len(shown) > 10 and len(published) == len(shown)
     for values, sample in zip(shown, published):
-        assert bytes(sample.message.data) == Path(values["match_image"]).read_bytes()
-        assert sample.message.format == "jpeg"
+        row = int(values["map_index"] or values["best_index"])
+        expected = map_thumbnail(tmp_path / "map", row) if kept == "map" else Path(values["match_image"]).read_bytes()
+        assert bytes(sample.message.data) == expected and sample.message.format == "jpeg"
+        assert values["match_image"] == (f"thumbnails.bin[{row}]" if kept == "map" else values["match_image"])
     assert len(paths) == 1 and len(paths[0].message.poses) == 200
-    assert [p.pose.position.y for p in paths[0].message.poses] == list(map(float, range(200)))
+    if kept == "sources":
+        assert [p.pose.position.y for p in paths[0].message.poses] == list(map(float, range(200)))
     # the recording (seqvpr play --record) opens in seqvpr view as a localisation: its statuses, in order
     assert "on /seqvpr/status" in played.stdout and "on /seqvpr/match/compressed" in played.stdout
     from seqvpr.viewer.runs import read_views

@@ -65,6 +65,9 @@ def map_group() -> None:
 @option("Index", "--seed", type=SEED, default=0, show_default=True,
         help="Seed of the index's training sample and k-means.")
 @option("Compute", "--device", type=DEVICE, default="cpu", show_default=True, help="torch device, e.g. cpu or cuda.")
+@option("Output", "--thumbnails", is_flag=True,
+        help="Keep each frame's thumbnail in the map (image sources), so seqvpr node --publish-images shows the "
+             "matched frame where the source images are not (a bag, a map copied to the robot).")
 @option("Output", "--shards", type=COUNT,
         help="Write the map as this many shards (as seqvpr map shard does) for matching under torchrun.")
 @option("Output", "--overlap", type=NONNEGATIVE, default=63, show_default=True,
@@ -73,7 +76,7 @@ def map_group() -> None:
 @locks_output("out_dir")
 def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs: tuple[str, ...], dtype: str,
           no_normalize: bool, index_spec: str | None, windows: int, window_method: str, index_model: str | None,
-          seed: int, device: str, shards: int | None, overlap: int, **options: Any) -> None:
+          seed: int, device: str, thumbnails: bool, shards: int | None, overlap: int, **options: Any) -> None:
     """Describe SOURCES (descriptor files, image folders, dbStruct, dataset.toml) and save them as one map (or as
     --shards shard maps)."""
     from seqvpr.io import check_replaceable
@@ -90,13 +93,18 @@ def build(sources: tuple[str, ...], out_dir: str, frames: str | None, model_dirs
     index = (spec, seed, windows, window_method, index_model)
     if not shards:
         _build_map(sources, out_dir, description, models, extraction, dtype=dtype, normalize=not no_normalize,
-                   device=device, frames=frames, index=index)
+                   device=device, frames=frames, index=index, thumbnails=thumbnails)
         return
+    if thumbnails:
+        from seqvpr.errors import SeqvprError
+
+        raise SeqvprError("--thumbnails: a sharded map keeps no thumbnails yet; build one map")
     _build_sharded(sources, out_dir, (shards, overlap), description, models, extraction, dtype=dtype,
                    normalize=not no_normalize, device=device, frames=frames, index=index)
 
 
-def _build_map(sources, out_dir, description, models, extraction, *, dtype, normalize, device, frames, index) -> None:
+def _build_map(sources, out_dir, description, models, extraction, *, dtype, normalize, device, frames, index,
+               thumbnails=False) -> None:
     """Build one map (with its index, if one is asked for, committed as one) and print what it holds."""
     from seqvpr.maps import build_map
     from seqvpr.maps.index import add_index
@@ -106,7 +114,7 @@ def _build_map(sources, out_dir, description, models, extraction, *, dtype, norm
     indexed = None if spec is None else (lambda saved: records.append(
         add_index(saved, spec, seed, tqdm_progress, windows, window_method, index_model)))
     saved = build_map(sources, out_dir, description, models, dtype=dtype, normalize=normalize, device=device,
-                      progress=tqdm_progress, frames=frames, indexed=indexed, **extraction)
+                      progress=tqdm_progress, frames=frames, indexed=indexed, thumbnails=thumbnails, **extraction)
     _echo_built(out_dir, saved.info)
     for record in records:
         _echo_index(record)

@@ -31,7 +31,7 @@ FLAGS = {
     "jitter": "--jitter", "hue": "--hue", "crop_scale": "--crop-scale", "max_iterations": "--max-iterations",
     "init": "--init", "trainable_stages": "--trainable-stages", "refresh_every": "--refresh-every",
     "batch_size": "--batch-size", "lr_step": "--lr-step", "lr": "--lr", "floor": "--floor", "engine": "--engine",
-    "exclude": "--exclude", "shortlist_index": "--shortlist-index",
+    "exclude": "--exclude", "shortlist_index": "--shortlist-index", "thumbnails": "--thumbnails",
 }
 
 BACKBONES = ("efficientnet-lite0", "resnet18", "resnet50")

@@ -136,16 +136,20 @@ def build_map(
     progress: ProgressFactory | None = None,
     frames: str | None = None,
     indexed: Callable[[SavedMap], object] | None = None,
+    thumbnails: bool = False,
     **extraction: Any,
 ) -> SavedMap:
     """Describe every source (``described_map``) and save the frames as one map. ``indexed`` (e.g. ``add_index``)
     runs on the new map before it replaces anything at ``out``, so a failed index leaves the previous map as it
-    was."""
+    was. ``thumbnails`` keeps each frame's thumbnail in the map (sources of images only)."""
     sources = checked_sources(sources, out, models)
     check_build_settings(description, dtype, normalize, device, progress, frames, indexed, extraction)
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
-    write_indexed_map(Path(out), whole, info, indexed)
+    if thumbnails and whole.image_paths is None:
+        raise SettingError(f"{{thumbnails}}: {', '.join(map(str, sources))} hold descriptors, not images; a map keeps "
+                           "thumbnails of image sources")
+    write_indexed_map(Path(out), whole, info, indexed, thumbnails)
     return open_map(out)
 
 
@@ -316,11 +320,11 @@ class UnitRows:
 
 
 def write_indexed_map(out: Path, frames: Traversal, info: MapInfo,
-                      indexed: Callable[[SavedMap], object] | None) -> None:
+                      indexed: Callable[[SavedMap], object] | None, thumbnails: bool = False) -> None:
     """``write_map``, and ``indexed`` run on the written map, committed to ``out`` as one; what a map there held
     that it did not own (a user's files) is carried over (``keep.keep_users_files``)."""
     with atomic_folder(out, INFO_FILE) as tmp:  # a failed write names out, not the temporary
-        write_map(tmp, frames, info)
+        write_map(tmp, frames, info, thumbnails=thumbnails)
         if indexed is not None:
             indexed(open_map(tmp))
         keep_users_files(out, tmp)

@@ -95,13 +95,13 @@ class MapInfo:
         return values
 
 
-def write_map(folder: str | Path, frames: Traversal, info: MapInfo, fitted=None) -> Path:
+def write_map(folder: str | Path, frames: Traversal, info: MapInfo, fitted=None, thumbnails: bool = False) -> Path:
     """Write a map folder atomically: the rows checked (finite; unit length in a normalised map) before anything is
     written, the descriptors in ``info.dtype`` (read, encoded and written a chunk at a time: ``frames.descriptors``
     may be a memory map or lazy rows, never held whole; by ``fitted``, ``codes.fit_encoder``'s, when given), the
     per-frame table (``write_frame_table``), each file's digest and the map's identity in ``map.json``, written last;
     the folder is opened as a reader would before it replaces an old map, so a map that cannot be opened never takes
-    the name."""
+    the name. With ``thumbnails``, each frame's thumbnail is kept too (``seqvpr.maps.thumbnails``)."""
     assert frames.descriptors is not None
     parse_storage(info.dtype, frames.descriptors.shape[1])  # an unknown storage fails before anything is written
     check_rows(frames.descriptors, info.normalized, f"{folder}: the map's rows")
@@ -113,6 +113,10 @@ def write_map(folder: str | Path, frames: Traversal, info: MapInfo, fitted=None)
         if side is not None:
             np.save(tmp / SIDE_FILES[parse_storage(info.dtype)[0]], side)
         write_frame_table(frames, info, names, lambda name: open(tmp / name, "wb"))
+        if thumbnails:
+            from seqvpr.maps.thumbnails import write_map_thumbnails
+
+            write_map_thumbnails(tmp, frames.image_paths)
         write_sealed_info(tmp, info)
         open_map(tmp)  # what a reader will do, before the map replaces anything
     return Path(folder)

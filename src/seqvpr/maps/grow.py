@@ -47,6 +47,11 @@ def add_to_map(map_folder: str | Path, sources: Sequence[str], session: str | No
     if is_sharded_map(folder):
         raise SeqvprError(f"{folder}: a sharded map takes no map add; grow the whole map, then shard it again "
                           "(seqvpr map shard)")
+    from seqvpr.maps.thumbnails import has_thumbnails
+
+    if has_thumbnails(folder):
+        raise SeqvprError(f"{folder}: a map that keeps thumbnails takes no map add yet (its new frames would have "
+                          "none); build it again with every source and --thumbnails")
     sources = checked_sources(sources, folder, models)
     with output_lock(folder):
         saved = open_map(folder)

@@ -242,23 +242,34 @@ class LocalizerNode:
         return values
 
     def _publish_match(self, estimate: Any, stamp: Any) -> str | None:
-        """With ``publish_images``, the matched map frame's thumbnail (``seqvpr.viewer.thumbs``: made once per image,
-        cached) on ``/seqvpr/match/compressed`` while localised or uncertain; its file, for the status (None: no
-        image published)."""
+        """With ``publish_images``, the matched map frame's thumbnail on ``/seqvpr/match/compressed`` while localised
+        or uncertain: the one the map keeps (``map build --thumbnails``), else one made from the map's source image
+        (``seqvpr.data.thumbnails``, once per image, cached); where it came from, for the status (None: none)."""
         if self.match_writer is None or estimate.status not in ("localised", "uncertain") or estimate.best is None:
             return None
         from seqvpr.ros2.camera import header
-        from seqvpr.viewer.thumbs import cached_thumbnail, thumbnail_cache
 
         row = estimate.index if estimate.status == "localised" else estimate.best
+        found = self._thumbnail(row)
+        if found is None:
+            return None
+        data, where = found
+        self.match_writer.write(outgoing(COMPRESSED, message(COMPRESSED, header=header(stamp, self.settings.frame_id),
+                                                                  format="jpeg", data=np.frombuffer(data, np.uint8))))
+        return where
+
+    def _thumbnail(self, row: int) -> tuple[bytes, str] | None:
+        """Map frame ``row``'s thumbnail bytes and where they came from (None: neither the map nor its source has
+        one)."""
+        from seqvpr.data.thumbnails import cached_thumbnail, thumbnail_cache
+        from seqvpr.maps.thumbnails import THUMBNAILS_FILE, map_thumbnail
+
+        kept = map_thumbnail(self.localizer.saved.folder, row)
+        if kept is not None:
+            return kept, f"{THUMBNAILS_FILE}[{row}]"
         images = self.localizer.saved.frames.image_paths
         thumb = cached_thumbnail(images[row], thumbnail_cache()) if images is not None else None
-        if thumb is None:
-            return None
-        data = np.frombuffer(thumb.read_bytes(), np.uint8)
-        self.match_writer.write(outgoing(COMPRESSED, message(COMPRESSED, header=header(stamp, self.settings.frame_id),
-                                                                  format="jpeg", data=data)))
-        return str(thumb)
+        return (thumb.read_bytes(), str(thumb)) if thumb is not None else None
 
     def _find_loop(self, estimate: Any, stamp: float | None, header_stamp: Any):
         """The frame's loop closure (None without loop detection, or for a frame the keyframe gate skipped): the

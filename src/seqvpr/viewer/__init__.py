@@ -1,5 +1,5 @@
 """The interactive viewer (``seqvpr view``): seqvpr's output folders read back (``seqvpr.viewer.runs``), their
-frames' thumbnails (``seqvpr.viewer.thumbs``) and one self-contained HTML page (``seqvpr.viewer.page``)."""
+frames' thumbnails (``seqvpr.data.thumbnails``) and one self-contained HTML page (``seqvpr.viewer.page``)."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from seqvpr.io import atomic_folder
 from seqvpr.viewer.runs import Side, View
-from seqvpr.viewer.thumbs import page_thumbnails
+from seqvpr.data.thumbnails import page_thumbnails
 
 PAGE_FILE = "index.html"
 #: top-K columns a page keeps per method (the panel shows the first of them)

@@ -1,7 +1,7 @@
-"""Thumbnails for the viewer, made once per image content: a frame's small JPEG is cached under its file's digest
-(``seqvpr.identity.file_digest``, remembered by the file's stamp, so a second page costs a stat a frame) in seqvpr's
-cache folder, and linked into a page's own folder. A frame whose image is gone gets no thumbnail (the page shows a
-placeholder)."""
+"""Frame thumbnails, made once per image content: a frame's small JPEG is cached under its file's digest
+(``seqvpr.identity.file_digest``, remembered by the file's stamp, so a second use costs a stat a frame) in seqvpr's
+cache folder; the viewer links them into a page's folder, a map built with thumbnails keeps them in one file
+(``seqvpr.maps.thumbnails``), the node publishes them. A frame whose image is gone gets none."""
 
 from __future__ import annotations
 
