@@ -75,3 +75,22 @@ def test_the_page_never_lands_on_a_run_but_may_go_in_its_own_view_folder(runs, t
     raises_one_line("write it elsewhere", view_page, [tmp_path / "run"], tmp_path)
     assert view_page([tmp_path / "run"], tmp_path / "run" / "view").is_file()
 
+
+
+def test_a_run_whose_images_moved_opens_with_placeholders_and_a_note(tmp_path, monkeypatch, capsys):
+    import json
+
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    for side in ("ref", "qry"):
+        (tmp_path / side).mkdir()
+        for i in range(8):
+            Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(tmp_path / side / f"{i:03d}.png")
+    cli(monkeypatch, capsys, "match", "-r", tmp_path / "ref", "-q", tmp_path / "qry", "--radius", "1f", "-L", "3",
+        "--out", tmp_path / "run")
+    shutil.move(tmp_path / "ref", tmp_path / "elsewhere")
+    page = view_page([tmp_path / "run"], tmp_path / "page")
+    data = json.loads(page.read_text().split('<script id="data" type="application/json">')[1].split("</script>")[0])
+    assert any("cannot be read now" in note for note in data["notes"])
+    assert data["reference"]["thumbs"] == [] and all(data["query"]["thumbs"])  # placeholders; the query's still shown
