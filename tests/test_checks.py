@@ -112,7 +112,7 @@ BUILD = {
     "sources": ([None, 3, OBJECT, [], [3]], None), "out": (PATH, None), "description": (INSTANCE, None),
     "models": ([3, "x", {"a": 1}], None), "dtype": (CHOICE + ["pq:0"], None), "normalize": (FLAG, None),
     "device": ([3, "nope", OBJECT], None), "progress": (FUNCTION, None), "frames": ([3, "abc", OBJECT], None),
-    "indexed": (FUNCTION, None), "extraction": ([], None),
+    "indexed": (FUNCTION, None), "thumbnails": (FLAG, None), "extraction": ([], None),
 }
 OPEN_MAP = {"folder": (PATH, None)}
 LOCALIZER_OPEN = {

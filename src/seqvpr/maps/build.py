@@ -144,6 +144,7 @@ def build_map(
     was. ``thumbnails`` keeps each frame's thumbnail in the map (sources of images only)."""
     sources = checked_sources(sources, out, models)
     check_build_settings(description, dtype, normalize, device, progress, frames, indexed, extraction)
+    checks.flag(thumbnails, "thumbnails")
     whole, info = described_map(sources, Path(out).name, description, models, dtype=dtype, normalize=normalize,
                                 device=device, progress=progress, frames=frames, **extraction)
     if thumbnails and whole.image_paths is None:
