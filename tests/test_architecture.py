@@ -1,5 +1,5 @@
 """The shape of the package: layered imports without cycles, what the command line imports, small functions and
-modules. These are the foundation's rules (README, "Architecture"), checked on the source itself."""
+modules. These are the foundation's rules (docs/concepts/architecture.md), checked on the source itself."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "seqvpr"
 
-#: lower layers never import higher ones (the README's data flow: cli -> ros2 -> localization -> experiments/maps ->
-#: methods -> training -> matchers -> models -> evaluation/features -> data/sequences/synthetic -> errors/io)
+#: lower layers never import higher ones (docs/concepts/architecture.md: cli -> ros2 -> localization ->
+#: experiments/maps -> methods -> training -> matchers -> models -> evaluation/features -> data/sequences/synthetic ->
+#: errors/io)
 LAYERS = {
     "seqvpr": 0, "seqvpr.errors": 0, "seqvpr.io": 0, "seqvpr.threads": 0, "seqvpr.progress": 0, "seqvpr.cache": 0,
     "seqvpr.identity": 0, "seqvpr.arrays": 0,

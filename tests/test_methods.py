@@ -163,7 +163,8 @@ def test_implied_method_length_and_models_used():
 
 
 def test_a_new_method_is_one_record_plus_its_function(monkeypatch, pair):
-    """The README's how-to: a pooling function and one Method record make a method ``seqvpr.match`` runs."""
+    """The documented how-to (docs/concepts/architecture.md): a pooling function and one Method record make a
+    method ``seqvpr.match`` runs."""
     import torch
 
     from seqvpr.methods import Method

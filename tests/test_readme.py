@@ -1,4 +1,7 @@
-"""The README's Python examples run as written (from the repository root, with the project's data beside it)."""
+"""The README's examples run as written, from the repository root with the project's data beside it: its Python
+blocks that use ``import seqvpr`` (the public face), and its shell blocks in order in one shell (the install lines
+excepted: the suite runs in the environment they make). A block preceded by ``<!-- not run: why -->`` is skipped,
+saying why."""
 
 from __future__ import annotations
 
@@ -11,23 +14,48 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "gardenspoint_delf_hdc"
+DATA = ROOT.parent / "shared" / "data"
+NOT_RUN = re.compile(r"<!-- not run: (.+?) -->\s*$")
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data is absent")]
 
 
-def python_blocks(text: str) -> list[str]:
-    """The README's fenced ``python`` blocks that use ``import seqvpr`` (the public face)."""
-    return [b for b in re.findall(r"```python\n(.*?)```", text, re.S) if b.startswith("import seqvpr\n")]
+def fenced_blocks(text: str, language: str) -> list[tuple[str, str | None]]:
+    """Each fenced block of ``language``: its code, and why it is not run (None: it is run)."""
+    found = []
+    for match in re.finditer(rf"```{language}\n(.*?)```", text, re.S):
+        before = text[: match.start()].rstrip().splitlines()[-1:] or [""]
+        marker = NOT_RUN.search(before[0])
+        found.append((match.group(1), marker.group(1) if marker else None))
+    return found
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data is absent")
-@pytest.mark.parametrize("number", range(2))
-def test_the_readmes_public_face_examples_run_as_written(number):
-    blocks = python_blocks((ROOT / "README.md").read_text())
-    assert len(blocks) == 2
-    env = {**os.environ, "SEQVPR_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", blocks[number]], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    recall = eval(done.stdout.strip().splitlines()[-1])  # the printed Recall@K
-    assert set(recall) == {1, 5, 10, 20} and 0.0 < recall[1] <= recall[20] <= 1.0
+def test_the_readmes_python_examples_run_as_written():
+    blocks = [(code, why) for code, why in fenced_blocks((ROOT / "README.md").read_text(), "python")
+              if code.startswith("import seqvpr\n")]
+    assert blocks
+    for code, why in blocks:
+        if why:
+            continue
+        done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env={**os.environ, "SEQVPR_THREADS": "1"},
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        recall = eval(done.stdout.strip().splitlines()[-1])  # the printed Recall@K
+        assert set(recall) == {1, 5, 10, 20} and 0.0 < recall[1] <= recall[20] <= 1.0
+
+
+def test_the_readmes_shell_examples_run_as_written(tmp_path):
+    """The example blocks (not the install and test commands) in one shell, in order, from a folder with the
+    project's data beside it as the repository root has (``../shared`` linked), so what they write stays there."""
+    blocks = [(code, why) for code, why in fenced_blocks((ROOT / "README.md").read_text(), "bash")
+              if "pip install" not in code]
+    run = [code for code, why in blocks if not why]
+    assert len(run) == 2 and len(blocks) == 3  # match and view; map and localise; (the node: marked not run)
+    (tmp_path / "shared").symlink_to(ROOT.parent / "shared")
+    (tmp_path / "root").mkdir()
+    env = {**os.environ, "SEQVPR_THREADS": "1", "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    done = subprocess.run(["bash", "-c", "set -euo pipefail\n" + "\n".join(run)], cwd=tmp_path / "root", env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, (done.stdout[-2000:], done.stderr[-2000:])
+    assert "R@1" in done.stdout
+    assert (tmp_path / "root" / "runs" / "nordland-L10" / "view" / "index.html").is_file()
+    assert (tmp_path / "root" / "runs" / "localised" / "stream.csv").is_file()
