@@ -40,7 +40,7 @@ def commands(group: click.Group, ctx: click.Context, path: str = "seqvpr"):
 def test_the_command_line_reference_lists_every_command_and_option(site):
     from seqvpr.cli import cli
 
-    page = (site / "reference" / "cli" / "index.html").read_text()
+    page = (site / "reference" / "cli.html").read_text()
     found = list(commands(cli, click.Context(cli, info_name="seqvpr")))
     assert len(found) > 20
     for path, command in found:
@@ -58,7 +58,7 @@ def test_the_api_reference_covers_every_public_name(site):
     listed = set(re.findall(r"^::: [\w.]+\.(\w+)$", (ROOT / "docs" / "reference" / "api.md").read_text(), re.M))
     public = {name for name in seqvpr.__all__ if name != "__version__"}
     assert listed == public
-    page = (site / "reference" / "api" / "index.html").read_text()
+    page = (site / "reference" / "api.html").read_text()
     for name in public:
         module = seqvpr.EXPORTS.get(name, "seqvpr.errors")
         assert f'id="{module}.{name}"' in page, name
