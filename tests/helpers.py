@@ -1,6 +1,7 @@
 """Small assertions shared by the test modules."""
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -129,3 +130,20 @@ def match_method(name: str, reference, query, settings, models=None, **conf):
     from seqvpr.api import match
 
     return match(reference, query, name, models=models or {}, settings=settings, **conf)
+
+
+NOT_RUN = re.compile(r"<!-- not run: (.+?) -->\s*$")
+
+
+def fenced_blocks(text: str, language: str | None = None) -> list[tuple[str, str, str | None]]:
+    """Each fenced code block of a Markdown text (of ``language`` when given): its language, its code, and why it
+    is not run (the ``<!-- not run: why -->`` line just above it; None: it is run)."""
+    found = []
+    for match in re.finditer(r"```(\w*)\n(.*?)```", text, re.S):
+        if language is not None and match.group(1) != language:
+            continue
+        before = text[: match.start()].rstrip().splitlines()[-1:] or [""]
+        marker = NOT_RUN.search(before[0])
+        found.append((match.group(1), match.group(2), marker.group(1) if marker else None))
+    return found
+

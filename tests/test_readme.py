@@ -6,31 +6,21 @@ saying why."""
 from __future__ import annotations
 
 import os
-import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from tests.helpers import fenced_blocks
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
-NOT_RUN = re.compile(r"<!-- not run: (.+?) -->\s*$")
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data is absent")]
 
 
-def fenced_blocks(text: str, language: str) -> list[tuple[str, str | None]]:
-    """Each fenced block of ``language``: its code, and why it is not run (None: it is run)."""
-    found = []
-    for match in re.finditer(rf"```{language}\n(.*?)```", text, re.S):
-        before = text[: match.start()].rstrip().splitlines()[-1:] or [""]
-        marker = NOT_RUN.search(before[0])
-        found.append((match.group(1), marker.group(1) if marker else None))
-    return found
-
-
 def test_the_readmes_python_examples_run_as_written():
-    blocks = [(code, why) for code, why in fenced_blocks((ROOT / "README.md").read_text(), "python")
+    blocks = [(code, why) for _, code, why in fenced_blocks((ROOT / "README.md").read_text(), "python")
               if code.startswith("import seqvpr\n")]
     assert blocks
     for code, why in blocks:
@@ -46,7 +36,7 @@ def test_the_readmes_python_examples_run_as_written():
 def test_the_readmes_shell_examples_run_as_written(tmp_path):
     """The example blocks (not the install and test commands) in one shell, in order, from a folder with the
     project's data beside it as the repository root has (``../shared`` linked), so what they write stays there."""
-    blocks = [(code, why) for code, why in fenced_blocks((ROOT / "README.md").read_text(), "bash")
+    blocks = [(code, why) for _, code, why in fenced_blocks((ROOT / "README.md").read_text(), "bash")
               if "pip install" not in code]
     run = [code for code, why in blocks if not why]
     assert len(run) == 2 and len(blocks) == 3  # match and view; map and localise; (the node: marked not run)

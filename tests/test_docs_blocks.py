@@ -1,0 +1,44 @@
+"""The documentation pages' examples run as written: every shell and Python block of every page runs in the suite,
+in the page's order, from a folder with the project's data beside it (as the repository root has), unless the line
+above it says ``<!-- not run: why -->``; and no code block is left without its language (an untagged block could
+hide a command from this test)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import fenced_blocks
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+PAGES = sorted((ROOT / "docs").rglob("*.md"))
+RUN = ("bash", "python")
+
+
+def runnable(page: Path) -> list[tuple[str, str]]:
+    return [(language, code) for language, code, why in fenced_blocks(page.read_text()) if language in RUN and not why]
+
+
+def test_every_block_says_its_language():
+    untagged = [str(p.relative_to(ROOT)) for p in PAGES for language, _, _ in fenced_blocks(p.read_text())
+                if not language]
+    assert not untagged
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data is absent")
+@pytest.mark.parametrize("page", [p for p in PAGES if runnable(p)], ids=lambda p: str(p.relative_to(ROOT)))
+def test_a_pages_examples_run_as_written(page, tmp_path):
+    (tmp_path / "shared").symlink_to(ROOT.parent / "shared")
+    work = tmp_path / "root"
+    work.mkdir()
+    env = {**os.environ, "SEQVPR_THREADS": "1", "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    for language, code in runnable(page):
+        command = ["bash", "-c", "set -euo pipefail\n" + code] if language == "bash" else [sys.executable, "-c", code]
+        done = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, (code[:200], done.stderr[-2000:])
