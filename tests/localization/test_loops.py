@@ -132,3 +132,14 @@ def test_a_detector_saved_and_restored_mid_drive_goes_on_as_if_never_stopped(tmp
     raises_one_line("other settings", other.restore, tmp_path / "state.npz")
     (tmp_path / "junk.npz").write_bytes(b"junk")
     raises_one_line("junk.npz", second.restore, tmp_path / "junk.npz")
+
+
+def test_a_frame_that_is_not_a_finite_descriptor_is_one_line_and_changes_nothing():
+    from seqvpr.localization.loop_detector import LoopDetector
+
+    detector = LoopDetector(LoopSettings(seq_len=2, exclude="1f"))
+    detector.update(np.ones(4, np.float32))
+    raises_one_line("NaN or infinity", detector.update, np.array([1.0, np.nan, 0.0, 0.0]))
+    raises_one_line("a frame of 5 values", detector.update, np.ones(5))
+    assert len(detector.sessions) == 1 and detector.update(np.ones(4)).frame == 1
+

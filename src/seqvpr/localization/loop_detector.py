@@ -228,8 +228,11 @@ class LoopDetector:
             self.since_break = 0
 
     def update(self, descriptor: Any, timestamp: float | None = None, position: Any = None) -> Loop:
-        """Match the window ending at this frame against the eligible past, then add the frame to the past."""
+        """Match the window ending at this frame against the eligible past, then add the frame to the past. A frame
+        that is not a finite descriptor is one line, and leaves the detector as it was."""
         row = frame_row(descriptor, self.transform, True).numbers.copy()
+        if not np.isfinite(row).all():
+            raise SeqvprError(f"a frame's descriptor holds NaN or infinity (frame {len(self.sessions)}); nothing added")
         self._enter(row, timestamp, position)
         frame = len(self.sessions) - 1
         if self.settings.shortlist:
