@@ -147,3 +147,17 @@ def fenced_blocks(text: str, language: str | None = None) -> list[tuple[str, str
         found.append((match.group(1), match.group(2), marker.group(1) if marker else None))
     return found
 
+
+def write_image_folder(folder, n: int, pixels: tuple[int, int], size: tuple[int, int], seed: int = 0):
+    """``n`` random PNG frames ``000.png``... in ``folder``: noise of ``pixels`` (height, width) blown up to ``size``
+    (width, height), so each frame is distinct and small."""
+    import numpy as np
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        noise = rng.integers(0, 255, (*pixels, 3), dtype=np.uint8)
+        Image.fromarray(noise).resize(size).save(folder / f"{i:03d}.png")
+    return folder
+

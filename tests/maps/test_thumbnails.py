@@ -3,26 +3,19 @@ they are map files (sealed, checked, kept when an index is added); what cannot k
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-from PIL import Image
 
 from seqvpr.data.thumbnails import cached_thumbnail, thumbnail_cache
 from seqvpr.maps import build_map
 from seqvpr.maps.files import open_map
 from seqvpr.maps.grow import add_to_map
 from seqvpr.maps.thumbnails import THUMBNAILS_FILE, map_thumbnail
-from tests.helpers import raises_one_line, write_route_files
+from tests.helpers import raises_one_line, write_image_folder, write_route_files
 
 
 @pytest.fixture
 def images(tmp_path):
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    rng = np.random.default_rng(0)
-    for i in range(12):
-        Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).resize((64, 48)).save(folder / f"{i:03d}.png")
-    return folder
+    return write_image_folder(tmp_path / "frames", 12, (24, 32), (64, 48))
 
 
 def test_each_frame_keeps_its_images_thumbnail(images, tmp_path):

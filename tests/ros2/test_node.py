@@ -20,7 +20,7 @@ from seqvpr.data.geo import latlon_to_utm
 from seqvpr.ros2.camera import status_values
 from seqvpr.ros2.messages import EMPTY, IMAGE, POSE, STATUS, message, outgoing
 from tests.bags import fixes, write_bag
-from tests.helpers import run_cli
+from tests.helpers import run_cli, write_image_folder
 from seqvpr.ros2.dds import Recorder
 from tests.ros2.conftest import ROOT, start_seqvpr
 
@@ -134,11 +134,7 @@ def test_sigterm_mid_stream_saves_the_state_and_restore_goes_on_as_uninterrupted
 @pytest.fixture
 def small_map(tmp_path):
     """A map of 12 small synthetic frames (patch-normalised), for the node's fault handling."""
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    rng = np.random.default_rng(0)
-    for i in range(12):
-        Image.fromarray(rng.integers(0, 255, (4, 6, 3), dtype=np.uint8)).resize((48, 32)).save(folder / f"{i:03d}.png")
+    folder = write_image_folder(tmp_path / "frames", 12, (4, 6), (48, 32))
     seqvpr("map", "build", folder, "--out", tmp_path / "map")
     return tmp_path / "map"
 

@@ -78,9 +78,10 @@ def loops(sources: tuple[str, ...], out_dir: str, frames: str | None, method: st
 
 def summary_text(summary: dict[str, Any]) -> str:
     """The run in a few lines."""
+    shortlist = summary.get("shortlist")
     lines = [f"frames {summary['frames']} in {len(summary['sessions'])} session(s), {summary['method']} L="
-             f"{summary['seq_len']}" + (f" (shortlist {summary['shortlist']['per_frame']}, {summary['shortlist']['index']})"
-                                 if "shortlist" in summary else "") +
+             f"{summary['seq_len']}" + (f" (shortlist {shortlist['per_frame']}, {shortlist['index']})" if shortlist
+                                        else "") +
              f", exclude {summary['exclude']}: {summary['accepted']} loops accepted "
              f"(score >= {summary['threshold']:g})"]
     if "radius" in summary:

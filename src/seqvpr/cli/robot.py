@@ -42,8 +42,8 @@ Examples:
 @option("Localiser", "--restore", is_flag=True, help="Start from the state saved in --state.")
 @option("Output", "--publish-images", is_flag=True,
         help="Also publish the matched map frame's thumbnail (CompressedImage) on /seqvpr/match/compressed while "
-             "localised or uncertain, from the map's source images (made once, cached); the map's route is on "
-             "/seqvpr/route (nav_msgs/Path, latched) either way.")
+             "localised or uncertain: the map's own (map build --thumbnails), else one made once from its source "
+             "image; the map's route is on /seqvpr/route (nav_msgs/Path, latched) either way.")
 @option("Loops", "--loops", is_flag=True, help="Also find loop closures within the drive (its frames as described "
         "for the map, causal windows of --seq-len) and publish the accepted ones on /seqvpr/loop (DiagnosticArray, "
         "status 'seqvpr loop'); with --state, the drive so far is kept in STATE.loops.npz.")

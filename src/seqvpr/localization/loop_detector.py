@@ -180,7 +180,8 @@ class LoopDetector:
     def _load_arrays(self, path: str | Path, arrays: dict[str, np.ndarray]) -> None:
         """The saved past, checked: one count across the per-frame arrays, finite rows, a ring that fits."""
         if not set(STATE_ARRAYS) <= set(arrays):
-            raise SeqvprError(f"{path}: a loop detector state without {', '.join(sorted(set(STATE_ARRAYS) - set(arrays)))}")
+            missing = ", ".join(sorted(set(STATE_ARRAYS) - set(arrays)))
+            raise SeqvprError(f"{path}: a loop detector state without {missing}")
         count = len(arrays["sessions"])
         rows, ring, lengths = arrays["rows"], arrays["ring"], arrays["ring_lengths"]
         shortlist = self.settings.shortlist

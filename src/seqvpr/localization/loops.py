@@ -285,7 +285,8 @@ def loops(
     from seqvpr.data.ground_truth import parse_radius
     from seqvpr.methods import check_run
 
-    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold, shortlist, shortlist_index)  # checked before anything is read
+    # checked before anything is read
+    settings = LoopSettings(method, seq_len, exclude, exclusion, threshold, shortlist, shortlist_index)
     listed = checks.paths(sources, "sources")
     unit = None if radius is None else parse_radius(checks.text(radius, "radius")).unit
     check_extraction_settings(**extraction)

@@ -234,13 +234,21 @@ def read_localize_view(folder: Path) -> View:
         raise SeqvprError(f"{folder / 'stream.csv'}: a localisation of 0 frames; nothing to view")
     if not query.names:
         query.names = [r["query_frame"] for r in rows]
-    number = lambda v: float(v) if v not in ("", None) else None  # noqa: E731
-    row = lambda v: int(v) if v not in ("", None) else -1  # noqa: E731
-    stream = {"status": [r["status"] for r in rows], "score": [number(r["score"]) for r in rows],
-              "localised": [row(r["localised_row"]) for r in rows], "best": [row(r["best_row"]) for r in rows],
-              "correct": [row(r.get("correct")) for r in rows], "threshold": record.get("threshold"),
+    stream = {"status": [r["status"] for r in rows], "score": [_number(r["score"]) for r in rows],
+              "localised": [_row(r["localised_row"]) for r in rows], "best": [_row(r["best_row"]) for r in rows],
+              "correct": [_row(r.get("correct")) for r in rows], "threshold": record.get("threshold"),
               "columns": list(rows[0]), "rows": [list(r.values()) for r in rows]}
     return View("localize", f"localisation: {folder.name}", reference, query, stream=stream, notes=notes)
+
+
+def _number(text: str | None) -> float | None:
+    """A number from a CSV cell or a status value (None where empty, or written as nan)."""
+    return float(text) if text not in ("", "nan", None) else None
+
+
+def _row(text: str | None) -> int:
+    """A row from a CSV cell or a status value (-1 where empty)."""
+    return int(text) if text not in ("", None) else -1
 
 
 def read_recording_view(folder: Path) -> View:
@@ -253,12 +261,11 @@ def read_recording_view(folder: Path) -> View:
     reference, _ = source_side(statuses[0][0], "reference", None, notes)
     columns = list(dict.fromkeys(k for _, values in statuses for k in values))
     rows = [[values.get(c, "") for c in columns] for _, values in statuses]
-    number = lambda v: float(v) if v not in ("", "nan", None) else None  # noqa: E731
-    row = lambda v: int(v) if v not in ("", None) else -1  # noqa: E731
-    stream = {"status": [v.get("state", "") for _, v in statuses], "score": [number(v.get("score")) for _, v in statuses],
-              "localised": [row(v.get("map_index")) for _, v in statuses],
-              "best": [row(v.get("best_index")) for _, v in statuses], "correct": [-1] * len(statuses),
-              "threshold": number(statuses[0][1].get("threshold")), "columns": columns, "rows": rows}
+    values = [v for _, v in statuses]
+    stream = {"status": [v.get("state", "") for v in values], "score": [_number(v.get("score")) for v in values],
+              "localised": [_row(v.get("map_index")) for v in values],
+              "best": [_row(v.get("best_index")) for v in values], "correct": [-1] * len(values),
+              "threshold": _number(values[0].get("threshold")), "columns": columns, "rows": rows}
     query = Side(str(folder), [v.get("stamp", str(i)) for i, (_, v) in enumerate(statuses)])
     return View("localize", f"recorded node: {folder.name}", reference, query, stream=stream, notes=notes)
 
