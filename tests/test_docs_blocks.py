@@ -6,6 +6,7 @@ hide a command from this test)."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,14 +19,28 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 PAGES = sorted((ROOT / "docs").rglob("*.md"))
 RUN = ("bash", "python")
+SNIPPET = re.compile(r'^--8<-- "([^"]+)"$', re.M)
+
+
+def page_text(page: Path) -> str:
+    """A page as the site shows it: a snippet line (``--8<-- "BENCHMARKS.md"``) replaced by the file it names."""
+    return SNIPPET.sub(lambda line: (ROOT / line.group(1)).read_text(), page.read_text())
 
 
 def runnable(page: Path) -> list[tuple[str, str]]:
-    return [(language, code) for language, code, why in fenced_blocks(page.read_text()) if language in RUN and not why]
+    return [(language, code) for language, code, why in fenced_blocks(page_text(page)) if language in RUN and not why]
+
+
+def test_a_snippet_brings_in_its_files_blocks(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "included.md").write_text("```bash\necho hi\n```\n")
+    page = tmp_path / "page.md"
+    page.write_text('# A page\n\n--8<-- "included.md"\n')
+    assert runnable(page) == [("bash", "echo hi\n")]
 
 
 def test_every_block_says_its_language():
-    untagged = [str(p.relative_to(ROOT)) for p in PAGES for language, _, _ in fenced_blocks(p.read_text())
+    untagged = [str(p.relative_to(ROOT)) for p in PAGES for language, _, _ in fenced_blocks(page_text(p))
                 if not language]
     assert not untagged
 
@@ -38,7 +53,9 @@ def test_a_pages_examples_run_as_written(page, tmp_path):
     work = tmp_path / "root"
     work.mkdir()
     env = {**os.environ, "SEQVPR_THREADS": "1", "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
-    for language, code in runnable(page):
-        command = ["bash", "-c", "set -euo pipefail\n" + code] if language == "bash" else [sys.executable, "-c", code]
+    for number, (language, code) in enumerate(runnable(page)):
+        script = tmp_path / f"block-{number}.{'sh' if language == 'bash' else 'py'}"  # as a reader saves it
+        script.write_text(("set -euo pipefail\n" if language == "bash" else "") + code)
+        command = ["bash", str(script)] if language == "bash" else [sys.executable, str(script)]
         done = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, (code[:200], done.stderr[-2000:])
