@@ -258,22 +258,22 @@ def test_bad_play_input_is_one_line(tmp_path, dds, monkeypatch, capsys):
 
 def test_the_node_publishes_the_loops_seqvpr_loops_finds_and_keeps_its_past_in_the_state(drive, shared_data,
                                                                                           dds, tmp_path):
-    """Gardens Point's day walk then its night walk as one bag (the night half revisits the day half): the node's
-    published loop closures are the accepted rows of ``seqvpr loops`` on the same bag, and its state holds the
-    drive so far."""
+    """The first half of Gardens Point's day walk then of its night walk as one bag (the night half revisits the day
+    half): the node's published loop closures are the accepted rows of ``seqvpr loops`` on the same bag, and its
+    state holds the drive so far."""
     root, _ = drive
     images = [p for side in ("day_left", "night_right")
-              for p in sorted((shared_data / "gardenspoint_walking" / side).glob("*.jpg"))]
+              for p in sorted((shared_data / "gardenspoint_walking" / side).glob("*.jpg"))[:100]]
     write_bag(tmp_path / "revisit", images, *fixes(len(images)), ros1=False, compressed=True)
-    seqvpr("loops", tmp_path / "revisit", "--exclude", "100f", "--threshold", "0.02", "--out", tmp_path / "loops")
+    seqvpr("loops", tmp_path / "revisit", "--exclude", "50f", "--threshold", "0.02", "--out", tmp_path / "loops")
     with open(tmp_path / "loops" / "loops.csv", newline="") as handle:
         accepted = [(int(r["frame"]), int(r["match"])) for r in csv.DictReader(handle) if r["accepted"] == "1"]
     assert len(accepted) >= 5
     loops, state = Recorder("/seqvpr/loop", STATUS), tmp_path / "node.npz"
-    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--loops", "--loop-exclude", "100f",
+    node = start_seqvpr(dds, "node", "--map", root / "map", *NODE, "--no-drop", "--loops", "--loop-exclude", "50f",
                         "--loop-threshold", "0.02", "--state", state)
     try:
-        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", tmp_path / "revisit", "--rate", "5", "--wait",
+        subprocess.run([sys.executable, "-m", "seqvpr.cli", "play", tmp_path / "revisit", "--rate", "20", "--wait",
                         "30"], env=dds, cwd=ROOT, check=True, capture_output=True, timeout=300)
         published = [status_values(s.message) for s in loops.wait_for(len(accepted), 120)]
         time.sleep(1.0)  # nothing more comes
