@@ -278,14 +278,14 @@ def test_two_processes_with_one_seed_give_bit_identical_weights(tmp_path):
 
     from seqvpr.data.sources import save_traversal_npz
 
-    reference, query = route(600, 256, 3)
+    reference, query = route(300, 128, 3)
     save_traversal_npz(tmp_path / "ref.npz", Traversal.from_descriptors(reference, "ref"))
     save_traversal_npz(tmp_path / "qry.npz", Traversal.from_descriptors(query, "qry"))
     runs = []
     for name in ("a", "b"):
         command = [sys.executable, "-c", "from seqvpr.cli import main; main()", "train", "seqmatchnet",
-                   "-r", str(tmp_path / "ref.npz"), "-q", str(tmp_path / "qry.npz"), "--train-frames", "0:450",
-                   "--val-frames", "450:600", "--radius", "1f", "-L", "5", "--epochs", "2", "--out", str(tmp_path / name)]
+                   "-r", str(tmp_path / "ref.npz"), "-q", str(tmp_path / "qry.npz"), "--train-frames", "0:220",
+                   "--val-frames", "220:300", "--radius", "1f", "-L", "5", "--epochs", "2", "--out", str(tmp_path / name)]
         done = subprocess.run(command, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "2"})
         assert done.returncode == 0, done.stderr
         runs.append(weights(tmp_path / name))
