@@ -39,7 +39,8 @@ def train(kind: str, out: Path, epochs: int, resume: bool = False):
     return train_seqnet(route_data(1), replace(SEQNET, epochs=epochs), out, resume=resume)
 
 
-def _rank(rank: int, port: int, kind: str, out: str, epochs: list[tuple[int, bool]]) -> None:
+def _rank(rank: int, port: int, kind: str, runs: list[tuple[str, int, bool]]) -> None:
+    """One rank's training runs in turn: (folder, epochs, resume) each."""
     import os
 
     from seqvpr.threads import use_threads
@@ -47,7 +48,7 @@ def _rank(rank: int, port: int, kind: str, out: str, epochs: list[tuple[int, boo
     use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2",
                       LOCAL_RANK=str(rank))
-    for count, resume in epochs:
+    for out, count, resume in runs:
         train(kind, Path(out), count, resume)
 
 
@@ -86,8 +87,8 @@ def test_two_ranks_train_the_single_process_model_and_resume(tmp_path, kind, alo
 
     use_threads(1)  # the one policy (a bare torch count would be re-asserted away)
     alone, alone_dir = alone_run(kind)
-    spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "two"), [(3, False)]))
-    spawn_ranks(_rank, (free_port(), kind, str(tmp_path / "resumed"), [(1, False), (3, True)]))
+    two, resumed = str(tmp_path / "two"), str(tmp_path / "resumed")
+    spawn_ranks(_rank, (free_port(), kind, [(two, 3, False), (resumed, 1, False), (resumed, 3, True)]))
     expected = state_weights(alone_dir)
     for run in ("two", "resumed"):
         got = state_weights(tmp_path / run)
@@ -198,7 +199,7 @@ def _rank_failing_in_epoch_2(rank: int, port: int, out: str) -> None:
             return real(self, model, loss, batch, step, rng, settings)
 
         SeqMatchNetLearner.batch_loss = failing  # type: ignore[method-assign]
-    _rank(rank, port, "seqmatchnet", out, [(3, False)])
+    _rank(rank, port, "seqmatchnet", [(out, 3, False)])
 
 
 def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whole_epoch_to_resume(tmp_path, alone_run):
@@ -210,7 +211,7 @@ def test_a_rank_failing_mid_run_fails_it_with_its_error_and_leaves_the_last_whol
     state = ckpt.read_json(tmp_path / "run" / STATE_JSON)
     assert [h["epoch"] for h in state["history"]] == [0, 1]  # epoch 1 whole (after the untrained 0), none of 2
     assert not list((tmp_path / "run").rglob("*.part"))
-    spawn_ranks(_rank, (free_port(), "seqmatchnet", str(tmp_path / "run"), [(3, True)]))
+    spawn_ranks(_rank, (free_port(), "seqmatchnet", [(str(tmp_path / "run"), 3, True)]))
     alone, alone_dir = alone_run("seqmatchnet")
     expected, got = state_weights(alone_dir), state_weights(tmp_path / "run")
     for key in expected:
