@@ -20,6 +20,14 @@ DATA = ROOT.parent / "shared" / "data"
 PAGES = sorted((ROOT / "docs").rglob("*.md"))
 RUN = ("bash", "python")
 SNIPPET = re.compile(r'^--8<-- "([^"]+)"$', re.M)
+ELSEWHERE = re.compile(r"the same commands as (\S+\.md)")  # a marker's reason: another page's test runs them
+
+
+def commands(code: str) -> list[str]:
+    """A block's commands, one per logical line: continuations joined, comments and blank lines dropped."""
+    joined = re.sub(r"\\\n\s*", " ", code)
+    return [" ".join(line.split("  #")[0].split()) for line in joined.splitlines()
+            if line.strip() and not line.startswith("#")]
 
 
 def page_text(page: Path) -> str:
@@ -37,6 +45,18 @@ def test_a_snippet_brings_in_its_files_blocks(tmp_path, monkeypatch):
     page = tmp_path / "page.md"
     page.write_text('# A page\n\n--8<-- "included.md"\n')
     assert runnable(page) == [("bash", "echo hi\n")]
+
+
+def test_a_block_said_to_run_on_another_page_runs_there():
+    """A block marked not run because another page runs the same commands: each of its commands is one of that
+    page's run commands, so the two cannot drift apart."""
+    said = [(page, code, ELSEWHERE.search(why)) for page in [ROOT / "README.md", *PAGES]
+            for _, code, why in fenced_blocks(page_text(page)) if why and ELSEWHERE.search(why)]
+    assert said  # the README's second example is one
+    for page, code, where in said:
+        there = {command for _, block in runnable(ROOT / where.group(1)) for command in commands(block)}
+        missing = [command for command in commands(code) if command not in there]
+        assert not missing, (str(page.relative_to(ROOT)), where.group(1), missing)
 
 
 def test_every_block_says_its_language():
