@@ -34,16 +34,6 @@ def pytest_unconfigure(config) -> None:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def pytest_collection_modifyitems(session, config, items) -> None:
-    """Modules with slow tests first (each module's tests kept together and in order, so its fixtures are made once
-    a worker): under ``-n auto`` the long tests start early instead of leaving one worker busy at the end."""
-    modules: dict[str, list] = {}
-    for item in items:
-        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
-    ordered = sorted(modules.values(), key=lambda tests: not any(t.get_closest_marker("slow") for t in tests))
-    items[:] = [item for tests in ordered for item in tests]
-
-
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not DATA.is_dir():
