@@ -52,7 +52,7 @@ def test_a_block_said_to_run_on_another_page_runs_there():
     page's run commands, so the two cannot drift apart."""
     said = [(page, code, ELSEWHERE.search(why)) for page in [ROOT / "README.md", *PAGES]
             for _, code, why in fenced_blocks(page_text(page)) if why and ELSEWHERE.search(why)]
-    assert said  # the README's second example is one
+    assert said  # the README's examples are
     for page, code, where in said:
         there = {command for _, block in runnable(ROOT / where.group(1)) for command in commands(block)}
         missing = [command for command in commands(code) if command not in there]

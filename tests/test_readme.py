@@ -5,13 +5,12 @@ can run (the node, which needs a robot's DDS network) says why."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 from tests.helpers import fenced_blocks
+from tests.test_docs_blocks import ELSEWHERE
 
 ROOT = Path(__file__).resolve().parents[1]
-ELSEWHERE = re.compile(r"the same commands as (\S+\.md)")
 
 
 def examples() -> list[tuple[str, str, str | None]]:
