@@ -34,6 +34,17 @@ def pytest_unconfigure(config) -> None:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def pytest_collection_modifyitems(session, config, items) -> None:
+    """Modules with slow tests first, each module's tests together and in order: under ``-n auto`` each module is
+    one worker's (``--dist loadscope``, so its fixtures are made once), and the long ones start early instead of
+    leaving one worker busy at the end."""
+    modules: dict[str, list] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
+    ordered = sorted(modules.values(), key=lambda tests: -sum(t.get_closest_marker("slow") is not None for t in tests))
+    items[:] = [item for tests in ordered for item in tests]
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not DATA.is_dir():
